@@ -1,0 +1,26 @@
+# Everything bootstraps itself: uv is installed with pip when missing, then `uv sync` builds the venv.
+UV = $(shell command -v uv 2>/dev/null || echo python3 -m uv)
+PYTEST_WORKERS ?= 2
+
+.PHONY: setup demo test lint format bench
+
+setup:
+	@command -v uv >/dev/null 2>&1 || python3 -m uv --version >/dev/null 2>&1 || python3 -m pip install -q uv
+	@$(UV) sync --frozen
+
+demo: setup
+	$(UV) run uwbcal demo
+
+lint: setup
+	$(UV) run ruff check .
+	$(UV) run ruff format --check .
+
+test: lint
+	$(UV) run pytest -n $(PYTEST_WORKERS)
+
+format: setup
+	$(UV) run ruff check --fix .
+	$(UV) run ruff format .
+
+bench: setup
+	$(UV) run uwbcal bench -o recordings/bench.json

@@ -1,0 +1,292 @@
+"""uwbcal: a thin typer CLI over the convert / pipeline / evaluate packages (no algorithm code here)."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from convert.errors import InputError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Robust UWB anchor calibration from a visual-inertial estimate (logging-first, offline).",
+)
+convert_app = typer.Typer(no_args_is_help=True, help="Normalise a dataset into one MCAP recording.")
+app.add_typer(convert_app, name="convert")
+
+_DEBUG = {"on": False}
+
+
+@app.callback()
+def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks.")] = False) -> None:
+    _DEBUG["on"] = debug
+
+
+def _guard(fn):
+    """Turn bad input into one line on stderr and exit code 2 (a traceback only with --debug)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError) as exc:
+            if _DEBUG["on"]:
+                raise
+            msg = str(exc) if isinstance(exc, InputError) else f"{exc.strerror}: {exc.filename}"
+            typer.echo(f"error: {msg}", err=True)
+            raise typer.Exit(2) from None
+
+    return wrapper
+
+
+class Align(str, Enum):
+    none = "none"
+    posyaw = "posyaw"
+    se3 = "se3"
+    sim3 = "sim3"
+
+
+class TableFormat(str, Enum):
+    md = "md"
+    csv = "csv"
+    latex = "latex"
+
+
+class InitMethod(str, Enum):
+    lsi = "lsi"
+    ri = "ri"
+    ri_robust = "ri-robust"
+
+
+class RefineMethod(str, Enum):
+    ekf = "ekf"
+    skf = "skf"
+    none = "none"
+
+
+class Experiment(str, Enum):
+    ri_vs_lsi = "ri-vs-lsi"
+    table1 = "table1"
+    ntu_viral = "ntu-viral"
+
+
+Output = Annotated[Path, typer.Option("-o", "--output", help="Output path.")]
+
+
+@app.command()
+@_guard
+def demo(output: Annotated[Path, typer.Option("-o", "--output")] = Path("recordings/demo")) -> None:
+    """Simulate the built-in trajectory, run every stage, evaluate and print a summary."""
+    from pipeline.demo import run_demo
+
+    run_demo(output)
+
+
+@app.command()
+@_guard
+def simulate(
+    output: Output,
+    trajectory: Annotated[
+        str | None, typer.Option(help="EuRoC ground-truth name (MH_01_easy) or file.")
+    ] = None,
+    anchors: Annotated[int, typer.Option(min=1, help="Number of anchors.")] = 4,
+    duration: Annotated[
+        float | None, typer.Option(help="Seconds to simulate (default: whole trajectory).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    nlos_rate: Annotated[float, typer.Option(help="Fraction of ranges with a positive NLOS bias.")] = 0.0,
+    dropout_rate: Annotated[float, typer.Option(help="Fraction of ranges dropped.")] = 0.0,
+    max_range: Annotated[float | None, typer.Option(help="Maximum UWB range [m].")] = None,
+) -> None:
+    """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
+    from convert.simulator import SimConfig, simulate_to_file
+
+    cfg = SimConfig(
+        trajectory=trajectory,
+        n_anchors=anchors,
+        duration=duration,
+        seed=seed,
+        nlos_rate=nlos_rate,
+        dropout_rate=dropout_rate,
+        max_range=max_range,
+    )
+    summary = simulate_to_file(cfg, output)
+    typer.echo(summary)
+
+
+@convert_app.command("euroc")
+@_guard
+def convert_euroc(
+    path: Annotated[Path, typer.Argument(help="EuRoC ASL folder (containing mav0/) or ROS1 .bag")],
+    output: Output,
+    groundtruth: Annotated[
+        Path | None, typer.Option(help="External ground truth (EuRoC CSV or TUM).")
+    ] = None,
+) -> None:
+    """Convert EuRoC (ASL folder or ROS1 bag)."""
+    from convert.euroc import convert_euroc as run
+
+    typer.echo(run(path, output, groundtruth=groundtruth))
+
+
+@convert_app.command("ntu-viral")
+@_guard
+def convert_ntu_viral(
+    path: Annotated[Path, typer.Argument(help="NTU-VIRAL ROS1 .bag or sequence folder of CSVs")],
+    output: Output,
+    antennas: Annotated[
+        Path | None, typer.Option(help="uwb_antennas.yaml (default: next to the data).")
+    ] = None,
+) -> None:
+    """Convert NTU-VIRAL (ROS1 bag or CSV sequence folder)."""
+    from convert.ntu_viral import convert_ntu_viral as run
+
+    typer.echo(run(path, output, antennas=antennas))
+
+
+@convert_app.command("tabular")
+@_guard
+def convert_tabular(
+    poses: Annotated[Path, typer.Option(help="TUM trajectory: t x y z qx qy qz qw")],
+    ranges: Annotated[Path, typer.Option(help="CSV: stamp,tag,antenna,anchor,distance")],
+    output: Output,
+    antennas: Annotated[Path | None, typer.Option(help="Antenna lever-arm yaml.")] = None,
+) -> None:
+    """Convert any odometry (TUM) plus UWB ranges (CSV)."""
+    from convert.tabular import convert_tabular as run
+
+    typer.echo(run(poses, ranges, output, antennas=antennas))
+
+
+@app.command()
+@_guard
+def info(recording: Annotated[Path, typer.Argument(help="A .mcap recording")]) -> None:
+    """Topics, counts, rates, duration, calibration and problems found."""
+    from convert.info import recording_info
+
+    typer.echo(recording_info(recording).render())
+
+
+@app.command()
+@_guard
+def run(
+    recording: Annotated[Path, typer.Argument(help="A .mcap recording")],
+    output: Output,
+    config: Annotated[Path | None, typer.Option(help="TOML config.")] = None,
+    init: Annotated[InitMethod | None, typer.Option(help="Initialiser.")] = None,
+    refine: Annotated[RefineMethod | None, typer.Option(help="Refinement.")] = None,
+    stages: Annotated[str | None, typer.Option(help="Comma-separated subset of stages.")] = None,
+    no_log: Annotated[bool, typer.Option("--no-log", help="Do not write run.rrd.")] = False,
+) -> None:
+    """Run the pipeline stages on a recording into a run directory."""
+    from pipeline.run import run_cli
+
+    typer.echo(
+        run_cli(
+            recording,
+            output,
+            config=config,
+            init=init and init.value,
+            refine=refine and refine.value,
+            stages=stages,
+            log=not no_log,
+        )
+    )
+
+
+@app.command()
+@_guard
+def evaluate(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory")],
+    align: Annotated[Align | None, typer.Option(help="Trajectory alignment.")] = None,
+    fmt: Annotated[TableFormat, typer.Option("--format", help="Table format.")] = TableFormat.md,
+) -> None:
+    """Compute metrics.json and print the results table."""
+    from evaluate.evaluation import evaluate_run_cli
+
+    typer.echo(evaluate_run_cli(run_dir, align=align and align.value, fmt=fmt.value))
+
+
+@app.command()
+@_guard
+def export(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory")],
+    output: Output,
+    fmt: Annotated[str, typer.Option("--format", help="Only 'tum'.")] = "tum",
+) -> None:
+    """Export estimate.tum and groundtruth.tum (at the estimate's stamps)."""
+    from evaluate.export import export_run
+
+    typer.echo(export_run(run_dir, output, fmt=fmt))
+
+
+@app.command()
+@_guard
+def experiment(
+    name: Annotated[Experiment, typer.Argument(help="Which experiment")],
+    output: Output,
+    runs: Annotated[int | None, typer.Option(min=1, help="Runs per cell.")] = None,
+    jobs: Annotated[int, typer.Option(min=1, help="Local worker processes.")] = 1,
+    scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address.")] = None,
+    seed: Annotated[int, typer.Option(help="Base seed.")] = 0,
+) -> None:
+    """Run a Monte Carlo experiment (tables, plots, per-run metrics)."""
+    from evaluate.experiments import run_experiment
+
+    typer.echo(run_experiment(name.value, output, runs=runs, jobs=jobs, scheduler=scheduler, seed=seed))
+
+
+@app.command()
+@_guard
+def diff(
+    baseline: Annotated[Path, typer.Argument(help="Reference metrics (file or folder)")],
+    current: Annotated[Path, typer.Argument(help="Current metrics (file or folder)")],
+    rtol: Annotated[float, typer.Option(help="Relative tolerance.")] = 0.05,
+) -> None:
+    """Compare metrics; exit 1 when CURRENT regresses beyond tolerance."""
+    from evaluate.diff import diff_paths
+
+    report = diff_paths(baseline, current, rtol=rtol)
+    typer.echo(report.render())
+    if report.regressed:
+        raise typer.Exit(1)
+
+
+@app.command()
+@_guard
+def view(
+    run_dirs: Annotated[list[Path], typer.Argument(help="One or more run directories")],
+    web: Annotated[bool, typer.Option("--web", help="Serve the web viewer on localhost.")] = False,
+) -> None:
+    """Open run.rrd in the rerun viewer (several runs side by side)."""
+    from pipeline.runlog import view_runs
+
+    view_runs(run_dirs, web=web)
+
+
+@app.command()
+@_guard
+def bench(
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Write results as JSON.")] = None,
+    cases: Annotated[str | None, typer.Option(help="Comma-separated case names.")] = None,
+    quick: Annotated[bool, typer.Option(help="Small sizes (smoke run).")] = False,
+) -> None:
+    """Run the benchmarks (wall time, real-time factor, peak memory, ratio to baseline)."""
+    from benchmarks.runner import run_benchmarks
+
+    typer.echo(run_benchmarks(output, cases=cases, quick=quick))
+
+
+def main() -> None:  # pragma: no cover
+    sys.exit(app())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

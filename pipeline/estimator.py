@@ -1,0 +1,80 @@
+"""What every pose source offers the UWB stages (MSCKF VIO and the external-odometry filter)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from .lie import rot_to_quat
+
+if TYPE_CHECKING:
+    from convert.recording import RecordingReader
+
+    from .runlog import RunLog
+    from .state import State
+
+
+@dataclass(frozen=True)
+class RangeMeasurement:
+    t_ns: int
+    tag: int
+    antenna: int
+    anchor: int
+    distance: float
+
+
+RangeHandler = Callable[["Estimator", RangeMeasurement], None]
+
+
+@dataclass
+class TrajectoryRecord:
+    """Pose estimates with 6x6 pose covariance (error [dtheta, dp]), appended during a run."""
+
+    t_ns: list[int] = field(default_factory=list)
+    p: list[np.ndarray] = field(default_factory=list)
+    q_xyzw: list[np.ndarray] = field(default_factory=list)
+    cov: list[np.ndarray] = field(default_factory=list)
+
+    def append(self, t_ns: int, R: np.ndarray, p: np.ndarray, cov6: np.ndarray) -> None:
+        if self.t_ns and t_ns <= self.t_ns[-1]:
+            if (
+                t_ns == self.t_ns[-1]
+            ):  # same instant recorded twice (e.g. range at a camera stamp): keep newest
+                self.p[-1], self.q_xyzw[-1], self.cov[-1] = p.copy(), rot_to_quat(R), cov6.copy()
+            return
+        self.t_ns.append(int(t_ns))
+        self.p.append(np.array(p, float))
+        self.q_xyzw.append(rot_to_quat(R))
+        self.cov.append(np.array(cov6, float))
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        n = len(self.t_ns)
+        return {
+            "t_ns": np.asarray(self.t_ns, dtype=np.int64),
+            "p": np.asarray(self.p, float).reshape(n, 3),
+            "q_xyzw": np.asarray(self.q_xyzw, float).reshape(n, 4),
+            "cov": np.asarray(self.cov, float).reshape(n, 6, 6),
+        }
+
+
+class Estimator(Protocol):
+    state: State
+    t_ns: int
+
+    def run(
+        self,
+        reader: RecordingReader,
+        start_ns: int | None,
+        end_ns: int | None,
+        *,
+        on_range: RangeHandler | None = None,
+        log: RunLog | None = None,
+    ) -> None: ...
+
+    def history(self) -> TrajectoryRecord: ...

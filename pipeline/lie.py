@@ -1,0 +1,172 @@
+"""SO(3) and quaternion helpers, vectorised over a leading axis where it matters.
+
+Conventions used across uwbcal:
+- ``R`` is world_from_body (``R_WB``): ``p_W = R @ p_B + t``.
+- Quaternions are Hamilton, stored ``(x, y, z, w)`` as in ROS messages.
+- Rotation errors are right (body-frame) perturbations: ``R = R_hat @ Exp(dtheta)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_EPS = 1e-10
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrix(es) of vector(s) ``v`` with shape (3,) or (N, 3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula for (3,) or (N, 3) rotation vectors."""
+    w = np.asarray(w, dtype=float)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = skew(w)
+    small = theta < 1e-7
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(th) / th)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector(s) of (3, 3) or (N, 3, 3) rotation matrices (robust near 0 and pi)."""
+    R = np.asarray(R, dtype=float)
+    single = R.ndim == 2
+    R = R.reshape(-1, 3, 3)
+    q = rot_to_quat(R)
+    # q = (x, y, z, w); keep w >= 0 so that the angle is in [0, pi]
+    q = np.where(q[:, 3:4] < 0, -q, q)
+    vn = np.linalg.norm(q[:, :3], axis=1)
+    angle = 2.0 * np.arctan2(vn, q[:, 3])
+    scale = np.where(vn < _EPS, 2.0 / np.maximum(q[:, 3], _EPS), angle / np.maximum(vn, _EPS))
+    out = q[:, :3] * scale[:, None]
+    return out[0] if single else out
+
+
+def jr_so3(w: np.ndarray) -> np.ndarray:
+    """Right Jacobian of SO(3): Exp(w + dw) ~= Exp(w) Exp(Jr(w) dw)."""
+    w = np.asarray(w, dtype=float)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = skew(w)
+    small = theta < 1e-5
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
+    b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - np.sin(th)) / th**3)
+    return np.eye(3) - a * K + b * (K @ K)
+
+
+def jr_inv_so3(w: np.ndarray) -> np.ndarray:
+    """Inverse of the right Jacobian of SO(3)."""
+    w = np.asarray(w, dtype=float)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = skew(w)
+    small = theta < 1e-5
+    th = np.where(small, 1.0, theta)
+    c = np.where(
+        small, 1.0 / 12.0 + theta**2 / 720.0, 1.0 / th**2 - (1.0 + np.cos(th)) / (2.0 * th * np.sin(th))
+    )
+    return np.eye(3) + 0.5 * K + c * (K @ K)
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """(x, y, z, w) quaternion(s) -> rotation matrix(es). Normalises the input."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - z * w)
+    R[..., 0, 2] = 2 * (x * z + y * w)
+    R[..., 1, 0] = 2 * (x * y + z * w)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - x * w)
+    R[..., 2, 0] = 2 * (x * z - y * w)
+    R[..., 2, 1] = 2 * (y * z + x * w)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def rot_to_quat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix(es) -> (x, y, z, w) unit quaternion(s) with w >= 0 (Shepperd's method)."""
+    R = np.asarray(R, dtype=float)
+    single = R.ndim == 2
+    R = R.reshape(-1, 3, 3)
+    tr = np.trace(R, axis1=1, axis2=2)
+    diag = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2], tr], axis=1)
+    k = np.argmax(diag, axis=1)
+    q = np.empty((R.shape[0], 4))
+    # case w largest
+    m = k == 3
+    s = np.sqrt(np.maximum(1.0 + tr[m], _EPS)) * 2
+    q[m] = np.stack(
+        [
+            (R[m, 2, 1] - R[m, 1, 2]) / s,
+            (R[m, 0, 2] - R[m, 2, 0]) / s,
+            (R[m, 1, 0] - R[m, 0, 1]) / s,
+            0.25 * s,
+        ],
+        axis=1,
+    )
+    m = k == 0
+    s = np.sqrt(np.maximum(1.0 + R[m, 0, 0] - R[m, 1, 1] - R[m, 2, 2], _EPS)) * 2
+    q[m] = np.stack(
+        [
+            0.25 * s,
+            (R[m, 0, 1] + R[m, 1, 0]) / s,
+            (R[m, 0, 2] + R[m, 2, 0]) / s,
+            (R[m, 2, 1] - R[m, 1, 2]) / s,
+        ],
+        axis=1,
+    )
+    m = k == 1
+    s = np.sqrt(np.maximum(1.0 + R[m, 1, 1] - R[m, 0, 0] - R[m, 2, 2], _EPS)) * 2
+    q[m] = np.stack(
+        [
+            (R[m, 0, 1] + R[m, 1, 0]) / s,
+            0.25 * s,
+            (R[m, 1, 2] + R[m, 2, 1]) / s,
+            (R[m, 0, 2] - R[m, 2, 0]) / s,
+        ],
+        axis=1,
+    )
+    m = k == 2
+    s = np.sqrt(np.maximum(1.0 + R[m, 2, 2] - R[m, 0, 0] - R[m, 1, 1], _EPS)) * 2
+    q[m] = np.stack(
+        [
+            (R[m, 0, 2] + R[m, 2, 0]) / s,
+            (R[m, 1, 2] + R[m, 2, 1]) / s,
+            0.25 * s,
+            (R[m, 1, 0] - R[m, 0, 1]) / s,
+        ],
+        axis=1,
+    )
+    q = np.where(q[:, 3:4] < 0, -q, q)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return q[0] if single else q
+
+
+def quat_slerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Spherical interpolation between (N, 4) quaternion arrays with fractions s (N,)."""
+    q0 = np.asarray(q0, float)
+    q1 = np.asarray(q1, float)
+    s = np.asarray(s, float)[..., None]
+    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
+    q1 = np.where(dot < 0, -q1, q1)
+    dot = np.abs(dot)
+    theta = np.arccos(np.clip(dot, -1.0, 1.0))
+    small = theta < 1e-6
+    sin_t = np.where(small, 1.0, np.sin(theta))
+    w0 = np.where(small, 1.0 - s, np.sin((1.0 - s) * theta) / sin_t)
+    w1 = np.where(small, s, np.sin(s * theta) / sin_t)
+    q = w0 * q0 + w1 * q1
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)

@@ -1,0 +1,120 @@
+"""The state container and the one EKF update: closed forms, Schmidt behaviour, initialisation."""
+
+import numpy as np
+import pytest
+
+from pipeline.lie import exp_so3, log_so3
+from pipeline.state import ImuState, Pose, State, Vec, ekf_update
+
+
+def _random_spd(rng, n):
+    A = rng.normal(size=(n, n))
+    return A @ A.T + n * np.eye(n)
+
+
+def _two_var_state(rng):
+    s = State()
+    s.add("a", Vec(np.zeros(3)), np.eye(3))
+    s.add("b", Vec(np.zeros(2)), np.eye(2))
+    P = _random_spd(rng, 5)
+    s.P = P
+    return s
+
+
+def test_ekf_update_matches_closed_form_kalman():
+    rng = np.random.default_rng(1)
+    s = _two_var_state(rng)
+    P0 = s.P.copy()
+    H = rng.normal(size=(2, 5))
+    R = np.diag([0.3, 0.5])
+    r = rng.normal(size=2)
+    res = ekf_update(s, {"a": H[:, :3], "b": H[:, 3:]}, r, R)
+    S = H @ P0 @ H.T + R
+    K = P0 @ H.T @ np.linalg.inv(S)
+    np.testing.assert_allclose(s.P, P0 - K @ S @ K.T, atol=1e-12)
+    np.testing.assert_allclose(np.r_[s.value("a").x, s.value("b").x], K @ r, atol=1e-12)
+    assert res.accepted and res.nis == pytest.approx(r @ np.linalg.solve(S, r))
+
+
+def test_schmidt_keeps_considered_block_and_updates_cross_covariance():
+    rng = np.random.default_rng(2)
+    s = _two_var_state(rng)
+    P0 = s.P.copy()
+    H = rng.normal(size=(1, 5))
+    R = np.array([[0.2]])
+    ekf_update(s, {"a": H[:, :3], "b": H[:, 3:]}, np.array([0.7]), R, schmidt={"a"})
+    np.testing.assert_array_equal(s.value("a").x, np.zeros(3))
+    np.testing.assert_allclose(s.P[:3, :3], P0[:3, :3], atol=1e-14)
+    # paper: P_UU -= K_U S K_U^T and P_rU -= P_r H^T S^-1 H P_U (with the optimal gain rows)
+    S = H @ P0 @ H.T + R
+    K = P0 @ H.T @ np.linalg.inv(S)
+    np.testing.assert_allclose(s.P[3:, 3:], P0[3:, 3:] - K[3:] @ S @ K[3:].T, atol=1e-12)
+    np.testing.assert_allclose(s.P[:3, 3:], P0[:3, 3:] - K[:3] @ S @ K[3:].T, atol=1e-12)
+    assert np.linalg.eigvalsh(s.P).min() > 0
+
+
+def test_chi2_gate_rejects_outlier_without_change():
+    s = State()
+    s.add("x", Vec(np.zeros(1)), np.eye(1))
+    res = ekf_update(s, {"x": np.eye(1)}, np.array([100.0]), 1.0, chi2_gate=0.95)
+    assert not res.accepted
+    assert s.value("x").x[0] == 0 and s.P[0, 0] == 1
+
+
+def test_augment_clone_has_exact_covariance():
+    rng = np.random.default_rng(3)
+    s = State()
+    s.add("imu", ImuState(np.eye(3), np.zeros(3), np.zeros(3)), _random_spd(rng, 15))
+    J = np.zeros((6, 15))
+    J[:, :6] = np.eye(6)
+    s.augment("clone/0", s.value("imu").pose, {"imu": J})
+    np.testing.assert_allclose(s.cov("clone/0"), s.cov("imu")[:6, :6])
+    np.testing.assert_allclose(s.cov("clone/0", "imu"), s.cov("imu")[:6, :])
+    s.remove("clone/0")
+    assert s.size == 15 and s.names == ["imu"]
+
+
+def test_initialize_equals_joint_batch_estimate():
+    """Initialising a new variable then updating equals a batch solution on the joint linear system."""
+    rng = np.random.default_rng(4)
+    s = State()
+    P0 = _random_spd(rng, 3) * 0.1
+    s.add("x", Vec(np.zeros(3)), P0)
+    x_true = rng.multivariate_normal(np.zeros(3), P0)
+    y_true = rng.normal(size=2)
+    m = 6
+    Hx = rng.normal(size=(m, 3))
+    Hy = rng.normal(size=(m, 2))
+    Rv = np.full(m, 0.05)
+    z = Hx @ x_true + Hy @ y_true + rng.normal(size=m) * np.sqrt(Rv)
+    # Batch: information form of prior on x + measurements
+    Hj = np.hstack([Hx, Hy])
+    info = Hj.T @ np.diag(1 / Rv) @ Hj
+    info[:3, :3] += np.linalg.inv(P0)
+    P_batch = np.linalg.inv(info)
+    mean_batch = P_batch @ (Hj.T @ (z / Rv))
+    # Filter: estimate y from the linear system at x_hat = 0 (the optimal y given x_hat = 0 for the QR part)
+    Q, Rr = np.linalg.qr(Hy, mode="complete")
+    y0 = np.linalg.solve(Rr[:2], (Q.T @ z)[:2])
+    r = z - Hy @ y0
+    s.initialize("y", Vec(y0), {"x": Hx}, Hy, r, Rv)
+    np.testing.assert_allclose(s.P, P_batch, atol=1e-10)
+    np.testing.assert_allclose(np.r_[s.value("x").x, s.value("y").x], mean_batch, atol=1e-10)
+
+
+def test_pose_boxplus_is_right_perturbation():
+    R = exp_so3(np.array([0.1, -0.2, 0.3]))
+    pose = Pose(R, np.zeros(3))
+    dx = np.array([0.01, 0.02, -0.03, 1, 2, 3])
+    out = pose.boxplus(dx)
+    np.testing.assert_allclose(log_so3(R.T @ out.R), dx[:3], atol=1e-12)
+    np.testing.assert_allclose(out.p, dx[3:])
+
+
+def test_fej_switch():
+    s = State(use_fej=True)
+    s.add("a", Vec(np.zeros(1)), np.eye(1))
+    s.set_value("a", Vec(np.ones(1)))
+    assert s.fej("a").x[0] == 0
+    s.use_fej = False
+    assert s.fej("a").x[0] == 1
