@@ -1,0 +1,100 @@
+"""`uwbcal bench`: every case runs in its own process; we report wall time, real-time factor, peak memory and
+the ratio to the case's baseline measured in the same invocation (machines are noisy: ratios, not seconds)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from convert.atomic import write_text_atomic
+
+from .cases import CASES
+
+
+@dataclass
+class BenchResult:
+    case: str
+    wall_s: float
+    peak_rss_mb: float
+    data_s: float | None
+    realtime_factor: float | None
+    baseline: str | None
+    ratio_to_baseline: float | None
+    extra: dict
+    ok: bool
+    error: str | None = None
+
+
+def _run_in_child(name: str, quick: bool) -> BenchResult:
+    cmd = [sys.executable, "-m", "benchmarks.cases", name] + (["--quick"] if quick else [])
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out, err = proc.communicate()
+    wall = time.perf_counter() - t0
+    # ru_maxrss of RUSAGE_CHILDREN is the max over all children so far; read this child's own figure from it
+    # via the value the child reports about itself (it measures its own peak incl. grandchildren it waited on).
+    payload: dict = {}
+    for line in out.splitlines()[::-1]:
+        if line.startswith("{"):
+            payload = json.loads(line)
+            break
+    if proc.returncode != 0 or not payload:
+        tail = (err or out).strip().splitlines()[-3:]
+        return BenchResult(name, wall, 0.0, None, None, None, None, {}, False, " | ".join(tail))
+    data_s = payload.get("data_s")
+    return BenchResult(
+        case=name,
+        wall_s=payload.get("wall_s", wall),
+        peak_rss_mb=payload.get("peak_rss_mb", 0.0),
+        data_s=data_s,
+        realtime_factor=(data_s / payload["wall_s"]) if data_s and payload.get("wall_s") else None,
+        baseline=CASES[name].baseline,
+        ratio_to_baseline=None,
+        extra=payload.get("extra", {}),
+        ok=True,
+    )
+
+
+def run_benchmarks(output: Path | None, cases: str | None = None, quick: bool = False) -> str:
+    names = [c.strip() for c in cases.split(",")] if cases else list(CASES)
+    unknown = [n for n in names if n not in CASES]
+    if unknown:
+        from convert.errors import InputError
+
+        raise InputError(f"unknown benchmark case(s) {unknown}; known: {sorted(CASES)}")
+    # baselines run first so that every ratio is measured in this same invocation
+    needed = []
+    for n in names:
+        b = CASES[n].baseline
+        if b and b not in needed and b not in names:
+            needed.append(b)
+    results: dict[str, BenchResult] = {}
+    for n in needed + names:
+        results[n] = _run_in_child(n, quick)
+    for r in results.values():
+        if r.baseline and r.ok and results.get(r.baseline) and results[r.baseline].ok:
+            r.ratio_to_baseline = r.wall_s / results[r.baseline].wall_s
+    lines = [f"{'case':<28} {'wall s':>8} {'RTF':>8} {'peak MB':>9} {'ratio':>7}  baseline / note"]
+    for r in results.values():
+        if not r.ok:
+            lines.append(f"{r.case:<28} FAILED: {r.error}")
+            continue
+        rtf = f"{r.realtime_factor:8.1f}" if r.realtime_factor else f"{'-':>8}"
+        ratio = f"{r.ratio_to_baseline:7.2f}" if r.ratio_to_baseline else f"{'-':>7}"
+        note = r.baseline or ""
+        if r.extra:
+            note += " " + ", ".join(f"{k}={v}" for k, v in r.extra.items())
+        lines.append(f"{r.case:<28} {r.wall_s:8.2f} {rtf} {r.peak_rss_mb:9.0f} {ratio}  {note.strip()}")
+    if output:
+        doc = {
+            "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
+            "quick": quick,
+            "results": [asdict(r) for r in results.values()],
+        }
+        write_text_atomic(output, json.dumps(doc, indent=2))
+    return "\n".join(lines)
