@@ -521,8 +521,10 @@ class RecordingReader:
         end_ns: int | None = None,
         *,
         raw: bool = False,
+        file_order: bool = False,
     ) -> Iterator[tuple[str, int, Any]]:
-        """Yield ``(topic, t_ns, msg)`` in time order; ``end_ns`` is exclusive. ``raw`` yields CDR bytes."""
+        """Yield ``(topic, t_ns, msg)`` in time order; ``end_ns`` is exclusive. ``raw`` yields CDR bytes;
+        ``file_order`` yields in the order of writing instead (to diagnose stamp order)."""
         topics = list(topics) if topics is not None else None
         ts = msgs.typestore()
         if self._recovered is not None:
@@ -537,7 +539,7 @@ class RecordingReader:
             reader = make_reader(f)
             try:
                 for schema, channel, message in reader.iter_messages(
-                    topics=topics, starting_at=start_ns, ending_before=end_ns, log_time_order=True
+                    topics=topics, starting_at=start_ns, ending_before=end_ns, log_time_order=not file_order
                 ):
                     data = message.data
                     yield (
@@ -557,6 +559,11 @@ class RecordingReader:
     def _raw(self, topic: str, start_ns: int | None = None, end_ns: int | None = None) -> _Cdr:
         self._need(topic)
         return _Cdr([bytes(d) for _, _, d in self.messages([topic], start_ns, end_ns, raw=True)])
+
+    def header_stamps(self, topic: str) -> np.ndarray:
+        """Header stamps of a topic in the order they were written (for diagnosing stamp order)."""
+        self._need(topic)
+        return _Cdr([bytes(d) for _, _, d in self.messages([topic], raw=True, file_order=True)]).stamp_ns()
 
     def read_imu(
         self, topic: str = TOPIC_IMU, start_ns: int | None = None, end_ns: int | None = None
