@@ -678,3 +678,61 @@ def _parse_meta(d: dict[str, str]) -> dict:
 def merge_streams(*streams: Iterator[tuple[str, int, Any]]) -> Iterator[tuple[str, int, Any]]:
     """Merge several time-ordered message streams (e.g. a recording and a stage's output) into one."""
     return heapq.merge(*streams, key=lambda m: m[1])
+
+
+class MergedReader:
+    """Several recordings read as one (e.g. a recording plus a stage's output such as the front-end's tracks).
+
+    Topic column readers go to the first recording that has the topic; metadata comes from the first one.
+    """
+
+    def __init__(self, *readers: RecordingReader) -> None:
+        self.readers = readers
+        self.path = readers[0].path
+        self.warnings = [w for r in readers for w in r.warnings]
+
+    def topics(self) -> dict[str, TopicInfo]:
+        out: dict[str, TopicInfo] = {}
+        for r in self.readers:
+            for k, v in r.topics().items():
+                out.setdefault(k, v)
+        return out
+
+    def _owner(self, topic: str) -> RecordingReader:
+        for r in self.readers:
+            if topic in r.topics():
+                return r
+        return self.readers[0]
+
+    def messages(self, topics=None, start_ns=None, end_ns=None, *, raw=False, file_order=False):
+        topics = list(topics) if topics is not None else None
+        streams = []
+        for r in self.readers:
+            own = [t for t in (topics if topics is not None else r.topics()) if self._owner(t) is r]
+            if own:
+                streams.append(r.messages(own, start_ns, end_ns, raw=raw, file_order=file_order))
+        return merge_streams(*streams)
+
+    def metadata(self, name: str) -> dict | None:
+        return self.readers[0].metadata(name)
+
+    calibration = RecordingReader.calibration
+    source = RecordingReader.source
+    truth = RecordingReader.truth
+    time_span = RecordingReader.time_span
+
+    def __getattr__(self, name: str):
+        # column readers: read_imu(topic=...), iter_features(topic=...), ... -> the reader owning the topic
+        if not (name.startswith("read_") or name.startswith("iter_") or name == "header_stamps"):
+            raise AttributeError(name)
+
+        def call(*args, **kwargs):
+            fn = getattr(RecordingReader, name)
+            import inspect
+
+            topic = args[0] if args else kwargs.get("topic")
+            if topic is None:
+                topic = inspect.signature(fn).parameters["topic"].default
+            return getattr(self._owner(topic), name)(*args, **kwargs)
+
+        return call

@@ -166,3 +166,19 @@ def test_missing_topic_names_the_file(sample):
     path, _ = sample
     with pytest.raises(InputError, match="no '/nope' topic"):
         RecordingReader(path).read_imu("/nope")
+
+
+def test_merged_reader_interleaves_and_delegates(sample, tmp_path):
+    from convert.recording import MergedReader
+
+    path, d = sample
+    extra = tmp_path / "features.mcap"
+    with RecordingWriter(extra) as w:
+        for i in (1, 50, 300):
+            w.write_features(int(d["t"][i]) + 1, [i], [[1.0, 2.0]], topic="/cam0/features2")
+    m = MergedReader(RecordingReader(path), RecordingReader(extra))
+    stamps = [t for _, t, _ in m.messages(["/imu", "/cam0/features2"])]
+    assert stamps == sorted(stamps) and len(stamps) == 403
+    assert [int(i[0]) for _, i, _ in m.iter_features("/cam0/features2")] == [1, 50, 300]
+    np.testing.assert_array_equal(m.read_imu().gyro, d["gyro"])
+    assert m.calibration == {"imu": {"rate_hz": 200.0}}
