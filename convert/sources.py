@@ -1,0 +1,575 @@
+"""Helpers shared by the dataset converters: provenance (sha256), drop bookkeeping, progress, CSV/TUM/yaml
+readers, range cleaning and the streamed ROS1-bag loop. One implementation used by euroc, ntu_viral, tabular.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import struct
+import sys
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from importlib import metadata as _im
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import yaml
+
+from .errors import InputError
+
+if TYPE_CHECKING:
+    import polars as pl
+
+MAX_RANGE_M = 1000.0
+
+
+def converter_name() -> str:
+    try:
+        version = _im.version("uwbcal")
+    except _im.PackageNotFoundError:
+        version = "0.1.0"
+    return f"uwbcal {version}"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# provenance
+# ---------------------------------------------------------------------------------------------------------------
+def sha256_file(path: str | Path, block: int = 4 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(block):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+class Hasher:
+    """Hashes input files in a background thread (hashlib releases the GIL) while the conversion runs."""
+
+    def __init__(self, paths: Sequence[str | Path]) -> None:
+        self.paths = [Path(p) for p in paths]
+        self._result: list[dict] = []
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        self._result = [{"path": str(p), "sha256": sha256_file(p)} for p in self.paths]
+
+    def result(self) -> list[dict]:
+        self._thread.join()
+        return self._result
+
+
+@dataclass
+class Drops:
+    """Counted, reported losses: every record not converted lands here with a reason and an example."""
+
+    entries: dict[tuple[str, str], list] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    def add(self, topic: str, reason: str, count: int = 1, example: object = None) -> None:
+        if count <= 0:
+            return
+        e = self.entries.setdefault((topic, reason), [0, None])
+        e[0] += int(count)
+        if e[1] is None and example is not None:
+            e[1] = str(example)
+
+    def note(self, text: str) -> None:
+        self.notes.append(text)
+
+    def count(self, topic: str | None = None) -> int:
+        return sum(c for (t, _), (c, _) in self.entries.items() if topic is None or t == topic)
+
+    def as_list(self) -> list[dict]:
+        return [
+            {"topic": t, "reason": r, "count": c, "example": ex} for (t, r), (c, ex) in self.entries.items()
+        ]
+
+
+def source_metadata(dataset: str, sequence: str, files: list[dict], drops: Drops, **extra) -> dict:
+    return {
+        "dataset": dataset,
+        "sequence": sequence,
+        "files": files,
+        "converter": converter_name(),
+        "dropped": drops.as_list(),
+        **({"notes": drops.notes} if drops.notes else {}),
+        **extra,
+    }
+
+
+def summary(output: str | Path, counts: dict[str, int], drops: Drops, header: str) -> str:
+    lines = [f"{header} -> {output}"]
+    for topic in sorted(counts):
+        lines.append(f"  {topic:<24} {counts[topic]:>9} messages")
+    if drops.entries:
+        lines.append("  dropped:")
+        for d in drops.as_list():
+            ex = f" (e.g. {d['example']})" if d["example"] else ""
+            lines.append(f"    {d['topic']:<22} {d['count']:>9}  {d['reason']}{ex}")
+    else:
+        lines.append("  dropped: none")
+    lines.extend(f"  note: {n}" for n in drops.notes)
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# progress
+# ---------------------------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def progress(description: str, total: float | None) -> Iterator[Callable[[float], None]]:
+    """A rich progress bar on stderr (disabled when stderr is not a TTY); yields ``advance(n)``."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    console = Console(stderr=True)
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        disable=not sys.stderr.isatty(),
+        transient=True,
+    ) as bar:
+        task = bar.add_task(description, total=total)
+        pending = [0.0]
+
+        def advance(n: float = 1) -> None:
+            pending[0] += n
+            if pending[0] >= 256:  # rich redraw costs more than a message conversion
+                bar.advance(task, pending[0])
+                pending[0] = 0.0
+
+        yield advance
+        bar.advance(task, pending[0])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# CSV / TUM / yaml
+# ---------------------------------------------------------------------------------------------------------------
+def _require_file(path: Path, what: str) -> None:
+    if not path.is_file():
+        raise InputError(f"{path}: missing {what}; check the dataset layout")
+
+
+def read_csv_strings(path: str | Path, columns: Sequence[str] | int, *, what: str = "CSV") -> pl.DataFrame:
+    """Read a CSV as strings; check the header. ``columns`` = required names, or the minimal column count
+    (then the first columns are taken positionally, as for EuRoC's free-form '#timestamp [ns],...' headers)."""
+    import polars as pl
+
+    path = Path(path)
+    _require_file(path, what)
+    try:
+        df = pl.read_csv(path, has_header=True, infer_schema_length=0, truncate_ragged_lines=False)
+    except (pl.exceptions.ComputeError, pl.exceptions.NoDataError, OSError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"{path}: unreadable CSV ({first}); expected columns {_fmt_cols(columns)}") from None
+    found = [c.strip() for c in df.columns]
+    df.columns = found
+    if isinstance(columns, int):
+        if len(found) < columns:
+            raise InputError(
+                f"{path}: header: expected {columns} columns, found {len(found)} ({','.join(found)})"
+            )
+        return df.select(df.columns[:columns])
+    missing = [c for c in columns if c not in found]
+    if missing:
+        raise InputError(
+            f"{path}: header: expected columns {','.join(columns)}; found {','.join(found)} "
+            f"(missing {','.join(missing)})"
+        )
+    return df.select(list(columns))
+
+
+def _fmt_cols(columns: Sequence[str] | int) -> str:
+    return f"{columns} numeric columns" if isinstance(columns, int) else ",".join(columns)
+
+
+def _bad_row(path: Path, name: str, raw: pl.Series, parsed: pl.Series, what: str) -> InputError:
+    bad = (parsed.is_null() & raw.is_not_null()) | raw.is_null()
+    i = int(np.flatnonzero(bad.to_numpy())[0])
+    return InputError(
+        f"{path}: line {i + 2}: column '{name}': {raw[i]!r} is not {what}; fix or remove the row"
+    )
+
+
+def to_float(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
+    import polars as pl
+
+    raw = df[name].str.strip_chars()
+    parsed = raw.cast(pl.Float64, strict=False)
+    if parsed.null_count():
+        raise _bad_row(path, name, raw, parsed, "a number")
+    return parsed.to_numpy()
+
+
+def to_int(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
+    import polars as pl
+
+    raw = df[name].str.strip_chars()
+    parsed = raw.cast(pl.Int64, strict=False)
+    if parsed.null_count():
+        raise _bad_row(path, name, raw, parsed, "an integer")
+    return parsed.to_numpy()
+
+
+def to_stamps_ns(path: Path, df: pl.DataFrame, name: str) -> tuple[np.ndarray, str]:
+    """Exact int64 nanoseconds from integer ns or decimal seconds (no float rounding); returns (t_ns, unit)."""
+    import polars as pl
+
+    raw = df[name].str.strip_chars()
+    as_int = raw.cast(pl.Int64, strict=False)
+    if as_int.null_count() == 0:
+        t = as_int.to_numpy()
+        if len(t) and np.abs(t).max() < 10**11:
+            return t * 1_000_000_000, "s"
+        if len(t) and np.abs(t).max() < 10**17 and np.abs(t).max() >= 10**11:
+            raise InputError(
+                f"{path}: column '{name}': integer stamps like {t[0]} are neither seconds nor "
+                "nanoseconds (ms/us?); give stamps in ns or s"
+            )
+        return t, "ns"
+    parts = raw.str.split_exact(".", 1).struct.unnest()
+    whole = parts["field_0"].cast(pl.Int64, strict=False)
+    frac = parts["field_1"].fill_null("0").str.pad_end(9, "0").str.slice(0, 9).cast(pl.Int64, strict=False)
+    ok = whole.is_not_null() & frac.is_not_null()
+    if not ok.all():
+        raise _bad_row(
+            path, name, raw, whole.zip_with(ok, pl.Series([None] * len(raw), dtype=pl.Int64)), "a time stamp"
+        )
+    w = whole.to_numpy()
+    if len(w) and np.abs(w).max() >= 10**11:
+        raise InputError(
+            f"{path}: column '{name}': decimal stamps like {raw[0]} are too large for seconds; "
+            "give stamps in ns (integer) or s"
+        )
+    sign = np.where(raw.str.starts_with("-").to_numpy(), -1, 1)
+    return sign * (np.abs(w) * 1_000_000_000 + frac.to_numpy()), "s"
+
+
+@dataclass
+class PoseTable:
+    t_ns: np.ndarray
+    p: np.ndarray
+    q_xyzw: np.ndarray
+
+
+def read_tum(path: str | Path) -> PoseTable:
+    """TUM trajectory ``t[s] x y z qx qy qz qw`` (whitespace separated, '#' comments), stamps exact."""
+    import polars as pl
+
+    path = Path(path)
+    _require_file(path, "TUM trajectory")
+    rows = [
+        ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")
+    ]
+    if not rows:
+        raise InputError(f"{path}: no poses; expected TUM lines 't x y z qx qy qz qw'")
+    bad = next((i for i, r in enumerate(rows) if len(r) != 8), None)
+    if bad is not None:
+        raise InputError(
+            f"{path}: record {bad + 1}: {len(rows[bad])} fields, expected 8 (t x y z qx qy qz qw)"
+        )
+    names = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"]
+    df = pl.DataFrame(rows, schema=names, orient="row")
+    t, _ = to_stamps_ns(path, df, "t")
+    vals = np.column_stack([to_float(path, df, n) for n in names[1:]])
+    return PoseTable(t, vals[:, :3], vals[:, 3:])
+
+
+def normalise_quaternions(
+    q: np.ndarray, topic: str, drops: Drops, tol: float = 1e-2
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit quaternions and a keep-mask; rows whose norm is off by more than ``tol`` are dropped (reported)."""
+    n = np.linalg.norm(q, axis=1)
+    keep = np.isfinite(n) & (np.abs(n - 1.0) <= tol)
+    drops.add(
+        topic,
+        f"non-unit quaternion (|q| off by > {tol})",
+        int((~keep).sum()),
+        None if keep.all() else np.round(q[~keep][0], 6).tolist(),
+    )
+    return q / np.where(keep, n, 1.0)[:, None], keep
+
+
+def load_yaml(path: str | Path, what: str) -> dict:
+    """YAML, tolerating OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix`` tags."""
+    path = Path(path)
+    _require_file(path, what)
+    text = path.read_text()
+    lines = [ln for ln in text.splitlines() if not ln.startswith("%YAML")]
+    text = "\n".join(lines).replace("!!opencv-matrix", "")
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise InputError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a YAML mapping ({what})")
+    return data
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# UWB: antenna yaml and range cleaning
+# ---------------------------------------------------------------------------------------------------------------
+DEFAULT_GAMMA_SIGMA = 0.3
+DEFAULT_BETA_PRIOR = {"mean": 1.0, "sigma": 0.05}
+DEFAULT_SIGMA_RANGE = 0.1
+
+
+def parse_antennas(path: str | Path) -> tuple[dict[str, dict], dict[int, float]]:
+    """``antenna_offset: [tag, n, x,y,z, ... (n times), tag, n, ...]`` and ``ranging_bias: [tag, b, ...]``
+    -> ({"<tag>": {"antennas": [[x,y,z], ...]}}, {tag: b})."""
+    path = Path(path)
+    data = load_yaml(path, "antenna yaml")
+    flat = data.get("antenna_offset")
+    if not isinstance(flat, list) or not flat:
+        raise InputError(f"{path}: 'antenna_offset' missing or empty; expected [tag, n, x, y, z, ...]")
+    tags: dict[str, dict] = {}
+    i = 0
+    try:
+        while i < len(flat):
+            tag, n = int(flat[i]), int(flat[i + 1])
+            xyz = np.asarray(flat[i + 2 : i + 2 + 3 * n], float)
+            if n <= 0 or xyz.size != 3 * n:
+                raise ValueError(f"tag {tag}: {n} antennas need {3 * n} numbers, got {xyz.size}")
+            tags[str(tag)] = {"antennas": xyz.reshape(n, 3).tolist()}
+            i += 2 + 3 * n
+    except (ValueError, TypeError, IndexError) as exc:
+        raise InputError(
+            f"{path}: antenna_offset: entry {i}: {exc}; expected [tag, n, x, y, z, ...]"
+        ) from None
+    bias_flat = data.get("ranging_bias") or []
+    if len(bias_flat) % 2:
+        raise InputError(f"{path}: ranging_bias: odd length {len(bias_flat)}; expected [tag, bias, ...]")
+    bias = {int(bias_flat[k]): float(bias_flat[k + 1]) for k in range(0, len(bias_flat), 2)}
+    return tags, bias
+
+
+def uwb_calibration(
+    tags: dict[str, dict],
+    bias: dict[int, float],
+    *,
+    gamma_sigma: float = DEFAULT_GAMMA_SIGMA,
+    sigma_range: float = DEFAULT_SIGMA_RANGE,
+) -> dict:
+    """`uwbcal.calibration.uwb`. ranging_bias b: true = measured + b, so with d = beta*|.| + gamma, gamma ~ -b."""
+    gamma_mean = -float(np.mean(list(bias.values()))) if bias else 0.0
+    out = {
+        "tags": tags,
+        "sigma_range": sigma_range,
+        "gamma_prior": {"mean": gamma_mean, "sigma": gamma_sigma},
+        "beta_prior": dict(DEFAULT_BETA_PRIOR),
+    }
+    if bias and len(set(bias.values())) > 1:
+        out["ranging_bias_per_tag"] = {str(k): v for k, v in bias.items()}
+    return out
+
+
+def default_tags(tag: np.ndarray, antenna: np.ndarray) -> dict[str, dict]:
+    """Zero lever arms for every (tag, antenna) seen, when no antenna yaml is given."""
+    out = {}
+    for t in np.unique(tag):
+        n = int(antenna[tag == t].max()) + 1
+        out[str(int(t))] = {"antennas": [[0.0, 0.0, 0.0]] * n}
+    return out
+
+
+@dataclass
+class RangeTable:
+    t_ns: np.ndarray
+    tag: np.ndarray
+    antenna: np.ndarray
+    anchor: np.ndarray
+    distance: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def take(self, idx: np.ndarray) -> RangeTable:
+        return RangeTable(
+            self.t_ns[idx], self.tag[idx], self.antenna[idx], self.anchor[idx], self.distance[idx]
+        )
+
+
+RANGE_COLUMNS = ("stamp", "tag", "antenna", "anchor", "distance")
+
+
+def read_ranges_csv(path: str | Path) -> tuple[RangeTable, str]:
+    """``stamp,tag,antenna,anchor,distance`` (stamp in ns or s); returns the table and the detected unit."""
+    path = Path(path)
+    df = read_csv_strings(path, RANGE_COLUMNS, what="UWB range CSV")
+    if df.height == 0:
+        raise InputError(f"{path}: no range rows; expected columns {','.join(RANGE_COLUMNS)}")
+    t, unit = to_stamps_ns(path, df, "stamp")
+    return RangeTable(
+        t,
+        to_int(path, df, "tag"),
+        to_int(path, df, "antenna"),
+        to_int(path, df, "anchor"),
+        to_float(path, df, "distance"),
+    ), unit
+
+
+def order_and_dedup(t_ns: np.ndarray, key: np.ndarray | None, topic: str, drops: Drops) -> np.ndarray:
+    """Indices that sort by (time, key) without exact duplicates of (t, key). Out-of-order input is sorted and
+    noted; duplicates are dropped (counted, the first kept)."""
+    n = len(t_ns)
+    back = int((np.diff(t_ns) < 0).sum()) if n > 1 else 0
+    if back:
+        drops.note(f"{topic}: {back} out-of-order stamps; sorted by stamp")
+    if key is None:
+        order = np.argsort(t_ns, kind="stable")
+    else:
+        k2 = np.asarray(key).reshape(n, -1)
+        order = np.lexsort([*k2.T[::-1], t_ns])  # stable: equal (t, key) rows keep their input order
+    if n < 2:
+        return order
+    ts = t_ns[order]
+    same = ts[1:] == ts[:-1]
+    if key is not None:
+        ks = k2[order]
+        same &= np.all(ks[1:] == ks[:-1], axis=1)
+    if same.any():
+        drops.add(topic, "duplicate stamp (kept the first)", int(same.sum()), f"t={int(ts[1:][same][0])}")
+        order = order[np.r_[True, ~same]]
+    return order
+
+
+def clean_ranges(r: RangeTable, topic: str, drops: Drops, max_range: float = MAX_RANGE_M) -> RangeTable:
+    """Drop NaN/inf, negative and absurd (> max_range) distances, sort by time, drop duplicate rows."""
+    d = r.distance
+    bad_nan = ~np.isfinite(d)
+    bad_neg = ~bad_nan & (d < 0)
+    bad_big = ~bad_nan & (d > max_range)
+    for mask, reason in (
+        (bad_nan, "distance NaN/inf"),
+        (bad_neg, "negative distance"),
+        (bad_big, f"absurd distance > {max_range:g} m"),
+    ):
+        if mask.any():
+            i = int(np.flatnonzero(mask)[0])
+            drops.add(topic, reason, int(mask.sum()), f"t={r.t_ns[i]} anchor={r.anchor[i]} d={d[i]}")
+    kept = r.take(np.flatnonzero(~(bad_nan | bad_neg | bad_big)))
+    key = np.column_stack([kept.tag, kept.antenna, kept.anchor])
+    return kept.take(order_and_dedup(kept.t_ns, key, topic, drops))
+
+
+def anchors_note(r: RangeTable) -> str:
+    ids, counts = np.unique(r.anchor, return_counts=True)
+    tags = np.unique(r.tag)
+    return (
+        "anchors "
+        + ", ".join(f"{a} ({c})" for a, c in zip(ids.tolist(), counts.tolist(), strict=True))
+        + "; tags "
+        + ", ".join(str(t) for t in tags.tolist())
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# ROS1 bags
+# ---------------------------------------------------------------------------------------------------------------
+class Drop(Exception):
+    """Raised by a bag handler to drop one message with a reason (counted, reported)."""
+
+
+def ros1_header_stamp(raw: bytes | memoryview) -> int:
+    """Header stamp of a ROS1 message that starts with std_msgs/Header (uint32 seq, uint32 sec, uint32 nsec)."""
+    sec, nsec = struct.unpack_from("<II", raw, 4)
+    return sec * 1_000_000_000 + nsec
+
+
+def ros1_image_encoding(raw: bytes | memoryview) -> str:
+    """Encoding of a ROS1 sensor_msgs/Image without deserialising the pixels."""
+    (flen,) = struct.unpack_from("<I", raw, 12)
+    off = 16 + flen + 8  # frame_id, height, width
+    (elen,) = struct.unpack_from("<I", raw, off)
+    return bytes(raw[off + 4 : off + 4 + elen]).decode("ascii", "replace")
+
+
+@dataclass
+class BagRoute:
+    """How one bag topic is converted: accepted ROS1 message types and a handler(writer, conn, bag_t, raw)."""
+
+    msgtypes: tuple[str, ...]
+    handler: Callable
+    out_topic: str
+
+
+def open_bag(path: Path):
+    from rosbags.rosbag1 import Reader
+    from rosbags.rosbag1.reader import ReaderError
+
+    reader = Reader(path)
+    try:
+        reader.open()
+    except ReaderError as exc:
+        raise InputError(
+            f"{path}: unreadable ROS1 bag ({exc}); the file is truncated or not indexed — "
+            "run 'rosbag reindex' or re-export it"
+        ) from None
+    except (OSError, struct.error, ValueError) as exc:
+        raise InputError(f"{path}: unreadable ROS1 bag ({exc}); the file is truncated or corrupt") from None
+    return reader
+
+
+def stream_bag(path: Path, writer, routes: dict[str, BagRoute], drops: Drops, label: str) -> dict[str, int]:
+    """Stream a ROS1 bag through ``routes`` (bounded memory: one message at a time). Topics without a route or
+    with an unexpected message type are skipped and counted. Returns per-bag-topic message counts seen."""
+    from rosbags.rosbag1.reader import ReaderError
+
+    reader = open_bag(path)
+    seen: dict[str, int] = {}
+    try:
+        use = []
+        for conn in reader.connections:
+            route = routes.get(conn.topic)
+            if route is None:
+                drops.add(conn.topic, f"topic not converted (type {conn.msgtype})", conn.msgcount)
+            elif conn.msgtype not in route.msgtypes:
+                drops.add(
+                    conn.topic,
+                    f"unexpected message type {conn.msgtype} (expected "
+                    f"{' or '.join(route.msgtypes)}); skipped",
+                    conn.msgcount,
+                )
+            else:
+                use.append(conn)
+        total = sum(c.msgcount for c in use)
+        with progress(label, total) as advance:
+            try:
+                for conn, bag_t, raw in reader.messages(connections=use):
+                    route = routes[conn.topic]
+                    try:
+                        route.handler(writer, conn, bag_t, raw)
+                    except Drop as d:
+                        drops.add(route.out_topic, str(d), 1, f"{conn.topic} @ bag t={bag_t}")
+                    except (struct.error, ValueError, IndexError, UnicodeDecodeError) as exc:
+                        drops.add(
+                            route.out_topic,
+                            f"undecodable message ({type(exc).__name__})",
+                            1,
+                            f"{conn.topic} @ bag t={bag_t}",
+                        )
+                    seen[conn.topic] = seen.get(conn.topic, 0) + 1
+                    advance(1)
+            except ReaderError as exc:
+                raise InputError(
+                    f"{path}: corrupt ROS1 bag while reading ({exc}); the file is truncated or damaged"
+                ) from None
+    finally:
+        reader.close()
+    return seen
+
+
+def pose_covariance(sigma_pos: float = 0.05, sigma_rot_deg: float = 1.0) -> np.ndarray:
+    """6x6 pose covariance in the nav_msgs/Odometry order (x, y, z, rot_x, rot_y, rot_z)."""
+    s_rot = np.deg2rad(sigma_rot_deg)
+    return np.diag([sigma_pos**2] * 3 + [s_rot**2] * 3)
+
+
+def write_ranges(writer, r: RangeTable, topic: str) -> None:
+    writer.write_range_batch(r.t_ns, r.tag, r.antenna, r.anchor, r.distance, topic=topic)

@@ -1,0 +1,98 @@
+"""Generic input -> recording: any odometry as a TUM file plus UWB ranges as CSV (DESIGN §9).
+
+``--poses`` TUM ``t[s] x y z qx qy qz qw`` -> /odometry (with a configured pose covariance), ``--ranges``
+``stamp,tag,antenna,anchor,distance`` (stamps in ns or s, detected by magnitude) -> /uwb/range, optional antenna
+yaml in the NTU-VIRAL format -> ``uwbcal.calibration.uwb``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .recording import META_CALIBRATION, META_SOURCE, TOPIC_ODOM, TOPIC_RANGE, RecordingWriter
+from .sources import (
+    MAX_RANGE_M,
+    Drops,
+    Hasher,
+    anchors_note,
+    clean_ranges,
+    normalise_quaternions,
+    order_and_dedup,
+    pose_covariance,
+    progress,
+    read_ranges_csv,
+    read_tum,
+    source_metadata,
+    summary,
+    write_ranges,
+)
+
+
+def convert_tabular(
+    poses: str | Path,
+    ranges: str | Path,
+    output: str | Path,
+    antennas: str | Path | None = None,
+    *,
+    sigma_pos: float = 0.05,
+    sigma_rot_deg: float = 1.0,
+    max_range: float = MAX_RANGE_M,
+) -> str:
+    """Convert a TUM trajectory and a ranges CSV into one recording; returns a human summary."""
+    from .ntu_viral import find_antennas, uwb_section
+
+    poses, ranges = Path(poses), Path(ranges)
+    drops = Drops()
+    pt = read_tum(poses)
+    q, ok = normalise_quaternions(pt.q_xyzw, TOPIC_ODOM, drops)
+    fin = np.isfinite(pt.p).all(1)
+    drops.add(TOPIC_ODOM, "non-finite position", int((~fin).sum()))
+    idx = np.flatnonzero(ok & fin)
+    o = idx[order_and_dedup(pt.t_ns[idx], None, TOPIC_ODOM, drops)]
+    t_pose, p, q = pt.t_ns[o], pt.p[o], q[o]
+
+    raw, unit = read_ranges_csv(ranges)
+    n_rows = len(raw)
+    r = clean_ranges(raw, TOPIC_RANGE, drops, max_range)
+    drops.note(
+        f"{ranges.name}: {n_rows} rows, stamps in {'nanoseconds' if unit == 'ns' else 'seconds'} "
+        "(detected by magnitude); " + anchors_note(r)
+    )
+    if len(r) and len(t_pose) and (r.t_ns[-1] < t_pose[0] or r.t_ns[0] > t_pose[-1]):
+        drops.note(
+            f"ranges [{r.t_ns[0]}, {r.t_ns[-1]}] ns do not overlap the poses [{t_pose[0]}, {t_pose[-1]}] "
+            "ns: check the stamp units / clocks"
+        )
+    antenna_file = None
+    if antennas is not None:
+        antenna_file = find_antennas(ranges, Path(antennas))
+    uwb = uwb_section(antenna_file, r.tag, r.antenna, drops)
+    files = [poses, ranges] + ([antenna_file] if antenna_file else [])
+    hasher = Hasher(files)
+    with RecordingWriter(output) as w, progress("tabular", len(t_pose) + len(r)) as advance:
+        w.write_odometry_batch(t_pose, p, q, cov6=pose_covariance(sigma_pos, sigma_rot_deg), topic=TOPIC_ODOM)
+        advance(len(t_pose))
+        write_ranges(w, r, TOPIC_RANGE)
+        advance(len(r))
+        w.set_metadata(META_CALIBRATION, {"uwb": uwb})
+        w.set_metadata(
+            META_SOURCE,
+            source_metadata(
+                "tabular",
+                poses.stem,
+                hasher.result(),
+                drops,
+                format="tum+csv",
+                range_rows=n_rows,
+                range_stamp_unit=unit,
+                odometry_covariance={
+                    "sigma_pos_m": sigma_pos,
+                    "sigma_rot_deg": sigma_rot_deg,
+                    "order": "x y z rot_x rot_y rot_z",
+                },
+            ),
+        )
+        counts = dict(w.counts)
+    return summary(output, counts, drops, f"tabular {poses.name} + {ranges.name}")

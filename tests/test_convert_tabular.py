@@ -1,0 +1,133 @@
+"""Tabular converter (TUM poses + ranges CSV) and the shared source helpers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from convert.errors import InputError
+from convert.recording import RecordingReader
+from convert.sources import Drops, RangeTable, clean_ranges, order_and_dedup, parse_antennas, read_tum
+from convert.tabular import convert_tabular
+
+T0 = 1_609_059_013_000_000_000
+
+
+def _tum(path: Path, n: int = 50) -> np.ndarray:
+    t = T0 / 1e9 + np.arange(n) * 0.1
+    lines = ["# timestamp(s) tx ty tz qx qy qz qw"]
+    for k in range(n):
+        lines.append(
+            f"{T0 // 10**9 + k // 10}.{(k % 10) * 100000000:09d} {k * 0.1} 0.5 1.0 0 0 0.2 0.9797958971"
+        )
+    path.write_text("\n".join(lines) + "\n")
+    return t
+
+
+def _ranges(path: Path, seconds: bool, extra: list[str] = ()) -> list[str]:
+    rows = []
+    for k in range(40):
+        t = T0 + k * 100_000_000 + 5_000_000
+        stamp = f"{t // 10**9}.{t % 10**9:09d}" if seconds else str(t)
+        rows.append(f"{stamp},200,{k % 2},{100 + k % 3},{5 + 0.01 * k}")
+    path.write_text("stamp,tag,antenna,anchor,distance\n" + "\n".join(rows + list(extra)) + "\n")
+    return rows
+
+
+@pytest.mark.parametrize("seconds", [False, True])
+def test_roundtrip_and_units(tmp_path, seconds):
+    _tum(tmp_path / "p.tum")
+    _ranges(tmp_path / "r.csv", seconds)
+    out = tmp_path / "o.mcap"
+    text = convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", out)
+    assert ("seconds" if seconds else "nanoseconds") in text
+    rec = RecordingReader(out)
+    r = rec.read_ranges()
+    np.testing.assert_array_equal(
+        r.t_ns, T0 + np.arange(40) * 100_000_000 + 5_000_000
+    )  # exact, no float rounding
+    np.testing.assert_array_equal(r.anchor, 100 + np.arange(40) % 3)
+    np.testing.assert_allclose(r.distance, 5 + 0.01 * np.arange(40))
+    od = rec.read_odometry()
+    np.testing.assert_array_equal(od.t_ns, T0 + np.arange(50) * 100_000_000)
+    np.testing.assert_allclose(od.p[:, 0], np.arange(50) * 0.1)
+    np.testing.assert_allclose(np.linalg.norm(od.q_xyzw, axis=1), 1.0)
+    assert rec.source["range_stamp_unit"] == ("s" if seconds else "ns")
+    assert rec.calibration["uwb"]["tags"] == {"200": {"antennas": [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]}}
+
+
+def test_bad_rows_dropped_and_counted(tmp_path):
+    _tum(tmp_path / "p.tum")
+    rows = _ranges(tmp_path / "r.csv", False)
+    t = str(T0 + 7)
+    extra = [f"{t},200,0,100,nan", f"{t},200,0,101,-3", f"{t},200,0,102,5000", rows[3], rows[10]]
+    _ranges(tmp_path / "r.csv", False, extra)
+    # and one out-of-order row: the last line has an early stamp
+    with open(tmp_path / "r.csv", "a") as f:
+        f.write(f"{T0 + 1},201,0,100,4.0\n")
+    yaml = tmp_path / "a.yaml"
+    yaml.write_text(
+        "antenna_offset: [200, 2, 0.0, -0.45, 0.0, 0.0, 0.45, 0.0,\n 201, 1, 0.1, 0.2, 0.3]\n"
+        "ranging_bias: [200, -0.75, 201, -0.75]\n"
+    )
+    out = tmp_path / "o.mcap"
+    text = convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", out, antennas=yaml)
+    rec = RecordingReader(out)
+    reasons = {d["reason"]: d["count"] for d in rec.source["dropped"]}
+    assert reasons == {
+        "distance NaN/inf": 1,
+        "negative distance": 1,
+        "absurd distance > 1000 m": 1,
+        "duplicate stamp (kept the first)": 2,
+    }
+    r = rec.read_ranges()
+    assert len(r) + sum(reasons.values()) == rec.source["range_rows"] == 46
+    assert np.all(np.diff(r.t_ns) >= 0) and r.t_ns[0] == T0 + 1 and "out-of-order" in text
+    uwb = rec.calibration["uwb"]
+    assert uwb["tags"]["201"] == {"antennas": [[0.1, 0.2, 0.3]]} and uwb["gamma_prior"]["mean"] == 0.75
+
+
+def test_errors(tmp_path):
+    _tum(tmp_path / "p.tum")
+    (tmp_path / "r.csv").write_text("t,tag,anchor,d\n1,2,3,4\n")
+    with pytest.raises(
+        InputError, match=r"r.csv: header: expected columns stamp,tag,antenna,anchor,distance"
+    ):
+        convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", tmp_path / "o.mcap")
+    (tmp_path / "bad.tum").write_text("1.0 2 3\n")
+    _ranges(tmp_path / "r.csv", False)
+    with pytest.raises(InputError, match=r"bad.tum: record 1: 3 fields, expected 8"):
+        convert_tabular(tmp_path / "bad.tum", tmp_path / "r.csv", tmp_path / "o.mcap")
+    (tmp_path / "ms.csv").write_text("stamp,tag,antenna,anchor,distance\n1609059013000,200,0,100,5.0\n")
+    with pytest.raises(InputError, match="neither seconds nor nanoseconds"):
+        convert_tabular(tmp_path / "p.tum", tmp_path / "ms.csv", tmp_path / "o.mcap")
+    (tmp_path / "a.yaml").write_text("antenna_offset: [200, 2, 0.0, 0.1]\n")
+    with pytest.raises(InputError, match=r"a.yaml: antenna_offset"):
+        parse_antennas(tmp_path / "a.yaml")
+    assert not (tmp_path / "o.mcap").exists()
+
+
+def test_order_and_dedup_and_clean():
+    drops = Drops()
+    t = np.array([3, 1, 2, 2, 5, 4], np.int64)
+    o = order_and_dedup(t, None, "/x", drops)
+    np.testing.assert_array_equal(t[o], [1, 2, 3, 4, 5])
+    assert drops.count("/x") == 1 and drops.notes
+    r = RangeTable(
+        np.array([1, 1, 1, 2]),
+        np.array([1, 1, 1, 1]),
+        np.zeros(4, int),
+        np.array([7, 8, 7, 7]),
+        np.array([1.0, 2.0, 1.5, np.inf]),
+    )
+    d2 = Drops()
+    c = clean_ranges(r, "/uwb/range", d2)
+    assert len(c) == 2 and d2.count() == 2  # (1, 7) duplicate + inf
+
+
+def test_tum_exact_stamps(tmp_path):
+    (tmp_path / "x.tum").write_text("1403715274.30214 0 0 0 0 0 0 1\n-0.5 0 0 0 0 0 0 1\n12 0 0 0 0 0 0 1\n")
+    p = read_tum(tmp_path / "x.tum")
+    np.testing.assert_array_equal(p.t_ns, [1403715274302140000, -500000000, 12_000_000_000])
