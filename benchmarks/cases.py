@@ -46,9 +46,24 @@ def _simulate_mh01(work: Path, quick: bool) -> tuple[float | None, dict]:
     return (info.end_ns - info.start_ns) / 1e9, {"imu_msgs": info.count}
 
 
+def _convert_bag(work: Path, quick: bool) -> tuple[float | None, dict]:
+    """Ours vs rosbags-convert on the same synthesised EuRoC-like bag (1 GB; 0.05 GB with --quick)."""
+    from .convert_bag import run
+
+    res = run(0.05 if quick else 1.0, work)
+    return None, {
+        "bag_gb": round(res["bag_bytes"] / 1e9, 3),
+        "ours_s": res["uwbcal"]["wall_s"],
+        "ours_peak_mb": res["uwbcal"]["peak_rss_mb"],
+        "rosbags_convert_s": res["rosbags_convert_sqlite3"]["wall_s"],
+        "time_ratio": res["time_ratio_vs_sqlite3"],
+    }
+
+
 CASES: dict[str, Case] = {
     "calibration": Case(_calibration, None, "fixed numpy/Python workload (machine yardstick)"),
     "simulate_mh01": Case(_simulate_mh01, "calibration", "simulate the 182 s of MH_01_easy"),
+    "convert_bag": Case(_convert_bag, None, "ROS1 bag -> MCAP beside rosbags-convert (ratio in extra)"),
 }
 
 
