@@ -7,98 +7,146 @@ from pathlib import Path
 
 import numpy as np
 
-from .recording import (
-    TOPIC_GT_POSE,
-    TOPIC_GT_POSITION,
-    TOPIC_IMU,
-    TOPIC_ODOM,
-    TOPIC_RANGE,
-    RecordingReader,
-    TopicInfo,
-)
+from .msgs import FEATURE_TRACKS, IMAGE, IMU, ODOMETRY, POINT_STAMPED, POSE_STAMPED, UWB_RANGE
+from .recording import RecordingReader, TopicInfo
 
 GAP_FACTOR = 5.0  # a gap is a step longer than this many median periods
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One finding. ``kind``: gap, duplicate, out_of_order, nan, negative_range, truncated, empty."""
+
+    kind: str
+    topic: str
+    count: int
+    text: str
+
+    def __str__(self) -> str:
+        return self.text
 
 
 @dataclass
 class InfoReport:
     path: Path
     topics: dict[str, TopicInfo]
-    duration_s: float
+    start_ns: int
+    end_ns: int
     calibration: dict
     source: dict
     truth: dict | None
-    problems: list[str] = field(default_factory=list)
+    problems: list[Problem] = field(default_factory=list)
     dropped: list[dict] = field(default_factory=list)
 
+    @property
+    def duration_s(self) -> float:
+        return (self.end_ns - self.start_ns) * 1e-9
+
+    def kinds(self, topic: str | None = None) -> set[str]:
+        """The kinds of problems found (on ``topic``, or on any topic)."""
+        return {p.kind for p in self.problems if topic is None or p.topic == topic}
+
     def render(self) -> str:
-        lines = [f"recording  {self.path}", f"duration   {self.duration_s:.2f} s"]
+        lines = [
+            f"recording  {self.path}",
+            f"duration   {self.duration_s:.3f} s (from t = {self.start_ns} ns)",
+        ]
         if self.source:
+            src = self.source
             lines.append(
-                f"source     {self.source.get('dataset', '?')} / {self.source.get('sequence', '?')} "
-                f"({self.source.get('converter', '?')})"
+                f"source     {src.get('dataset', '?')} / {src.get('sequence', '?')} ({src.get('converter', '?')})"
             )
-        lines.append("")
-        lines.append(f"{'topic':<24} {'type':<34} {'count':>8} {'rate Hz':>9} {'start s':>10} {'dur s':>8}")
-        t0 = min((t.start_ns for t in self.topics.values()), default=0)
+            for f in src.get("files", []):
+                lines.append(f"           {f.get('path')}  sha256 {str(f.get('sha256', '?'))[:16]}")
+        lines += [
+            "",
+            f"{'topic':<24} {'type':<34} {'count':>8} {'rate Hz':>9} {'start s':>9} {'end s':>9} {'dur s':>8}",
+        ]
         for name in sorted(self.topics):
             t = self.topics[name]
             lines.append(
-                f"{name:<24} {t.msgtype:<34} {t.count:>8} {t.rate_hz:>9.2f} "
-                f"{(t.start_ns - t0) * 1e-9:>10.3f} {t.duration_s:>8.2f}"
+                f"{name:<24} {t.msgtype:<34} {t.count:>8} {t.rate_hz:>9.2f} {(t.start_ns - self.start_ns) * 1e-9:>9.3f} "
+                f"{(t.end_ns - self.start_ns) * 1e-9:>9.3f} {t.duration_s:>8.3f}"
             )
-        cal = self.calibration
-        if cal:
-            lines.append("")
-            lines.append("calibration")
-            if "imu" in cal:
-                imu = cal["imu"]
-                lines.append("  imu      " + ", ".join(f"{k}={v}" for k, v in imu.items()))
-            for cam, c in cal.get("cameras", {}).items():
-                lines.append(
-                    f"  {cam:<8} intrinsics={c.get('intrinsics')} distortion={c.get('distortion')} "
-                    f"resolution={c.get('resolution')}"
-                )
-            uwb = cal.get("uwb", {})
-            for tag, tc in uwb.get("tags", {}).items():
-                lines.append(f"  uwb tag {tag}: antennas {tc.get('antennas')}")
-            for k in ("sigma_range", "gamma_prior", "beta_prior"):
-                if uwb.get(k) is not None:
-                    lines.append(f"  uwb {k}: {uwb[k]}")
-            if "groundtruth" in cal:
-                lines.append(f"  groundtruth: {cal['groundtruth']}")
+        lines += self._render_calibration()
         if self.truth:
-            lines.append("")
-            lines.append("truth (simulation)")
+            lines += ["", "truth (simulation)"]
             for aid, a in self.truth.get("anchors", {}).items():
                 lines.append(
                     f"  anchor {aid}: p={np.round(a['position'], 3).tolist()} beta={a.get('beta')} "
                     f"gamma={a.get('gamma')}"
                 )
+            rest = {k: v for k, v in self.truth.items() if k != "anchors"}
+            if rest:
+                lines.append("  " + ", ".join(f"{k}={v}" for k, v in rest.items()))
         lines.append("")
-        if self.dropped:
-            lines.append("dropped during conversion")
-            for d in self.dropped:
-                ex = f" (e.g. {d['example']})" if d.get("example") else ""
-                lines.append(f"  {d.get('topic', '?')}: {d.get('count', '?')} x {d.get('reason', '?')}{ex}")
-        lines.append("problems: none found" if not self.problems else "problems")
+        if self.source:
+            if self.dropped:
+                lines.append("dropped during conversion")
+                for d in self.dropped:
+                    ex = f" (e.g. {d['example']})" if d.get("example") else ""
+                    lines.append(
+                        f"  {d.get('topic', '?')}: {d.get('count', '?')} x {d.get('reason', '?')}{ex}"
+                    )
+            else:
+                lines.append("dropped during conversion: nothing")
+        lines.append("problems: none found" if not self.problems else f"problems ({len(self.problems)})")
         lines.extend(f"  - {p}" for p in self.problems)
         return "\n".join(lines)
 
+    def _render_calibration(self) -> list[str]:
+        cal = self.calibration
+        if not cal:
+            return ["", "calibration: none (no uwbcal.calibration metadata)"]
+        lines = ["", "calibration"]
+        if "imu" in cal:
+            lines.append("  imu      " + ", ".join(f"{k}={v}" for k, v in cal["imu"].items()))
+        for cam, c in cal.get("cameras", {}).items():
+            lines.append(
+                f"  {cam:<8} {c.get('distortion_model', '?')} intrinsics={c.get('intrinsics')} "
+                f"distortion={c.get('distortion')} resolution={c.get('resolution')} rate_hz={c.get('rate_hz')}"
+            )
+            if c.get("T_imu_cam") is not None:
+                T = np.asarray(c["T_imu_cam"], float)
+                lines.append(f"           p_imu_cam={np.round(T[:3, 3], 4).tolist()}")
+        uwb = cal.get("uwb", {})
+        for tag, tc in uwb.get("tags", {}).items():
+            lines.append(f"  uwb tag {tag}: antennas {tc.get('antennas')}")
+        for k in ("sigma_range", "gamma_prior", "beta_prior"):
+            if uwb.get(k) is not None:
+                lines.append(f"  uwb {k}: {uwb[k]}")
+        if "groundtruth" in cal:
+            lines.append(f"  groundtruth: {cal['groundtruth']}")
+        return lines
 
-def _stamp_problems(topic: str, t: np.ndarray) -> list[str]:
-    out = []
+
+def stamp_problems(topic: str, t: np.ndarray) -> list[Problem]:
+    """Out-of-order and duplicate stamps (in writing order) and gaps longer than GAP_FACTOR median periods."""
+    out: list[Problem] = []
     if len(t) < 2:
         return out
-    dt = np.diff(t)
-    back = int(np.sum(dt < 0))
-    dup = int(np.sum(dt == 0))
-    if back:
-        i = int(np.argmax(dt < 0))
-        out.append(f"{topic}: {back} out-of-order stamps (first at {t[i + 1]} ns)")
-    if dup:
-        i = int(np.argmax(dt == 0))
-        out.append(f"{topic}: {dup} duplicate stamps (first at {t[i]} ns)")
+    dt = np.diff(np.asarray(t, np.int64))
+    back = np.flatnonzero(dt < 0)
+    dup = np.flatnonzero(dt == 0)
+    if len(back):
+        out.append(
+            Problem(
+                "out_of_order",
+                topic,
+                len(back),
+                f"{topic}: {len(back)} out-of-order stamps "
+                f"(first at {t[back[0] + 1]} ns, after {t[back[0]]} ns)",
+            )
+        )
+    if len(dup):
+        out.append(
+            Problem(
+                "duplicate",
+                topic,
+                len(dup),
+                f"{topic}: {len(dup)} duplicate stamps (first at {t[dup[0]]} ns)",
+            )
+        )
     pos = dt[dt > 0]
     if len(pos):
         med = float(np.median(pos))
@@ -106,56 +154,73 @@ def _stamp_problems(topic: str, t: np.ndarray) -> list[str]:
         if len(gaps):
             worst = int(gaps[np.argmax(dt[gaps])])
             out.append(
-                f"{topic}: {len(gaps)} gaps > {GAP_FACTOR:.0f}x the median period {med * 1e-6:.1f} ms "
-                f"(longest {dt[worst] * 1e-9:.3f} s at {t[worst]} ns)"
+                Problem(
+                    "gap",
+                    topic,
+                    len(gaps),
+                    f"{topic}: {len(gaps)} gaps > {GAP_FACTOR:.0f}x the median period {med * 1e-6:.1f} ms "
+                    f"(longest {dt[worst] * 1e-9:.3f} s at {t[worst]} ns)",
+                )
             )
     return out
 
 
-def _nan_problem(topic: str, t: np.ndarray, *arrays: np.ndarray) -> list[str]:
+def nan_problems(topic: str, t: np.ndarray, *arrays: np.ndarray) -> list[Problem]:
     bad = np.zeros(len(t), bool)
     for a in arrays:
-        bad |= ~np.isfinite(a.reshape(len(t), -1)).all(axis=1)
-    if bad.any():
-        return [f"{topic}: {int(bad.sum())} messages with NaN/inf values (first at {t[np.argmax(bad)]} ns)"]
-    return []
+        bad |= ~np.isfinite(np.asarray(a, float).reshape(len(t), -1)).all(axis=1)
+    if not bad.any():
+        return []
+    n = int(bad.sum())
+    return [
+        Problem(
+            "nan", topic, n, f"{topic}: {n} messages with NaN/inf values (first at {t[np.argmax(bad)]} ns)"
+        )
+    ]
+
+
+def _range_problems(topic: str, r) -> list[Problem]:
+    rng = r.read_ranges(topic, file_order=True)
+    out = nan_problems(topic, rng.t_ns, rng.distance)
+    links = np.stack([rng.tag, rng.antenna, rng.anchor], axis=1)
+    for tag, ant, anchor in np.unique(links, axis=0).tolist():
+        m = (rng.tag == tag) & (rng.antenna == ant) & (rng.anchor == anchor)
+        out += stamp_problems(f"{topic} tag {tag} antenna {ant} anchor {anchor}", rng.t_ns[m])
+    neg = int(np.sum(rng.distance < 0))
+    if neg:
+        out.append(Problem("negative_range", topic, neg, f"{topic}: {neg} negative ranges"))
+    return out
 
 
 def recording_info(path: str | Path) -> InfoReport:
+    """Topics, rates, time spans, calibration, drops and the problems found in a recording."""
     r = RecordingReader(path)
     topics = r.topics()
-    problems = list(r.warnings)
+    problems = [Problem("truncated", "", 0, w) for w in r.warnings]
     if topics:
-        start = min(t.start_ns for t in topics.values())
-        end = max(t.end_ns for t in topics.values())
+        start, end = r.time_span()
     else:
         start = end = 0
-        problems.append("the recording has no messages")
-    if TOPIC_IMU in topics:
-        imu = r.read_imu()
-        problems += _stamp_problems(TOPIC_IMU, r.header_stamps(TOPIC_IMU)) + _nan_problem(
-            TOPIC_IMU, imu.t_ns, imu.gyro, imu.acc
-        )
-    if TOPIC_RANGE in topics:
-        rng = r.read_ranges()
-        problems += _nan_problem(TOPIC_RANGE, rng.t_ns, rng.distance)
-        for a in np.unique(rng.anchor):
-            m = rng.anchor == a
-            problems += _stamp_problems(f"{TOPIC_RANGE} anchor {a}", rng.t_ns[m])
-        neg = int(np.sum(rng.distance < 0))
-        if neg:
-            problems.append(f"{TOPIC_RANGE}: {neg} negative ranges")
-    for topic, reader in ((TOPIC_GT_POSE, r.read_poses), (TOPIC_ODOM, r.read_odometry)):
-        if topic in topics:
-            d = reader(topic)
-            problems += _stamp_problems(topic, d.t_ns) + _nan_problem(topic, d.t_ns, d.p, d.q_xyzw)
-    if TOPIC_GT_POSITION in topics:
-        d = r.read_positions(TOPIC_GT_POSITION)
-        problems += _stamp_problems(TOPIC_GT_POSITION, d.t_ns) + _nan_problem(TOPIC_GT_POSITION, d.t_ns, d.p)
+        problems.append(Problem("empty", "", 0, "the recording has no messages"))
+    for topic, info in sorted(topics.items()):
+        if info.msgtype == UWB_RANGE:
+            problems += _range_problems(topic, r)
+        elif info.msgtype == IMU:
+            d = r.read_imu(topic, file_order=True)
+            problems += stamp_problems(topic, d.t_ns) + nan_problems(topic, d.t_ns, d.gyro, d.acc)
+        elif info.msgtype in (POSE_STAMPED, ODOMETRY):
+            d = (r.read_poses if info.msgtype == POSE_STAMPED else r.read_odometry)(topic, file_order=True)
+            problems += stamp_problems(topic, d.t_ns) + nan_problems(topic, d.t_ns, d.p, d.q_xyzw)
+        elif info.msgtype == POINT_STAMPED:
+            d = r.read_positions(topic, file_order=True)
+            problems += stamp_problems(topic, d.t_ns) + nan_problems(topic, d.t_ns, d.p)
+        elif info.msgtype in (IMAGE, FEATURE_TRACKS):
+            problems += stamp_problems(topic, r.header_stamps(topic))
     return InfoReport(
         Path(path),
         topics,
-        (end - start) * 1e-9,
+        start,
+        end,
         r.calibration,
         r.source,
         r.truth,

@@ -112,7 +112,22 @@ def test_independent_ros2_decoder_reads_our_schemas(sample):
     _, m = seen[TOPIC_ODOM][0]
     assert list(m.pose.covariance) == list(d["cov"].reshape(-1))
     _, m = seen[TOPIC_GT_POSE][2]
-    assert m.pose.orientation.w == d["q"][2, 3]
+    assert m.pose.orientation.w == d["q"][2, 3] and m.pose.position.y == d["p"][2, 1]
+    _, m = seen[TOPIC_GT_POSITION][1]
+    assert [m.point.x, m.point.y, m.point.z] == list(d["p"][1])
+    with open(path, "rb") as f:
+        schemas = {s.name: s for s in make_reader(f).get_summary().schemas.values()}
+    assert set(schemas) == {
+        "sensor_msgs/msg/Imu",
+        "sensor_msgs/msg/Image",
+        "geometry_msgs/msg/PoseStamped",
+        "geometry_msgs/msg/PointStamped",
+        "nav_msgs/msg/Odometry",
+        "uwbcal_msgs/msg/UwbRange",
+        "uwbcal_msgs/msg/FeatureTracks",
+    }
+    assert all(s.encoding == "ros2msg" for s in schemas.values())
+    assert "\nMSG: std_msgs/msg/Header\n" in schemas["uwbcal_msgs/msg/UwbRange"].data.decode()
 
 
 def test_streaming_in_time_order_with_filters(sample):
@@ -182,3 +197,197 @@ def test_merged_reader_interleaves_and_delegates(sample, tmp_path):
     assert [int(i[0]) for _, i, _ in m.iter_features("/cam0/features2")] == [1, 50, 300]
     np.testing.assert_array_equal(m.read_imu().gyro, d["gyro"])
     assert m.calibration == {"imu": {"rate_hz": 200.0}}
+
+
+def _hdr(T, t, frame):
+    return T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9), frame_id=frame
+    )
+
+
+def test_hand_packed_layouts_are_byte_identical_to_rosbags():
+    from convert import msgs
+
+    ts = msgs.typestore()
+    T = ts.types
+    t = T0 + 123_456_789
+    sec, nsec = divmod(t, 10**9)
+    v3 = lambda v: T["geometry_msgs/msg/Vector3"](x=v[0], y=v[1], z=v[2])  # noqa: E731
+    pt = lambda v: T["geometry_msgs/msg/Point"](x=v[0], y=v[1], z=v[2])  # noqa: E731
+    qt = lambda q: T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])  # noqa: E731
+    g, a, p, q = [0.1, -2.0, 3.5], [4.0, 5.25, -9.81], [1.0, 2.0, 3.0], [0.5, 0.5, -0.5, 0.5]
+    cov = np.arange(36.0)
+    imu = T[msgs.IMU](
+        header=_hdr(T, t, "imu"),
+        orientation=qt([0.0, 0.0, 0.0, 1.0]),
+        orientation_covariance=np.r_[-1.0, np.zeros(8)],
+        angular_velocity=v3(g),
+        angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=v3(a),
+        linear_acceleration_covariance=np.zeros(9),
+    )
+    f = msgs.imu_block(np.array([g]), np.array([a]))
+    assert msgs.imu_layout("imu").pack_many(1, sec=[sec], nsec=[nsec], f=f)[0].tobytes() == bytes(
+        ts.serialize_cdr(imu, msgs.IMU)
+    )
+    assert msgs.imu_layout("imu").pack_one(sec=sec, nsec=nsec, f=f[0]) == bytes(
+        ts.serialize_cdr(imu, msgs.IMU)
+    )
+    rng = T[msgs.UWB_RANGE](
+        header=_hdr(T, t, "tag3"), tag_id=3, antenna=2, anchor_id=4_000_000_001, distance=7.5
+    )
+    packed = msgs.range_layout("tag3").pack_one(
+        sec=sec, nsec=nsec, tag=3, antenna=2, anchor=4_000_000_001, d=7.5
+    )
+    assert packed == bytes(ts.serialize_cdr(rng, msgs.UWB_RANGE))
+    pose = T[msgs.POSE_STAMPED](
+        header=_hdr(T, t, "world"), pose=T["geometry_msgs/msg/Pose"](position=pt(p), orientation=qt(q))
+    )
+    assert msgs.pose_layout("world").pack_one(sec=sec, nsec=nsec, f=p + q) == bytes(
+        ts.serialize_cdr(pose, msgs.POSE_STAMPED)
+    )
+    point = T[msgs.POINT_STAMPED](header=_hdr(T, t, "world"), point=pt(p))
+    assert msgs.point_layout("world").pack_one(sec=sec, nsec=nsec, f=p) == bytes(
+        ts.serialize_cdr(point, msgs.POINT_STAMPED)
+    )
+    odo = T[msgs.ODOMETRY](
+        header=_hdr(T, t, "world"),
+        child_frame_id="body",
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=T["geometry_msgs/msg/Pose"](position=pt(p), orientation=qt(q)), covariance=cov
+        ),
+        twist=T["geometry_msgs/msg/TwistWithCovariance"](
+            twist=T["geometry_msgs/msg/Twist"](linear=v3(a), angular=v3(g)), covariance=np.zeros(36)
+        ),
+    )
+    fo = np.r_[p, q, cov, a, g, np.zeros(36)]
+    assert msgs.odom_layout("world", "body").pack_one(sec=sec, nsec=nsec, f=fo) == bytes(
+        ts.serialize_cdr(odo, msgs.ODOMETRY)
+    )
+
+
+def test_messages_are_decoded_by_rosbags(sample):
+    path, d = sample
+    r = RecordingReader(path)
+    imu = [m for _, _, m in r.messages([TOPIC_IMU])]
+    assert len(imu) == 400 and imu[7].angular_velocity.y == d["gyro"][7, 1]
+    assert imu[7].orientation.w == 1.0 and imu[7].header.frame_id == "imu"
+    ranges = [m for _, _, m in r.messages([TOPIC_RANGE])]
+    assert [m.anchor_id for m in ranges] == list(d["anchor"]) and ranges[0].header.frame_id == "tag7"
+    ((_, _, odo),) = r.messages([TOPIC_ODOM])
+    np.testing.assert_array_equal(odo.pose.covariance, d["cov"].reshape(-1))
+    assert odo.child_frame_id == "body"
+
+
+def test_time_order_and_filters_match_the_mcap_reader(tmp_path):
+    """Several topics written as whole batches into many small chunks: same order as mcap's own index merge."""
+    path = tmp_path / "order.mcap"
+    n = 3000
+    t = T0 + np.arange(n, dtype=np.int64) * 5_000_000
+    rng = np.random.default_rng(1)
+    with RecordingWriter(path, chunk_size=16 * 1024) as w:
+        w.write_range_batch(t[::7] + 1, rng.integers(0, 3, len(t[::7])), 0, 9, rng.uniform(1, 9, len(t[::7])))
+        w.write_pose_batch(
+            t[::2] + 2, rng.normal(size=(len(t[::2]), 3)), np.tile([0, 0, 0, 1.0], (len(t[::2]), 1))
+        )
+        w.write_imu_batch(t, rng.normal(size=(n, 3)), rng.normal(size=(n, 3)))
+        for k in range(0, n, 100):
+            w.write_features(int(t[k]) + 3, [k], [[1.0, 2.0]])
+    r = RecordingReader(path)
+    ours = [(topic, ts) for topic, ts, _ in r.messages(raw=True)]
+    with open(path, "rb") as f:
+        ref = [(c.topic, m.log_time) for _, c, m in make_reader(f).iter_messages(log_time_order=True)]
+    assert ours == ref
+    lo, hi = int(t[1000]), int(t[2000])
+    sub = [(topic, ts) for topic, ts, _ in r.messages([TOPIC_IMU, TOPIC_RANGE], lo, hi, raw=True)]
+    assert sub == [x for x in ref if x[0] in (TOPIC_IMU, TOPIC_RANGE) and lo <= x[1] < hi]
+    imu = r.read_imu(start_ns=lo, end_ns=hi)
+    np.testing.assert_array_equal(imu.t_ns, t[1000:2000])
+    rr = r.read_ranges(start_ns=lo, end_ns=hi)
+    np.testing.assert_array_equal(rr.t_ns, [x[1] for x in sub if x[0] == TOPIC_RANGE])
+    assert [f[0] for f in r.iter_features(start_ns=lo, end_ns=hi)] == list(t[1000:2000:100] + 3)
+    np.testing.assert_array_equal(r.header_stamps(TOPIC_RANGE), t[::7] + 1)  # mixed tags keep writing order
+    assert {(m.tag_id, m.header.frame_id) for _, _, m in r.messages([TOPIC_RANGE])} == {
+        (k, f"tag{k}") for k in range(3)
+    }
+    info = r.topics()
+    assert info[TOPIC_RANGE].count == len(t[::7]) and info[TOPIC_RANGE].end_ns == t[::7][-1] + 1
+    assert info["/cam0/features"].msgtype == "uwbcal_msgs/msg/FeatureTracks"
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.75, 0.999])
+def test_truncated_mixed_file_recovers_a_consistent_prefix(tmp_path, fraction):
+    path = tmp_path / "mixed.mcap"
+    n = 6000
+    t = T0 + np.arange(n, dtype=np.int64) * 5_000_000
+    g = np.random.default_rng(2).normal(size=(n, 3))
+    with RecordingWriter(path, chunk_size=32 * 1024) as w:
+        for k in range(0, n, 500):  # interleaved writing, as a converter does
+            w.write_imu_batch(t[k : k + 500], g[k : k + 500], g[k : k + 500])
+            w.write_range_batch(t[k : k + 500 : 10], 1, 0, 4, np.ones(50))
+        w.set_metadata(META_CALIBRATION, {"imu": {"rate_hz": 200.0}})
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * fraction)])
+    with pytest.warns(UserWarning, match=r"cut\.mcap: truncated recording .* recovered \d+ messages"):
+        r = RecordingReader(cut)
+    imu = r.read_imu()
+    k = len(imu)
+    assert 0 < k < n if fraction < 0.9 else k == n  # 0.999: only the summary is cut off
+    np.testing.assert_array_equal(imu.t_ns, t[:k])
+    np.testing.assert_array_equal(imu.gyro, g[:k])
+    assert r.topics()[TOPIC_IMU].count == k and r.topics()[TOPIC_IMU].end_ns == t[k - 1]
+    assert len(r.read_ranges()) > 0
+    stamps = [ts for _, ts, _ in r.messages(raw=True)]
+    assert stamps == sorted(stamps)
+
+
+def test_cut_header_and_garbage_after_magic_are_input_errors(tmp_path, sample):
+    path, _ = sample
+    head = tmp_path / "head.mcap"
+    head.write_bytes(path.read_bytes()[:20])
+    with pytest.raises(InputError, match="head.mcap: no readable MCAP records"):
+        RecordingReader(head)
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"\x89MCAP0\r\n" + np.random.default_rng(3).bytes(5000))
+    with pytest.raises(InputError, match="junk.mcap"):
+        RecordingReader(junk)
+
+
+def test_empty_recording_and_odometry_twist(tmp_path):
+    empty = tmp_path / "empty.mcap"
+    with RecordingWriter(empty):
+        pass
+    r = RecordingReader(empty)
+    assert r.topics() == {} and list(r.messages()) == [] and r.calibration == {}
+    path = tmp_path / "odo.mcap"
+    covs = np.stack([np.diag(np.full(6, k + 1.0)) for k in range(5)])
+    t = T0 + np.arange(5, dtype=np.int64) * 10**8
+    with RecordingWriter(path) as w:
+        w.write_odometry_batch(
+            t, np.ones((5, 3)), np.tile([0, 0, 0, 1.0], (5, 1)), covs, topic="/vio/odometry"
+        )
+        w.write_odometry(int(t[-1]) + 1, [1, 2, 3], [0, 0, 0, 1], covs[0], v=[0.5, 0, 0], w=[0, 0, 0.1])
+    r = RecordingReader(path)
+    np.testing.assert_array_equal(r.read_odometry("/vio/odometry").cov, covs)
+    ((_, _, m),) = r.messages([TOPIC_ODOM])
+    assert (m.twist.twist.linear.x, m.twist.twist.angular.z) == (0.5, 0.1)
+
+
+def test_equal_stamps_keep_writing_order_across_chunks(tmp_path):
+    """IMU and feature frames share stamps and live in different, overlapping chunks: ties go in writing order."""
+    path = tmp_path / "ties.mcap"
+    n = 4000
+    t = T0 + np.arange(n, dtype=np.int64) * 5_000_000
+    with RecordingWriter(path, chunk_size=8 * 1024) as w:
+        w.write_imu_batch(t[: n // 2], np.zeros((n // 2, 3)), np.zeros((n // 2, 3)))
+        for k in range(0, n, 40):
+            w.write_features(int(t[k]), np.arange(20), np.ones((20, 2)))
+        w.write_imu_batch(t[n // 2 :], np.zeros((n // 2, 3)), np.zeros((n // 2, 3)))
+    ours = [(topic, ts) for topic, ts, _ in RecordingReader(path).messages(raw=True)]
+    with open(path, "rb") as f:
+        ref = [(c.topic, m.log_time) for _, c, m in make_reader(f).iter_messages(log_time_order=True)]
+    assert ours == ref
+    first_half = [topic for topic, ts in ours if ts == t[40]]
+    second_half = [topic for topic, ts in ours if ts == t[n // 2 + 40]]
+    assert first_half == [TOPIC_IMU, TOPIC_FEATURES] and second_half == [TOPIC_FEATURES, TOPIC_IMU]
