@@ -6,7 +6,7 @@ PYTEST_WORKERS ?= 2
 
 setup:
 	@command -v uv >/dev/null 2>&1 || python3 -m uv --version >/dev/null 2>&1 || python3 -m pip install -q uv
-	@$(UV) sync --frozen
+	@$(UV) sync --frozen --compile-bytecode -q
 
 demo: setup
 	$(UV) run uwbcal demo

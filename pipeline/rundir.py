@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import json
 import pickle
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -74,25 +71,12 @@ class RunDir:
         (self.path / LOGS).mkdir(parents=True, exist_ok=True)
         return self.path / LOGS / f"{order:02d}_{stage}.rrd"
 
-    def merge_rrd(self) -> Path | None:
+    def merge_rrd(self, run_kind: str | None = None) -> Path | None:
         """Merge the per-stage logs into run.rrd, so a stage re-run alone still gives a complete run.rrd."""
+        from .runlog import merge_run_logs
+
         parts = sorted((self.path / LOGS).glob("*.rrd")) if (self.path / LOGS).is_dir() else []
-        if not parts:
-            return None
-        target = self.path / RRD
-        if len(parts) == 1:
-            with atomic_path(target) as tmp:
-                shutil.copyfile(parts[0], tmp)
-            return target
-        rerun = Path(sys.executable).with_name("rerun")
-        exe = [str(rerun)] if rerun.exists() else [sys.executable, "-m", "rerun"]
-        with atomic_path(target) as tmp:
-            res = subprocess.run(
-                [*exe, "rrd", "merge", *map(str, parts), "-o", str(tmp)], capture_output=True, text=True
-            )
-            if res.returncode != 0:
-                raise RuntimeError(f"rerun rrd merge failed: {res.stderr.strip()[-500:]}")
-        return target
+        return merge_run_logs(parts, self.path / RRD, run_kind) if parts else None
 
 
 def write_text(path: Path, text: str) -> None:

@@ -1,0 +1,656 @@
+"""The rerun run log (DESIGN §5): one `RunLog` per stage writes an .rrd atomically, with a blueprint.
+
+Every stage logs through the same small object so that entity paths, timelines and styling stay consistent:
+timeline `sensor_time` (timestamp, recording time in ns) on every row and `stage` (sequence, see `STAGE_INDEX`)
+once a stage boundary has been logged. Long series go column-wise (`rr.send_columns`). The entity tree is fixed
+by the path builders below; stages must not invent paths.
+
+A disabled `RunLog` (path None or enabled False, i.e. `--no-log`) returns from every method at once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+from convert.atomic import atomic_path
+from convert.errors import InputError
+
+APP_ID = "uwbcal"
+RUN_KINDS = ("simulation", "euroc", "ntu-viral")
+T_SENSOR = "sensor_time"
+T_STAGE = "stage"
+STAGE_INDEX = {"convert": 0, "recording": 0, "frontend": 1, "vio": 2, "init": 3, "refine": 4, "localize": 5}
+
+# -- entity paths (DESIGN §5) ------------------------------------------------------------------------------------
+WORLD = "world"
+GT = "world/gt"  # trajectory(GT, ...) -> world/gt/{trajectory,pose}
+GT_TRAJECTORY = "world/gt/trajectory"
+GT_POSE = "world/gt/pose"
+VIO = "world/vio"  # trajectory(VIO, ...) -> world/vio/{trajectory,pose}
+VIO_POSE = "world/vio/pose"
+VIO_TRAJECTORY = "world/vio/trajectory"
+VIO_COV = "world/vio/cov"
+FEATURES = "world/features"
+CAM = "cam0"
+CAM_IMAGE = "cam0/image"
+CAM_TRACKS = "cam0/tracks"
+FILTER = "filter"
+NEES_POSE = "filter/nees_pose"
+NEES_ANCHOR = "filter/nees_anchor"
+SIGMA = "filter/sigma"
+LOG = "log"
+LOG_STAGES = "log/stages"
+LOG_STAGE_INDEX = "log/stage_index"
+
+ANCHOR_WORLD_PARTS = ("truth", "lsi", "ri", "ri-robust", "estimate", "cov")
+UWB_PARTS = ("range", "residual", "nis", "nis_gate", "rejected")
+_UNSAFE = re.compile(r"[^A-Za-z0-9_.\-]")
+INIT_PARTS = ("cost", "fim_logdet")
+ANCHOR_PARAM_PARTS = ("beta", "gamma")
+
+
+def _part(x: object) -> str:
+    """One entity-path part: ids with characters outside [A-Za-z0-9_.-] get them replaced by '_'."""
+    return _UNSAFE.sub("_", str(x)) or "_"
+
+
+def anchor_world(anchor: object, what: str) -> str:
+    """`world/anchors/<id>/<what>`, what in truth, lsi, ri, ri-robust, estimate, cov."""
+    return f"world/anchors/{_part(anchor)}/{what}"
+
+
+def uwb(anchor: object, what: str) -> str:
+    """`uwb/<id>/<what>`, what in range, residual, nis, nis_gate, rejected."""
+    return f"uwb/{_part(anchor)}/{what}"
+
+
+def init(method: str, what: str) -> str:
+    """`init/<method>/<what>`, what in cost, fim_logdet."""
+    return f"init/{_part(method)}/{what}"
+
+
+def anchor_param(anchor: object, what: str) -> str:
+    """`anchors/<id>/<what>`, what in beta, gamma."""
+    return f"anchors/{_part(anchor)}/{what}"
+
+
+# Colours (RGB) used consistently across runs: a method always has the same colour.
+COLORS = {
+    "truth": (230, 230, 230),
+    "gt": (120, 200, 120),
+    "vio": (80, 160, 255),
+    "lsi": (255, 150, 40),
+    "ri": (60, 120, 255),
+    "ri-robust": (190, 90, 255),
+    "estimate": (40, 220, 120),
+    "ekf": (255, 90, 90),
+    "skf": (40, 220, 120),
+    "none": (160, 160, 160),
+    "gate": (150, 150, 150),
+    "rejected": (255, 60, 60),
+    "features": (255, 230, 80),
+}
+
+
+def _ts(t_ns: Any) -> np.ndarray:
+    return np.asarray(t_ns, dtype=np.int64).astype("datetime64[ns]")
+
+
+def cov_to_ellipsoid(covs: np.ndarray, n_sigma: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """Half sizes (N,3) and rotations as quaternions xyzw (N,4) of the n-sigma ellipsoids of 3x3 covariances.
+
+    Eigenvectors form the rotation; a column is flipped where needed so that det = +1 (a proper rotation).
+    """
+    from scipy.spatial.transform import Rotation
+
+    covs = np.asarray(covs, dtype=float).reshape(-1, 3, 3)
+    covs = 0.5 * (covs + np.swapaxes(covs, 1, 2))
+    w, v = np.linalg.eigh(covs)
+    v = v.copy()
+    v[:, :, 2] *= np.sign(np.linalg.det(v))[:, None]
+    half = n_sigma * np.sqrt(np.clip(w, 0.0, None))
+    return half, Rotation.from_matrix(v).as_quat()
+
+
+@dataclass
+class RrdSummary:
+    """What an .rrd holds: temporal rows per entity path (no leading '/'), timelines, static rows, stores."""
+
+    rows: dict[str, int] = field(default_factory=dict)
+    timelines: set[str] = field(default_factory=set)
+    timelines_by_entity: dict[str, set[str]] = field(default_factory=dict)
+    static: dict[str, int] = field(default_factory=dict)
+    recording_ids: list[str] = field(default_factory=list)
+    application_ids: set[str] = field(default_factory=set)
+    blueprints: int = 0
+    blueprint_entities: list[str] = field(default_factory=list)
+    blueprint_names: list[str] = field(default_factory=list)  # view and container titles
+
+
+def read_rrd_summary(path: Path | str) -> RrdSummary:
+    """Read an .rrd back (all recording stores) and count rows per entity path."""
+    from rerun.chunk import RrdReader
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: missing; expected a rerun .rrd file")
+    reader = RrdReader(path)
+    out = RrdSummary()
+    for store in reader.recordings():
+        out.recording_ids.append(store.recording_id)
+        out.application_ids.add(store.application_id)
+        for ch in reader.stream(store=store).to_chunks():
+            ent = ch.entity_path.lstrip("/")
+            if ent.startswith("__"):
+                continue
+            if ch.is_static:
+                out.static[ent] = out.static.get(ent, 0) + ch.num_rows
+                continue
+            out.rows[ent] = out.rows.get(ent, 0) + ch.num_rows
+            names = set(ch.timeline_names)
+            out.timelines |= names
+            out.timelines_by_entity.setdefault(ent, set()).update(names)
+    bps = reader.blueprints()
+    out.blueprints = len(bps)
+    for store in bps:
+        for ch in reader.stream(store=store).to_chunks():
+            out.blueprint_entities.append(ch.entity_path)
+            rb = ch.to_record_batch()
+            for f in rb.schema:
+                if f.name.endswith(":display_name"):
+                    out.blueprint_names += [str(x) for v in rb.column(f.name).to_pylist() for x in (v or [])]
+    return out
+
+
+class RunLog:
+    """One rerun recording written to `path` (atomically, on `close`). See the module docstring."""
+
+    def __init__(
+        self,
+        path: Path | str | None,
+        *,
+        app_id: str = APP_ID,
+        recording_id: str | None = None,
+        run_kind: str = "simulation",
+        enabled: bool = True,
+        anchors: Iterable[object] = (),
+    ) -> None:
+        self.path = Path(path) if path is not None else None
+        self.run_kind = run_kind if run_kind in RUN_KINDS else "simulation"
+        self._anchors: dict[str, None] = {_part(a): None for a in anchors}
+        self._stage: int | None = None
+        self._has_camera = False
+        self._rec = None
+        self._stack: contextlib.ExitStack | None = None
+        if self.path is None or not enabled:
+            return
+        import rerun as rr
+
+        self._rr = rr
+        self._stack = contextlib.ExitStack()
+        tmp = self._stack.enter_context(atomic_path(self.path))
+        rec = rr.RecordingStream(app_id, recording_id=recording_id, send_properties=False)
+        rec.set_log_time_enabled(False)
+        rec.set_log_tick_enabled(False)
+        rec.save(tmp)
+        self._rec = rec
+
+    # -- lifecycle -------------------------------------------------------------------------------------------
+    @property
+    def enabled(self) -> bool:
+        """False for the no-op log: callers may skip computing what they would only log."""
+        return self._rec is not None
+
+    def __enter__(self) -> RunLog:
+        return self
+
+    def __exit__(self, exc_type: type | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        self.close(keep=exc_type is None)
+
+    def close(self, *, keep: bool | None = None) -> Path | None:
+        """Send the blueprint, flush and rename the temp file to `path`.
+
+        keep=None keeps the log unless an exception is propagating (close() called from a `finally`), so a failed
+        stage never leaves an .rrd that looks whole; keep=False discards it.
+        """
+        if self._rec is None or self._stack is None:
+            return None
+        if keep is None:
+            keep = sys.exc_info()[0] is None
+        rec, stack = self._rec, self._stack
+        self._rec, self._stack = None, None
+        try:
+            if keep:
+                rec.send_blueprint(self.blueprint(), make_active=True, make_default=True)
+            rec.flush()
+        finally:
+            rec.disconnect()
+        if keep:
+            stack.close()
+            return self.path
+        stack.__exit__(RuntimeError, RuntimeError("run log discarded"), None)
+        return None
+
+    def abort(self) -> None:
+        self.close(keep=False)
+
+    # -- time --------------------------------------------------------------------------------------------------
+    def _indexes(self, t_ns: np.ndarray) -> list:
+        rr = self._rr
+        idx = [rr.TimeColumn(T_SENSOR, timestamp=_ts(t_ns))]
+        if self._stage is not None:
+            idx.append(rr.TimeColumn(T_STAGE, sequence=np.full(len(t_ns), self._stage, dtype=np.int64)))
+        return idx
+
+    def _set_time(self, t_ns: int | None) -> None:
+        if t_ns is not None:
+            self._rec.set_time(T_SENSOR, timestamp=np.datetime64(int(t_ns), "ns"))
+
+    def _note(self, entity: str) -> None:
+        parts = entity.split("/")
+        if len(parts) >= 3 and parts[0] in ("uwb", "anchors"):
+            self._anchors.setdefault(parts[1], None)
+        elif len(parts) >= 4 and parts[:2] == ["world", "anchors"]:
+            self._anchors.setdefault(parts[2], None)
+        elif parts[0] == CAM:
+            self._has_camera = True
+
+    def stage(self, name: str, t_ns: int) -> None:
+        """Stage boundary: sets the `stage` timeline and logs an event at log/stages and a step at log/stage_index."""
+        if self._rec is None:
+            return
+        rr = self._rr
+        self._stage = STAGE_INDEX.get(name, len(STAGE_INDEX))
+        self._rec.set_time(T_STAGE, sequence=self._stage)
+        self._set_time(t_ns)
+        self._rec.log(LOG_STAGES, rr.TextLog(f"stage {self._stage}: {name}", level=rr.TextLogLevel.INFO))
+        self._rec.log(LOG_STAGE_INDEX, rr.Scalars(float(self._stage)))
+
+    def text(self, msg: str, level: str = "INFO", t_ns: int | None = None) -> None:
+        if self._rec is None:
+            return
+        self._set_time(t_ns)
+        self._rec.log(LOG, self._rr.TextLog(str(msg), level=str(level).upper()))
+
+    # -- time series -------------------------------------------------------------------------------------------
+    def scalars(self, entity: str, t_ns: Any, values: Any, names: Sequence[str] | None = None) -> None:
+        """Column-wise scalar series: values (N,) or (N,k) at t_ns (N,)."""
+        if self._rec is None:
+            return
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        v = np.asarray(values, dtype=np.float64)
+        if v.shape[0] != t.shape[0]:
+            raise ValueError(f"{entity}: {v.shape[0]} values for {t.shape[0]} stamps")
+        if len(t) == 0:
+            return
+        self._note(entity)
+        rr = self._rr
+        self._rec.send_columns(entity, indexes=self._indexes(t), columns=rr.Scalars.columns(scalars=v))
+        if names is not None:
+            self._rec.log(entity, rr.SeriesLines.from_fields(names=list(names)), static=True)
+
+    def constant(self, entity: str, t_ns: Any, values: Any, names: Sequence[str] | None = None) -> None:
+        """A constant line (e.g. a chi-square gate or NEES bounds) over the span of t_ns: values scalar or (k,)."""
+        if self._rec is None:
+            return
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        if len(t) == 0:
+            return
+        v = np.atleast_1d(np.asarray(values, dtype=np.float64))
+        self.scalars(
+            entity, np.array([t.min(), t.max()]), np.stack([v, v]) if v.size > 1 else np.repeat(v, 2)
+        )
+        colors = [COLORS["gate"]] * v.size
+        self.series_static_style(entity, list(names) if names else ["gate"] * v.size, colors)
+
+    def series_static_style(
+        self, entity: str, names: Sequence[str], colors: Sequence[Any], *, points: bool = False
+    ) -> None:
+        if self._rec is None:
+            return
+        rr = self._rr
+        arch = rr.SeriesPoints if points else rr.SeriesLines
+        self._rec.log(entity, arch.from_fields(names=list(names), colors=list(colors)), static=True)
+
+    # -- 3-D -----------------------------------------------------------------------------------------------------
+    def points3d(
+        self,
+        entity: str,
+        pts: Any,
+        colors: Any = None,
+        radii: Any = None,
+        labels: Sequence[str] | None = None,
+        t_ns: int | None = None,
+        static: bool = False,
+    ) -> None:
+        if self._rec is None:
+            return
+        self._note(entity)
+        self._set_time(t_ns)
+        p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        self._rec.log(
+            entity,
+            self._rr.Points3D(
+                p, colors=colors, radii=radii, labels=list(labels) if labels is not None else None
+            ),
+            static=static,
+        )
+
+    def trajectory(
+        self,
+        entity: str,
+        t_ns: Any,
+        p: Any,
+        q_xyzw: Any = None,
+        static_strip: bool = True,
+        color: Any = None,
+        axis_length: float = 0.3,
+    ) -> None:
+        """`<entity>/trajectory` as one line strip + `<entity>/pose` over time (Transform3D with axes when q is
+        given, else a point), column-wise so the viewer can scrub. entity: GT or VIO."""
+        if self._rec is None:
+            return
+        rr = self._rr
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+        if len(t) == 0:
+            return
+        if color is None:
+            color = COLORS.get(entity.rsplit("/", 1)[-1], COLORS["vio"])
+        strip = rr.LineStrips3D([p], colors=[color], radii=rr.Radius.ui_points(1.5))
+        if static_strip:
+            self._rec.log(f"{entity}/trajectory", strip, static=True)
+        else:
+            self._set_time(int(t[-1]))
+            self._rec.log(f"{entity}/trajectory", strip)
+        pose = f"{entity}/pose"
+        if q_xyzw is None:
+            self._rec.send_columns(pose, indexes=self._indexes(t), columns=rr.Points3D.columns(positions=p))
+            self._rec.log(pose, rr.Points3D.from_fields(colors=[color], radii=[0.05]), static=True)
+        else:
+            q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1, 4)
+            cols = rr.Transform3D.columns(translation=p, quaternion=q)
+            self._rec.send_columns(pose, indexes=self._indexes(t), columns=cols)
+            self._rec.log(pose, rr.TransformAxes3D(axis_length), static=True)
+
+    def ellipsoids(
+        self,
+        entity: str,
+        centers: Any,
+        covs: Any,
+        n_sigma: float = 3.0,
+        t_ns: int | None = None,
+        colors: Any = None,
+        static: bool = False,
+    ) -> None:
+        """n-sigma covariance ellipsoids (one batch) from 3x3 covariances."""
+        if self._rec is None:
+            return
+        self._note(entity)
+        c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+        half, quat = cov_to_ellipsoid(covs, n_sigma)
+        self._set_time(t_ns)
+        self._rec.log(
+            entity,
+            self._rr.Ellipsoids3D(
+                centers=c, half_sizes=half, quaternions=quat, colors=colors, fill_mode="MajorWireframe"
+            ),
+            static=static,
+        )
+
+    def ellipsoid_series(
+        self, entity: str, t_ns: Any, centers: Any, covs: Any, n_sigma: float = 3.0, color: Any = None
+    ) -> None:
+        """One n-sigma ellipsoid per stamp, column-wise (e.g. world/vio/cov from the pose covariance's p block)."""
+        if self._rec is None:
+            return
+        rr = self._rr
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        if len(t) == 0:
+            return
+        self._note(entity)
+        c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+        half, quat = cov_to_ellipsoid(covs, n_sigma)
+        cols = rr.Ellipsoids3D.columns(centers=c, half_sizes=half, quaternions=quat)
+        self._rec.send_columns(entity, indexes=self._indexes(t), columns=cols)
+        style = rr.Ellipsoids3D.from_fields(colors=[color or COLORS["vio"]], fill_mode="MajorWireframe")
+        self._rec.log(entity, style, static=True)
+
+    # -- camera ---------------------------------------------------------------------------------------------------
+    def pinhole(
+        self, entity: str, intrinsics: Sequence[float], resolution: Sequence[int], T_world_cam: Any = None
+    ) -> None:
+        """Static pinhole (fu, fv, cu, cv) at `entity` (cam0); with T_world_cam (4x4) also its static pose."""
+        if self._rec is None:
+            return
+        rr = self._rr
+        self._note(entity)
+        fu, fv, cu, cv = (float(x) for x in intrinsics)
+        w, h = (int(x) for x in resolution)
+        if T_world_cam is not None:
+            T = np.asarray(T_world_cam, dtype=np.float64)
+            self._rec.log(entity, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]), static=True)
+        self._rec.log(
+            entity,
+            rr.Pinhole(
+                focal_length=[fu, fv],
+                principal_point=[cu, cv],
+                width=w,
+                height=h,
+                camera_xyz=rr.ViewCoordinates.RDF,
+            ),
+            static=True,
+        )
+
+    def image(self, entity: str, t_ns: int, img: np.ndarray, *, jpeg_quality: int | None = 80) -> None:
+        """One camera frame; JPEG-encoded by default (a raw 752x480 EuRoC frame is 360 kB, ~25 kB as JPEG)."""
+        if self._rec is None:
+            return
+        rr = self._rr
+        self._note(entity)
+        self._set_time(t_ns)
+        img = np.asarray(img)
+        if jpeg_quality is not None and img.dtype == np.uint8:
+            import cv2
+
+            ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+            if ok:
+                self._rec.log(entity, rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+                return
+        self._rec.log(entity, rr.Image(img))
+
+    def tracks(self, entity: str, t_ns: int, uv: Any, ids: Any, radii: float = 2.0) -> None:
+        """Feature tracks of one frame: pixel positions (M,2) coloured by track id (class ids)."""
+        if self._rec is None:
+            return
+        rr = self._rr
+        self._note(entity)
+        self._set_time(t_ns)
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        self._rec.log(
+            entity,
+            rr.Points2D(uv, class_ids=(ids % 65535).astype(np.uint16), radii=rr.Radius.ui_points(radii)),
+        )
+
+    # -- blueprint -------------------------------------------------------------------------------------------------
+    def anchors(self) -> list[str]:
+        return list(self._anchors)
+
+    def blueprint(self):
+        return make_blueprint(
+            self.run_kind, self.anchors(), camera=self._has_camera or self.run_kind != "ntu-viral"
+        )
+
+
+def make_blueprint(run_kind: str, anchors: Sequence[str], *, camera: bool = True):
+    """The layout a run opens on: 3-D world (+ camera) left; residual/NIS per anchor, consistency, β/γ, log right."""
+    import rerun.blueprint as rrb
+
+    left: list = [rrb.Spatial3DView(origin=WORLD, name="world")]
+    if camera:
+        left.append(rrb.Spatial2DView(origin=CAM, name="cam0"))
+    per_anchor = [
+        rrb.Vertical(
+            rrb.TimeSeriesView(
+                origin=f"uwb/{a}",
+                contents=[f"+ uwb/{a}/residual/**", f"+ uwb/{a}/rejected/**"],
+                name=f"{a}: range residual [m]",
+            ),
+            rrb.TimeSeriesView(
+                origin=f"uwb/{a}", contents=[f"+ uwb/{a}/nis/**", f"+ uwb/{a}/nis_gate/**"], name=f"{a}: NIS"
+            ),
+            name=f"anchor {a}",
+        )
+        for a in anchors
+    ]
+    if not per_anchor:
+        per_anchor = [rrb.TimeSeriesView(origin="uwb", name="uwb")]
+    consistency = [rrb.TimeSeriesView(origin=FILTER, name="NEES / sigma")]
+    if run_kind == "ntu-viral":  # no anchor truth: σ instead of NEES first
+        consistency = [
+            rrb.TimeSeriesView(origin=SIGMA, name="sigma"),
+            rrb.TimeSeriesView(origin=FILTER, name="filter"),
+        ]
+    if anchors:
+        params = [
+            rrb.TimeSeriesView(
+                origin="anchors", contents=[f"+ anchors/{a}/beta/**" for a in anchors], name="beta"
+            ),
+            rrb.TimeSeriesView(
+                origin="anchors", contents=[f"+ anchors/{a}/gamma/**" for a in anchors], name="gamma [m]"
+            ),
+        ]
+    else:
+        params = [rrb.TimeSeriesView(origin="anchors", name="beta / gamma")]
+    params.append(rrb.TimeSeriesView(origin="init", name="init cost / FIM"))
+    right = rrb.Vertical(
+        rrb.Tabs(*per_anchor, name="UWB residuals"),
+        rrb.Tabs(*consistency, *params, name="consistency"),
+        rrb.TextLogView(origin=LOG, name="log"),
+        row_shares=[2, 2, 1],
+    )
+    left_col = rrb.Vertical(*left, row_shares=[3, 2]) if len(left) > 1 else left[0]
+    return rrb.Blueprint(
+        rrb.Horizontal(left_col, right, column_shares=[3, 2]),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=T_SENSOR),
+    )
+
+
+def merge_run_logs(
+    parts: Sequence[Path | str], target: Path | str, run_kind: str | None = None
+) -> Path | None:
+    """Merge per-stage .rrd files into one recording (`target`, atomic) with ONE blueprint built from all of them.
+
+    `rerun rrd merge` would keep every stage's blueprint (each knowing only its own stage's anchors); here the
+    recordings' chunks are re-sent into one stream and the blueprint is rebuilt from the merged entity tree.
+    """
+    import rerun as rr
+    from rerun.chunk import RrdReader
+
+    parts = [Path(p) for p in parts]
+    if not parts:
+        return None
+    for p in parts:
+        if not p.is_file():
+            raise InputError(f"{p}: missing; re-run the stage that writes it")
+    readers = [RrdReader(p) for p in parts]
+    stores = [(r, st) for r in readers for st in r.recordings()]
+    if not stores:
+        raise InputError(f"{parts[0]}: no recording inside; re-run the stage that writes it")
+    first = stores[0][1]
+    chunks = [ch for r, st in stores for ch in r.stream(store=st).to_chunks()]
+    probe = RunLog(None, run_kind=run_kind or "simulation")
+    for ch in chunks:
+        probe._note(ch.entity_path.lstrip("/"))
+    bp = make_blueprint(
+        probe.run_kind, probe.anchors(), camera=probe._has_camera or probe.run_kind != "ntu-viral"
+    )
+    target = Path(target)
+    with atomic_path(target) as tmp:
+        rec = rr.RecordingStream(first.application_id, recording_id=first.recording_id, send_properties=False)
+        try:
+            rec.save(tmp, default_blueprint=bp)
+            rec.send_chunks(chunks)
+            rec.flush()
+        finally:
+            rec.disconnect()
+    return target
+
+
+# -- viewer --------------------------------------------------------------------------------------------------------
+def _rerun_exe() -> list[str]:
+    exe = Path(sys.executable).with_name("rerun")
+    if exe.exists():
+        return [str(exe)]
+    found = shutil.which("rerun")
+    return [found] if found else [sys.executable, "-m", "rerun"]
+
+
+def run_rrds(run_dirs: Sequence[Path | str]) -> list[Path]:
+    """run.rrd of each run dir (an .rrd path is taken as is); InputError naming the first missing one."""
+    out = []
+    for d in map(Path, run_dirs):
+        p = d if d.suffix == ".rrd" else d / "run.rrd"
+        if not p.is_file():
+            raise InputError(
+                f"{p}: missing; run `uwbcal run REC -o {d}` first (without --no-log), or pass a run directory"
+            )
+        out.append(p)
+    if not out:
+        raise InputError("uwbcal view: no run directory given; pass one or more RUN_DIRs")
+    return out
+
+
+def viewer_command(
+    run_dirs: Sequence[Path | str], web: bool = False, port: int = 9090, grpc_port: int = 9876
+) -> list[str]:
+    """The `rerun` command that opens the runs as several recordings in one viewer (native, or served on web)."""
+    cmd = [*_rerun_exe(), *map(str, run_rrds(run_dirs))]
+    if web:
+        cmd += [
+            "--serve-web",
+            "--bind",
+            "127.0.0.1",
+            "--web-viewer-port",
+            str(port),
+            "--port",
+            str(grpc_port),
+        ]
+    return cmd
+
+
+def web_url(port: int = 9090, grpc_port: int = 9876) -> str:
+    """Address of the served web viewer, already pointing at the gRPC server that holds the recordings."""
+    return f"http://127.0.0.1:{port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc_port}%2Fproxy"
+
+
+def view_runs(run_dirs: list[Path], web: bool = False, port: int = 9090, grpc_port: int = 9876) -> None:
+    """Open run.rrd of each run dir in the native viewer, or serve the web viewer on localhost (blocks)."""
+    cmd = viewer_command(run_dirs, web=web, port=port, grpc_port=grpc_port)
+    if web:
+        print(f"rerun web viewer: {web_url(port, grpc_port)}  (Ctrl-C to stop)", flush=True)
+    elif not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) and sys.platform.startswith(
+        "linux"
+    ):
+        raise InputError(
+            "uwbcal view: no display (DISPLAY/WAYLAND_DISPLAY unset); use --web and open the address"
+        )
+    try:
+        subprocess.run(cmd, check=False)
+    except KeyboardInterrupt:
+        pass
