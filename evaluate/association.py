@@ -1,0 +1,148 @@
+"""Time association of an estimate with ground truth by interpolation (not nearest neighbour).
+
+Ground truth is interpolated at the estimate's stamps: positions linearly, orientations by slerp. Estimate stamps
+outside the ground-truth span, or inside a ground-truth gap longer than ``max_gap_ns``, are dropped and counted.
+
+Ground truth of a point on the body (NTU-VIRAL Leica prism: ``p_prism = p_body + R_body @ lever``) is compared
+with the estimate moved to the same point (:func:`lever_point`), never the other way round, because position-only
+ground truth has no orientation to move it back with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from convert.errors import InputError
+from pipeline.lie import quat_slerp, quat_to_rot
+
+# A gap in the ground truth longer than this many median sampling intervals is not interpolated across.
+AUTO_GAP_FACTOR = 10
+
+
+@dataclass
+class Association:
+    """Ground truth at the kept estimate stamps. ``idx`` indexes the estimate arrays that were kept."""
+
+    idx: np.ndarray  # int64 [M], indices into the estimate
+    t_ns: np.ndarray  # int64 [M]
+    p: np.ndarray  # [M, 3] ground-truth positions
+    q_xyzw: np.ndarray | None  # [M, 4] ground-truth orientations (None for position-only ground truth)
+    n_outside: int  # estimate stamps outside the ground-truth span
+    n_gap: int  # estimate stamps inside a ground-truth gap > max_gap_ns
+    max_gap_ns: int
+
+    @property
+    def n_dropped(self) -> int:
+        return self.n_outside + self.n_gap
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+
+def _clean_gt(
+    t_gt: np.ndarray, p_gt: np.ndarray, q_gt: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Sort by stamp and drop repeated stamps (first kept) and non-finite samples."""
+    t_gt = np.asarray(t_gt, np.int64).reshape(-1)
+    p_gt = np.asarray(p_gt, float).reshape(-1, 3)
+    if len(p_gt) != len(t_gt):
+        raise InputError(f"ground truth: {len(t_gt)} stamps but {len(p_gt)} positions; lengths must match")
+    ok = np.isfinite(p_gt).all(axis=1)
+    if q_gt is not None:
+        q_gt = np.asarray(q_gt, float).reshape(-1, 4)
+        if len(q_gt) != len(t_gt):
+            raise InputError(
+                f"ground truth: {len(t_gt)} stamps but {len(q_gt)} orientations; lengths must match"
+            )
+        ok &= np.isfinite(q_gt).all(axis=1) & (np.linalg.norm(q_gt, axis=1) > 0)
+    order = np.argsort(t_gt[ok], kind="stable")
+    keep = np.flatnonzero(ok)[order]
+    t = t_gt[keep]
+    first = np.concatenate([[True], np.diff(t) > 0])
+    keep = keep[first]
+    return t_gt[keep], p_gt[keep], (None if q_gt is None else q_gt[keep])
+
+
+def auto_max_gap_ns(t_gt: np.ndarray) -> int:
+    """Default gap limit: ``AUTO_GAP_FACTOR`` times the median ground-truth sampling interval."""
+    dt = np.diff(np.asarray(t_gt, np.int64))
+    return int(AUTO_GAP_FACTOR * np.median(dt)) if len(dt) else 0
+
+
+def bracket(t_gt: np.ndarray, t_query: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Indices ``i0, i1 = i0 + 1`` of the ground-truth samples around each query stamp and the fraction ``s``.
+
+    Requires ``len(t_gt) >= 2`` and queries inside ``[t_gt[0], t_gt[-1]]``.
+    """
+    i1 = np.clip(np.searchsorted(t_gt, t_query, side="left"), 1, len(t_gt) - 1)
+    i0 = i1 - 1
+    # integer differences first: float64 seconds since the epoch would lose the nanoseconds
+    s = (t_query - t_gt[i0]).astype(float) / (t_gt[i1] - t_gt[i0]).astype(float)
+    return i0, i1, s
+
+
+def interpolate_positions(t_gt: np.ndarray, p_gt: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Linear interpolation of (N, 3) positions at stamps inside the ground-truth span."""
+    i0, i1, s = bracket(np.asarray(t_gt, np.int64), np.asarray(t_query, np.int64))
+    p_gt = np.asarray(p_gt, float)
+    return p_gt[i0] + s[:, None] * (p_gt[i1] - p_gt[i0])
+
+
+def interpolate_quats(t_gt: np.ndarray, q_gt: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Slerp of (N, 4) xyzw quaternions at stamps inside the ground-truth span."""
+    i0, i1, s = bracket(np.asarray(t_gt, np.int64), np.asarray(t_query, np.int64))
+    q_gt = np.asarray(q_gt, float)
+    return quat_slerp(q_gt[i0], q_gt[i1], s)
+
+
+def associate(
+    t_est: np.ndarray,
+    t_gt: np.ndarray,
+    p_gt: np.ndarray,
+    q_gt: np.ndarray | None = None,
+    *,
+    max_gap_ns: int | None = None,
+) -> Association:
+    """Ground truth interpolated at the estimate stamps ``t_est`` (int64 ns).
+
+    ``max_gap_ns``: a query whose bracketing ground-truth samples are further apart than this is dropped;
+    ``None`` means ``AUTO_GAP_FACTOR`` x the median ground-truth interval.
+    """
+    t_est = np.asarray(t_est, np.int64).reshape(-1)
+    t_gt, p_gt, q_gt = _clean_gt(t_gt, p_gt, q_gt)
+    if len(t_gt) < 2:
+        raise InputError(
+            f"ground truth: {len(t_gt)} valid sample(s); at least 2 are needed to interpolate at the estimate"
+        )
+    gap = auto_max_gap_ns(t_gt) if max_gap_ns is None else int(max_gap_ns)
+    inside = (t_est >= t_gt[0]) & (t_est <= t_gt[-1])
+    cand = np.flatnonzero(inside)
+    i0, i1, s = bracket(t_gt, t_est[cand])
+    exact = s == 0.0
+    exact |= s == 1.0
+    # a query that hits a ground-truth stamp exactly is never inside a gap
+    ok = exact | ((t_gt[i1] - t_gt[i0]) <= gap)
+    idx = cand[ok]
+    i0, i1, s = i0[ok], i1[ok], s[ok]
+    p = p_gt[i0] + s[:, None] * (p_gt[i1] - p_gt[i0])
+    q = None if q_gt is None else quat_slerp(q_gt[i0], q_gt[i1], s)
+    return Association(
+        idx=idx.astype(np.int64),
+        t_ns=t_est[idx],
+        p=p,
+        q_xyzw=q,
+        n_outside=int(len(t_est) - len(cand)),
+        n_gap=int(len(cand) - len(idx)),
+        max_gap_ns=gap,
+    )
+
+
+def lever_point(p: np.ndarray, q_xyzw: np.ndarray, lever: np.ndarray | None) -> np.ndarray:
+    """Position of the body point ``lever`` (body frame): ``p + R(q) @ lever`` for (N, 3)/(N, 4) poses."""
+    p = np.asarray(p, float)
+    if lever is None or not np.any(np.asarray(lever, float)):
+        return p.copy()
+    R = quat_to_rot(np.asarray(q_xyzw, float))
+    return p + R @ np.asarray(lever, float).reshape(3)
