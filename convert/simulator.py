@@ -1,0 +1,574 @@
+"""The built-in simulator: IMU, camera feature tracks, UWB ranges and ground truth from a smooth trajectory.
+
+Generation is pure (`simulate` returns arrays in a `SimData`); `simulate_to_file` writes them as a recording.
+Every sensor draws from its own random sub-stream of the seed, so changing one sensor's settings leaves the
+others' samples unchanged.
+
+Models (world z up, gravity (0, 0, -g), R = world_from_IMU):
+- IMU: gyro = w_body + b_g + n_g, acc = R^T (a_world - g) + b_a + n_a; white noise sigma_c / sqrt(dt), biases
+  random walks with per-sample steps sigma_rw sqrt(dt).
+- Camera cam0 (EuRoC intrinsics, radtan, T_imu_cam): landmarks on the faces of a box room around the flight
+  volume; raw (distorted) pixels + Gaussian noise of the visible ones, track id = landmark id.
+- UWB: d = beta (|p + R p_T - p_a| + n) + gamma, n ~ N(0, sigma^2); optional NLOS (+Exp(mean) bias), dropouts,
+  maximum range. Stamps staggered across anchors.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.lie import rot_to_quat
+
+from .errors import InputError
+from .euroc import EUROC_CAMERAS
+from .trajectory import SplineTrajectory, load_trajectory
+
+NS = 1_000_000_000
+PROBE_DENSITY = 4.0  # landmarks / m^2 for probing how many are visible
+MAX_DENSITY = 40.0
+
+
+@dataclass
+class SimConfig:
+    trajectory: str | Path | None = None  # None = built-in default; EuRoC name or ground-truth file
+    duration: float | None = None  # seconds from the trajectory start; None = all of it
+    seed: int = 0
+    n_anchors: int = 4
+    anchors: Sequence[Sequence[float]] | None = None  # explicit anchor positions [n,3] (overrides n_anchors)
+    imu_rate: float = 200.0
+    cam_rate: float = 20.0
+    uwb_rate: float = 10.0  # per anchor
+    gyro_noise_density: float = 1.6968e-4  # rad/s/sqrt(Hz)
+    gyro_random_walk: float = 1.9393e-5  # rad/s^2/sqrt(Hz)
+    acc_noise_density: float = 2.0e-3  # m/s^2/sqrt(Hz)
+    acc_random_walk: float = 3.0e-3  # m/s^3/sqrt(Hz)
+    gyro_bias_init: Sequence[float] = (0.0, 0.0, 0.0)
+    acc_bias_init: Sequence[float] = (0.0, 0.0, 0.0)
+    gravity: float = 9.81
+    camera: bool = True
+    pixel_sigma: float = 1.0
+    landmark_density: float | None = None  # landmarks per m^2 of room surface; None: automatic (min_features)
+    min_features: int = (
+        100  # automatic density: this many visible in 90 % of the frames (density <= 40 / m^2)
+    )
+    max_features: int | None = 200  # per frame cap: the visible landmarks with the lowest (fixed) random rank
+    room_margin: float = (
+        3.0  # walls this far outside the trajectory's bounding box (floor/ceiling: 2/3 of it)
+    )
+    max_feature_range: float = 20.0
+    sigma_range: float = 0.1
+    beta: float | Sequence[float] = 0.9
+    gamma: float | Sequence[float] = -0.3
+    nlos_rate: float = 0.0
+    nlos_bias_mean: float = 1.0  # mean of the positive exponential NLOS bias [m]
+    dropout_rate: float = 0.0
+    max_range: float | None = None
+    tag_id: int = 1
+    tag_lever_arm: Sequence[float] = (0.05, 0.0, 0.1)  # p_T in the IMU frame
+    knot_dt: float = 0.1  # B-spline knot spacing when fitting a ground-truth file
+
+    def __post_init__(self) -> None:
+        def bad(name: str, value, what: str) -> InputError:
+            return InputError(f"simulate: {name}={value!r}: {what}; fix the simulation settings")
+
+        if self.duration is not None and not (np.isfinite(self.duration) and self.duration > 0):
+            raise bad("duration", self.duration, "must be a positive number of seconds")
+        for name in ("imu_rate", "cam_rate", "uwb_rate", "knot_dt", "gravity", "max_feature_range"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise bad(name, v, "must be positive")
+        for name in (
+            "gyro_noise_density",
+            "gyro_random_walk",
+            "acc_noise_density",
+            "acc_random_walk",
+            "pixel_sigma",
+            "room_margin",
+            "sigma_range",
+            "nlos_bias_mean",
+        ):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise bad(name, v, "must be >= 0")
+        for name in ("nlos_rate", "dropout_rate"):
+            v = getattr(self, name)
+            if not (0.0 <= v <= 1.0):
+                raise bad(name, v, "must be a fraction in [0, 1]")
+        if self.landmark_density is not None and not (
+            np.isfinite(self.landmark_density) and self.landmark_density > 0
+        ):
+            raise bad("landmark_density", self.landmark_density, "must be positive (or None for automatic)")
+        if self.min_features < 1:
+            raise bad("min_features", self.min_features, "must be at least 1")
+        if self.max_features is not None and self.max_features < 1:
+            raise bad("max_features", self.max_features, "must be at least 1 (or None for no cap)")
+        if self.max_range is not None and not self.max_range > 0:
+            raise bad("max_range", self.max_range, "must be positive (or None for no limit)")
+        if self.anchors is not None:
+            a = np.asarray(self.anchors, float)
+            if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0 or not np.all(np.isfinite(a)):
+                raise bad("anchors", self.anchors, "must be a list of [x, y, z] positions")
+            self.n_anchors = len(a)
+        if self.n_anchors < 1:
+            raise bad("n_anchors", self.n_anchors, "must be at least 1")
+        for name in ("beta", "gamma"):
+            v = np.atleast_1d(np.asarray(getattr(self, name), float))
+            if len(v) not in (1, self.n_anchors) or not np.all(np.isfinite(v)):
+                raise bad(
+                    name, getattr(self, name), f"must be one number or one per anchor ({self.n_anchors})"
+                )
+        for name in ("gyro_bias_init", "acc_bias_init", "tag_lever_arm"):
+            v = np.asarray(getattr(self, name), float)
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise bad(name, getattr(self, name), "must be 3 numbers")
+
+    def per_anchor(self, name: str) -> np.ndarray:
+        return np.broadcast_to(
+            np.atleast_1d(np.asarray(getattr(self, name), float)), (self.n_anchors,)
+        ).copy()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# results
+# ---------------------------------------------------------------------------------------------------------------
+@dataclass
+class ImuSim:
+    t_ns: np.ndarray  # [N] int64
+    gyro: np.ndarray  # [N,3] rad/s
+    acc: np.ndarray  # [N,3] m/s^2
+    bg: np.ndarray  # [N,3] true gyro bias
+    ba: np.ndarray  # [N,3] true accelerometer bias
+
+
+@dataclass
+class FeatureSim:
+    t_ns: np.ndarray  # [F] frame stamps
+    offsets: np.ndarray  # [F+1]: frame f holds rows offsets[f]:offsets[f+1]
+    ids: np.ndarray  # [M] landmark (= track) ids
+    uv: np.ndarray  # [M,2] raw distorted pixels (noisy)
+
+    def frame(self, f: int) -> tuple[int, np.ndarray, np.ndarray]:
+        a, b = self.offsets[f], self.offsets[f + 1]
+        return int(self.t_ns[f]), self.ids[a:b], self.uv[a:b]
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+
+@dataclass
+class RangeSim:
+    t_ns: np.ndarray  # [N] int64, time ordered
+    anchor: np.ndarray  # [N] int64
+    distance: np.ndarray  # [N] measured
+    true_distance: np.ndarray  # [N] |p + R p_T - p_a|
+    nlos: np.ndarray  # [N] bool: an NLOS bias was added
+    candidates: int = 0  # stamps before dropouts / range limit
+
+
+@dataclass
+class GroundTruthSim:
+    t_ns: np.ndarray
+    p: np.ndarray
+    q_xyzw: np.ndarray
+    v: np.ndarray
+
+
+@dataclass
+class SimData:
+    config: SimConfig
+    trajectory: SplineTrajectory
+    imu: ImuSim
+    features: FeatureSim | None
+    ranges: RangeSim
+    groundtruth: GroundTruthSim
+    anchors: np.ndarray  # [n,3]
+    beta: np.ndarray  # [n]
+    gamma: np.ndarray  # [n]
+    landmarks: np.ndarray  # [L,3]
+    metadata: dict[str, dict] = field(default_factory=dict)  # name -> JSON record
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# pure generation
+# ---------------------------------------------------------------------------------------------------------------
+def stream(seed: int, name: str) -> np.random.Generator:
+    """An independent random stream per (seed, sensor name)."""
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(zlib.crc32(name.encode()),)))
+
+
+def sample_times(t0_ns: int, duration: float, rate: float, offset_ns: int = 0) -> np.ndarray:
+    """Stamps t0 + offset + k * period (integer ns) inside [t0, t0 + duration]."""
+    period = round(NS / rate)
+    n = int(np.floor((duration * NS - offset_ns) / period + 1e-9)) + 1
+    return t0_ns + offset_ns + period * np.arange(max(n, 0), dtype=np.int64)
+
+
+def rel_seconds(traj: SplineTrajectory, t_ns: np.ndarray) -> np.ndarray:
+    return (np.asarray(t_ns, np.int64) - traj.t0_ns) * 1e-9
+
+
+def simulate_imu(
+    traj: SplineTrajectory, t_ns: np.ndarray, cfg: SimConfig, rng: np.random.Generator
+) -> ImuSim:
+    s = traj.evaluate(rel_seconds(traj, t_ns))
+    n = len(t_ns)
+    dt = 1.0 / cfg.imu_rate
+    g = np.array([0.0, 0.0, -cfg.gravity])
+    w_true = s.w
+    f_true = np.einsum("nji,nj->ni", s.R, s.a - g)
+    white_g = rng.standard_normal((n, 3)) * (cfg.gyro_noise_density / np.sqrt(dt))
+    white_a = rng.standard_normal((n, 3)) * (cfg.acc_noise_density / np.sqrt(dt))
+    step_g = rng.standard_normal((n, 3)) * (cfg.gyro_random_walk * np.sqrt(dt))
+    step_a = rng.standard_normal((n, 3)) * (cfg.acc_random_walk * np.sqrt(dt))
+    step_g[0] = step_a[0] = 0.0
+    bg = np.asarray(cfg.gyro_bias_init, float) + np.cumsum(step_g, axis=0)
+    ba = np.asarray(cfg.acc_bias_init, float) + np.cumsum(step_a, axis=0)
+    return ImuSim(t_ns=t_ns, gyro=w_true + bg + white_g, acc=f_true + ba + white_a, bg=bg, ba=ba)
+
+
+def bounding_box(traj: SplineTrajectory, duration: float) -> tuple[np.ndarray, np.ndarray]:
+    p = traj.evaluate(np.linspace(0.0, duration, max(int(duration * 10), 2))).p
+    return p.min(axis=0), p.max(axis=0)
+
+
+def make_landmarks(
+    lo: np.ndarray, hi: np.ndarray, margin: float, density: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Points on the 6 faces of the room [lo - m, hi + m] (floor/ceiling m * 2/3), up to 0.5 m in from the face."""
+    m = np.array([margin, margin, 2.0 * margin / 3.0])
+    a, b = lo - m, hi + m
+    size = b - a
+    out = []
+    for axis in range(3):
+        u, v = [k for k in range(3) if k != axis]
+        n = int(round(density * size[u] * size[v]))
+        for side, sign in ((a[axis], 1.0), (b[axis], -1.0)):
+            P = np.empty((n, 3))
+            P[:, u] = a[u] + rng.random(n) * size[u]
+            P[:, v] = a[v] + rng.random(n) * size[v]
+            P[:, axis] = side + sign * rng.random(n) * min(0.5, 0.25 * size[axis])
+            out.append(P)
+    return rng.permutation(np.concatenate(out))  # random order: the index is a random priority
+
+
+def room_landmarks(
+    traj: SplineTrajectory,
+    t_cam: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    cam: dict,
+    cfg: SimConfig,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Room landmarks at ``cfg.landmark_density``, or dense enough that ``min_features`` are visible in 90 % of
+    the frames (probed on up to 200 frames; the density is capped at `MAX_DENSITY`)."""
+    density = cfg.landmark_density
+    if density is None:
+        probe_set = make_landmarks(lo, hi, cfg.room_margin, PROBE_DENSITY, rng)
+        probe = t_cam[np.linspace(0, len(t_cam) - 1, min(len(t_cam), 200)).astype(int)]
+        counts = simulate_features(traj, probe, probe_set, cam, 0.0, cfg.max_feature_range, None).counts
+        p10 = max(float(np.percentile(counts, 10)), 1.0)
+        density = float(np.clip(PROBE_DENSITY * cfg.min_features / p10, 0.05, MAX_DENSITY))
+    return make_landmarks(lo, hi, cfg.room_margin, density, rng)
+
+
+def project_radtan(P_c: np.ndarray, intrinsics: Sequence[float], distortion: Sequence[float]) -> np.ndarray:
+    """Pinhole + radial-tangential (OpenCV's k1, k2, p1, p2) projection of camera-frame points [..., 3]."""
+    fu, fv, cu, cv = intrinsics
+    k1, k2, p1, p2 = distortion
+    x = P_c[..., 0] / P_c[..., 2]
+    y = P_c[..., 1] / P_c[..., 2]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + k2 * r2)
+    xy2 = 2.0 * x * y
+    xd = x * radial + p1 * xy2 + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + p2 * xy2
+    return np.stack([fu * xd + cu, fv * yd + cv], axis=-1)
+
+
+def camera_model() -> dict:
+    return dict(EUROC_CAMERAS["cam0"])
+
+
+def simulate_features(
+    traj: SplineTrajectory,
+    t_ns: np.ndarray,
+    landmarks: np.ndarray,
+    cam: dict,
+    pixel_sigma: float,
+    max_range: float,
+    rng: np.random.Generator | None,
+    max_features: int | None = None,
+    chunk: int = 32,
+    advance=None,
+) -> FeatureSim:
+    """Visible landmarks per frame: in front (z > 0.1 m), within ``max_range``, inside the image after noise.
+
+    With ``max_features``, a frame keeps the visible landmarks with the lowest indices (landmarks are stored in
+    random order, so this is a fixed random priority and tracks persist while their landmark stays visible).
+    """
+    T = np.asarray(cam["T_imu_cam"], float)
+    R_ic, p_ic = T[:3, :3], T[:3, 3]
+    w, h = cam["resolution"]
+    intr, dist = cam["intrinsics"], cam["distortion"]
+    s = traj.evaluate(rel_seconds(traj, t_ns))
+    R_wc = s.R @ R_ic
+    p_wc = s.p + s.R @ p_ic
+    frames, ids, uvs = [], [], []
+    for f0 in range(0, len(t_ns), chunk):
+        sl = slice(f0, f0 + chunk)
+        D = landmarks[None, :, :] - p_wc[sl, None, :]  # [F,L,3]
+        Pc = np.einsum("fji,flj->fli", R_wc[sl], D)
+        z = Pc[..., 2]
+        ok = (z > 0.1) & (np.einsum("fli,fli->fl", Pc, Pc) <= max_range**2)
+        # the radtan polynomial is only meaningful near the image: cut at |x|, |y| < 1.5 before projecting
+        zs = np.where(ok, z, 1.0)
+        ok &= (np.abs(Pc[..., 0]) < 1.5 * zs) & (np.abs(Pc[..., 1]) < 1.5 * zs)
+        f, l = np.nonzero(ok)
+        uv = project_radtan(Pc[f, l], intr, dist)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        frames.append(f[inside] + f0)
+        ids.append(l[inside])
+        uvs.append(uv[inside])
+        if advance is not None:
+            advance(min(chunk, len(t_ns) - f0))
+    frame = np.concatenate(frames) if frames else np.zeros(0, np.int64)
+    idv = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+    uv = np.concatenate(uvs) if uvs else np.zeros((0, 2))
+    if rng is not None:
+        uv = uv + rng.standard_normal(uv.shape) * pixel_sigma
+    keep = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    frame, idv, uv = frame[keep], idv[keep], uv[keep]
+    offsets = np.searchsorted(frame, np.arange(len(t_ns) + 1))
+    if max_features is not None:  # rows are sorted by (frame, id): keep each frame's first max_features
+        keep = np.arange(len(frame)) - offsets[frame] < max_features
+        frame, idv, uv = frame[keep], idv[keep], uv[keep]
+        offsets = np.searchsorted(frame, np.arange(len(t_ns) + 1))
+    return FeatureSim(t_ns=t_ns, offsets=offsets, ids=idv.astype(np.int64), uv=uv)
+
+
+def default_anchors(lo: np.ndarray, hi: np.ndarray, n: int) -> np.ndarray:
+    """n anchors around the flight volume, 1.5 m outside its box horizontally, at well-spread heights."""
+    c = 0.5 * (lo + hi)
+    half = 0.5 * (hi - lo) + 1.5
+    ang = np.pi / 4 + 2 * np.pi * np.arange(n) / n
+    height = lo[2] - 0.3 + (hi[2] - lo[2] + 1.5) * ((0.618034 * np.arange(n) + 0.15) % 1.0)
+    return np.stack([c[0] + half[0] * np.cos(ang), c[1] + half[1] * np.sin(ang), height], axis=1)
+
+
+def simulate_ranges(
+    traj: SplineTrajectory,
+    t0_ns: int,
+    duration: float,
+    anchors: np.ndarray,
+    beta: np.ndarray,
+    gamma: np.ndarray,
+    cfg: SimConfig,
+    rng: np.random.Generator,
+) -> RangeSim:
+    n_a = len(anchors)
+    period = round(NS / cfg.uwb_rate)
+    stamps = [sample_times(t0_ns, duration, cfg.uwb_rate, offset_ns=(a * period) // n_a) for a in range(n_a)]
+    anchor = np.concatenate([np.full(len(s), a, np.int64) for a, s in enumerate(stamps)])
+    t_ns = np.concatenate(stamps)
+    order = np.argsort(t_ns, kind="stable")
+    t_ns, anchor = t_ns[order], anchor[order]
+    s = traj.evaluate(rel_seconds(traj, t_ns))
+    tag = s.p + s.R @ np.asarray(cfg.tag_lever_arm, float)
+    true = np.linalg.norm(tag - anchors[anchor], axis=1)
+    n = len(t_ns)
+    noise = rng.standard_normal(n) * cfg.sigma_range
+    nlos_u = rng.random(n)
+    nlos_bias = rng.exponential(1.0, n) * cfg.nlos_bias_mean
+    drop_u = rng.random(n)
+    nlos = nlos_u < cfg.nlos_rate
+    d = beta[anchor] * (true + noise) + gamma[anchor] + np.where(nlos, nlos_bias, 0.0)
+    keep = drop_u >= cfg.dropout_rate
+    if cfg.max_range is not None:
+        keep &= true <= cfg.max_range
+    return RangeSim(
+        t_ns=t_ns[keep],
+        anchor=anchor[keep],
+        distance=d[keep],
+        true_distance=true[keep],
+        nlos=nlos[keep],
+        candidates=n,
+    )
+
+
+def simulate(cfg: SimConfig, *, advance=None) -> SimData:
+    """All sensor streams as arrays (no files written)."""
+    traj = load_trajectory(cfg.trajectory, knot_dt=cfg.knot_dt)
+    duration = traj.duration if cfg.duration is None else float(cfg.duration)
+    if duration > traj.duration + 1e-9:
+        raise InputError(
+            f"{traj.source or traj.name}: duration {duration:g} s: the trajectory lasts {traj.duration:.1f} s; "
+            "give a shorter --duration"
+        )
+    t0 = traj.t0_ns
+    # the world (room, landmarks, default anchors) depends on the whole trajectory, not on the duration simulated
+    lo, hi = bounding_box(traj, traj.duration)
+
+    t_imu = sample_times(t0, duration, cfg.imu_rate)
+    imu = simulate_imu(traj, t_imu, cfg, stream(cfg.seed, "imu"))
+    gt_s = traj.evaluate(rel_seconds(traj, t_imu))
+    gt = GroundTruthSim(t_ns=t_imu, p=gt_s.p, q_xyzw=rot_to_quat(gt_s.R), v=gt_s.v)
+
+    cam = camera_model()
+    cam["rate_hz"] = float(cfg.cam_rate)
+    landmarks = room_landmarks(
+        traj, sample_times(t0, traj.duration, cfg.cam_rate), lo, hi, cam, cfg, stream(cfg.seed, "landmarks")
+    )
+    features = None
+    if cfg.camera:
+        t_cam = sample_times(t0, duration, cfg.cam_rate)
+        features = simulate_features(
+            traj,
+            t_cam,
+            landmarks,
+            cam,
+            cfg.pixel_sigma,
+            cfg.max_feature_range,
+            stream(cfg.seed, "camera"),
+            max_features=cfg.max_features,
+            advance=advance,
+        )
+
+    anchors = (
+        np.asarray(cfg.anchors, float) if cfg.anchors is not None else default_anchors(lo, hi, cfg.n_anchors)
+    )
+    beta, gamma = cfg.per_anchor("beta"), cfg.per_anchor("gamma")
+    ranges = simulate_ranges(traj, t0, duration, anchors, beta, gamma, cfg, stream(cfg.seed, "uwb"))
+
+    data = SimData(
+        config=cfg,
+        trajectory=traj,
+        imu=imu,
+        features=features,
+        ranges=ranges,
+        groundtruth=gt,
+        anchors=anchors,
+        beta=beta,
+        gamma=gamma,
+        landmarks=landmarks,
+    )
+    data.metadata = _metadata(data, cam, duration)
+    return data
+
+
+def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
+    from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH
+    from .sources import converter_name, sha256_file
+
+    cfg, traj = data.config, data.trajectory
+    calibration = {
+        "imu": {
+            "gyroscope_noise_density": cfg.gyro_noise_density,
+            "gyroscope_random_walk": cfg.gyro_random_walk,
+            "accelerometer_noise_density": cfg.acc_noise_density,
+            "accelerometer_random_walk": cfg.acc_random_walk,
+            "rate_hz": float(cfg.imu_rate),
+        },
+        "uwb": {
+            "tags": {str(cfg.tag_id): {"antennas": [list(map(float, cfg.tag_lever_arm))]}},
+            "sigma_range": cfg.sigma_range,
+            "gamma_prior": {"mean": 0.0, "sigma": 1.0},
+            "beta_prior": {"mean": 1.0, "sigma": 0.2},
+        },
+        "groundtruth": {"lever_arm": [0.0, 0.0, 0.0], "frame": "body"},
+    }
+    if data.features is not None:
+        calibration["cameras"] = {"cam0": cam}
+    truth = {
+        "anchors": {
+            str(i): {
+                "position": data.anchors[i].tolist(),
+                "beta": float(data.beta[i]),
+                "gamma": float(data.gamma[i]),
+            }
+            for i in range(len(data.anchors))
+        },
+        "sigma_range": cfg.sigma_range,
+        "nlos_rate": cfg.nlos_rate,
+        "nlos_bias_mean": cfg.nlos_bias_mean,
+        "dropout_rate": cfg.dropout_rate,
+        "max_range": cfg.max_range,
+        "seed": int(cfg.seed),
+        "gravity": cfg.gravity,
+        "imu": {  # biases at the first IMU sample (they random-walk afterwards)
+            "gyro_bias": list(map(float, cfg.gyro_bias_init)),
+            "accel_bias": list(map(float, cfg.acc_bias_init)),
+        },
+        "pixel_sigma": cfg.pixel_sigma,
+        "landmarks": len(data.landmarks),
+        "tag": {"id": cfg.tag_id, "antenna": 0, "lever_arm": list(map(float, cfg.tag_lever_arm))},
+        "trajectory": traj.name,
+        "duration": duration,
+        "nlos_count": int(data.ranges.nlos.sum()),
+    }
+    files = [{"path": str(traj.source), "sha256": sha256_file(traj.source)}] if traj.source else []
+    source = {
+        "dataset": "simulation",
+        "sequence": traj.name,
+        "files": files,
+        "converter": converter_name(),
+        "dropped": [],
+        "seed": int(cfg.seed),
+    }
+    return {META_CALIBRATION: calibration, META_TRUTH: truth, META_SOURCE: source}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# file output
+# ---------------------------------------------------------------------------------------------------------------
+def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str, int]:
+    from .recording import TOPIC_GT_POSE, RecordingWriter
+
+    with RecordingWriter(output) as w:
+        w.write_imu_batch(data.imu.t_ns, data.imu.gyro, data.imu.acc)
+        if data.features is not None:
+            fs = data.features
+            for f in range(len(fs.t_ns)):
+                t, ids, uv = fs.frame(f)
+                w.write_features(t, ids, uv)
+                if advance is not None:
+                    advance(1)
+        r = data.ranges
+        w.write_range_batch(r.t_ns, data.config.tag_id, 0, r.anchor, r.distance)
+        gt = data.groundtruth
+        w.write_pose_batch(gt.t_ns, gt.p, gt.q_xyzw, topic=TOPIC_GT_POSE)
+        for name, record in data.metadata.items():
+            w.set_metadata(name, record)
+        counts = dict(w.counts)
+    return counts
+
+
+def simulate_to_file(cfg: SimConfig, output: str | Path) -> str:
+    """Simulate and write the recording; returns a short human-readable summary."""
+    from .sources import progress
+
+    with progress("simulating camera", None) as advance:
+        data = simulate(cfg, advance=advance)
+    n_frames = len(data.features.t_ns) if data.features is not None else 0
+    with progress("writing", n_frames or None) as advance:
+        counts = write_recording(data, output, advance=advance)
+    r = data.ranges
+    lines = [
+        f"simulated {data.trajectory.name} ({data.metadata['uwbcal.truth']['duration']:.1f} s, seed {cfg.seed})"
+        f" -> {output}",
+        *(f"  {topic:<24} {n:>9} messages" for topic, n in sorted(counts.items())),
+    ]
+    if data.features is not None:
+        c = data.features.counts
+        lines.append(f"  features per frame: mean {c.mean():.0f}, min {c.min()}, max {c.max()}")
+    lines.append(
+        f"  anchors: {len(data.anchors)}; ranges kept {len(r.t_ns)} of {r.candidates}"
+        f" (NLOS {int(r.nlos.sum())}, dropout rate {cfg.dropout_rate:g}, max range {cfg.max_range})"
+    )
+    return "\n".join(lines)
