@@ -1,0 +1,458 @@
+"""Pose-only error-state filter driven by an external odometry (``/odometry``, nav_msgs/Odometry).
+
+For users whose poses come from another estimator (NTU-VIRAL SLICT lidar odometry, OpenVINS, a TUM file), the
+odometry is turned into relative increments ``dT_k = T_{k-1}^-1 T_k`` that drive the filter state ``"imu"``, a
+`Pose` with error ``[dtheta, dp]`` (``R = R_hat Exp(dtheta)``, ``p = p_hat + dp``). Without other updates the
+estimate equals the odometry and its covariance grows like the odometry's drift; after a UWB update
+(``on_range`` calling `ekf_update`) the following increments are applied to the corrected pose.
+
+Increment noise (a random walk, so that the added variance does not depend on the odometry rate), per axis:
+
+    var_theta += sigma_theta_per_sqrt_rad^2 |dtheta| + sigma_theta_per_sqrt_m^2 |dp| + sigma_theta_per_sqrt_s^2 dt
+    var_p     += sigma_p_per_sqrt_m^2 |dp|         + sigma_p_per_sqrt_s^2 dt
+
+i.e. after travelling L metres the position standard deviation is sigma_p_per_sqrt_m * sqrt(L) (plus the floor
+over time). The noise enters in the frame of the increment (body frame at T_{k-1}) for rotation; the position
+noise is isotropic, so its frame does not matter.
+
+Between odometry messages the pose at a range stamp is the SE(3) interpolation of the increment,
+``T(t) = T_{k-1} Exp(s Log(T_{k-1}^-1 T_k))`` with ``s = (t - t_{k-1}) / (t_k - t_{k-1})``; the next increment
+starts from the interpolated odometry pose, so interpolation never changes where the filter ends up.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from convert.errors import InputError
+
+from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
+from .lie import log_so3, quat_to_rot, rot_to_quat
+from .state import Pose, State
+
+if TYPE_CHECKING:
+    from convert.recording import RecordingReader
+
+    from .runlog import RunLog
+
+_log = logging.getLogger(__name__)
+
+IMU = "imu"
+# nav_msgs/Odometry pose covariance order (x, y, z, rx, ry, rz) -> ours (dtheta, dp)
+_ROS_TO_OURS = np.r_[3:6, 0:3]
+
+
+class OdometryFilterConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    topic: str = "/odometry"
+    sigma_p_per_sqrt_m: float = Field(
+        0.02, ge=0, description="position random walk per metre travelled [m/√m]"
+    )
+    sigma_theta_per_sqrt_rad: float = Field(
+        0.01, ge=0, description="rotation random walk per radian rotated [rad/√rad]"
+    )
+    sigma_theta_per_sqrt_m: float = Field(
+        0.002, ge=0, description="rotation random walk per metre travelled [rad/√m]"
+    )
+    sigma_p_per_sqrt_s: float = Field(0.002, ge=0, description="position noise floor over time [m/√s]")
+    sigma_theta_per_sqrt_s: float = Field(0.0005, ge=0, description="rotation noise floor over time [rad/√s]")
+    initial_sigma_p: float = Field(0.01, gt=0, description="initial position sigma [m]")
+    initial_sigma_theta_deg: float = Field(0.5, gt=0, description="initial orientation sigma [deg]")
+    initial_from_message: bool = Field(
+        False, description="take the initial covariance from the first message instead of the sigmas"
+    )
+    gap_warn_s: float = Field(1.0, gt=0, description="warn about odometry gaps longer than this")
+
+
+@dataclass
+class OdometryStats:
+    messages: int = 0
+    duplicates: int = 0
+    out_of_order: int = 0
+    ranges: int = 0
+    ranges_before_odometry: int = 0
+    ranges_after_odometry: int = 0
+    ranges_in_gaps: int = 0
+    gaps: int = 0
+    max_gap_s: float = 0.0
+
+    def warnings(self) -> list[str]:
+        w = []
+        if self.duplicates:
+            w.append(f"odometry: {self.duplicates} message(s) with a duplicate stamp skipped")
+        if self.out_of_order:
+            w.append(f"odometry: {self.out_of_order} message(s) out of stamp order (sorted by stamp)")
+        if self.ranges_before_odometry or self.ranges_after_odometry:
+            w.append(
+                f"odometry: {self.ranges_before_odometry + self.ranges_after_odometry} range(s) outside the "
+                "odometry time span skipped"
+            )
+        if self.gaps:
+            w.append(
+                f"odometry: {self.gaps} gap(s) longer than the warning limit (longest {self.max_gap_s:.2f} s); "
+                f"{self.ranges_in_gaps} range(s) interpolated across them"
+            )
+        return w
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# pure math
+# ---------------------------------------------------------------------------------------------------------------
+def _hat(w: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _so3_log(R: np.ndarray) -> np.ndarray:
+    """Scalar SO(3) log (the vectorised `lie.log_so3` costs ~0.2 ms per call; this runs per message)."""
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    if c < -0.99:  # near pi the axis needs the symmetric part
+        return log_so3(R)
+    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s = math.sqrt(v @ v)
+    theta = math.atan2(s, c)
+    return v * (theta / s if s > 1e-12 else 1.0 + theta * theta / 6.0)
+
+
+def _exp(w: np.ndarray) -> np.ndarray:
+    th2 = float(w @ w)
+    K = _hat(w)
+    if th2 < 1e-14:
+        return np.eye(3) + K + 0.5 * K @ K
+    th = math.sqrt(th2)
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th2) * (K @ K)
+
+
+def _left_jacobian(w: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """SO(3) left Jacobian V(w) (= Jr(-w)) or its inverse: the SE(3) translation map p = V u."""
+    th2 = float(w @ w)
+    K = _hat(w)
+    th = math.sqrt(th2)
+    if inverse:
+        c = (
+            1.0 / 12.0 + th2 / 720.0
+            if th < 1e-4
+            else 1.0 / th2 - (1.0 + math.cos(th)) / (2.0 * th * math.sin(th))
+        )
+        return np.eye(3) - 0.5 * K + c * (K @ K)
+    if th < 1e-4:
+        a, b = 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
+    else:
+        a, b = (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def se3_log(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Twist ``[w, u]`` with ``Exp([w, u]) = (R, p)`` (rotation first, like our error ordering)."""
+    w = _so3_log(R)
+    return np.concatenate([w, _left_jacobian(w, inverse=True) @ p])
+
+
+def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    w, u = xi[0:3], xi[3:6]
+    return _exp(w), _left_jacobian(w) @ u
+
+
+def se3_interpolate(
+    R0: np.ndarray, p0: np.ndarray, R1: np.ndarray, p1: np.ndarray, s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``T0 Exp(s Log(T0^-1 T1))`` (constant-twist interpolation)."""
+    dR, dp = relative(R0, p0, R1, p1)
+    Rs, ps = se3_exp(s * se3_log(dR, dp))
+    return R0 @ Rs, p0 + R0 @ ps
+
+
+def relative(R0: np.ndarray, p0: np.ndarray, R1: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``T0^-1 T1``."""
+    return R0.T @ R1, R0.T @ (p1 - p0)
+
+
+def compose(R: np.ndarray, p: np.ndarray, dR: np.ndarray, dp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``T dT``."""
+    return R @ dR, p + R @ dp
+
+
+def compose_jacobians(R: np.ndarray, dR: np.ndarray, dp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Error Jacobians of ``T_new = T dT`` w.r.t. the pose error of T and the increment noise ``[n_theta, n_p]``
+    (``dR = dR_hat Exp(n_theta)``, ``dp = dp_hat + n_p``): ``dx_new = F dx + G n``."""
+    F = np.eye(6)
+    F[0:3, 0:3] = dR.T
+    F[3:6, 0:3] = -R @ _hat(dp)
+    G = np.zeros((6, 6))
+    G[0:3, 0:3] = np.eye(3)
+    G[3:6, 3:6] = R
+    return F, G
+
+
+def increment_noise(config: OdometryFilterConfig, dR: np.ndarray, dp: np.ndarray, dt: float) -> np.ndarray:
+    """Diagonal 6x6 covariance of the increment noise ``[n_theta, n_p]`` (see the module docstring)."""
+    c = config
+    angle = math.acos(max(-1.0, min(1.0, 0.5 * (dR[0, 0] + dR[1, 1] + dR[2, 2] - 1.0))))
+    dist = math.sqrt(float(dp @ dp))
+    dt = max(dt, 0.0)
+    q_th = (
+        c.sigma_theta_per_sqrt_rad**2 * angle
+        + c.sigma_theta_per_sqrt_m**2 * dist
+        + c.sigma_theta_per_sqrt_s**2 * dt
+    )
+    q_p = c.sigma_p_per_sqrt_m**2 * dist + c.sigma_p_per_sqrt_s**2 * dt
+    return np.diag([q_th] * 3 + [q_p] * 3)
+
+
+def clean_odometry(
+    t_ns: np.ndarray,
+    p: np.ndarray,
+    q_xyzw: np.ndarray,
+    cov: np.ndarray,
+    src: str,
+    topic: str,
+    stats: OdometryStats,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Check finiteness, sort by stamp, drop duplicate stamps (counted); returns (t, R, p, cov)."""
+    t_ns = np.asarray(t_ns, np.int64)
+    bad = ~(np.isfinite(p).all(axis=1) & np.isfinite(q_xyzw).all(axis=1))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(
+            f"{src}: {topic} @ {int(t_ns[i])}: NaN/inf in the odometry pose ({int(bad.sum())} message(s)); "
+            "drop or repair these messages"
+        )
+    qn = np.linalg.norm(q_xyzw, axis=1)
+    if (qn < 1e-6).any():
+        i = int(np.flatnonzero(qn < 1e-6)[0])
+        raise InputError(f"{src}: {topic} @ {int(t_ns[i])}: zero quaternion; repair the odometry orientation")
+    stats.out_of_order += int(np.sum(np.diff(t_ns) < 0))
+    order = np.argsort(t_ns, kind="stable")
+    t_ns = t_ns[order]
+    keep = np.ones(len(t_ns), bool)
+    keep[1:] = np.diff(t_ns) > 0
+    stats.duplicates += int((~keep).sum())
+    idx = order[keep]
+    cov = np.nan_to_num(np.asarray(cov, float)[idx])
+    return t_ns[keep], quat_to_rot(q_xyzw[idx]), np.asarray(p, float)[idx], cov
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the estimator
+# ---------------------------------------------------------------------------------------------------------------
+class OdometryEstimator:
+    """External-odometry pose source (Estimator protocol); state variable ``"imu"`` is a `Pose`."""
+
+    def __init__(self, config: OdometryFilterConfig | None = None, source: str = "recording") -> None:
+        self.config = config or OdometryFilterConfig()
+        self.source = source
+        self.state = State(use_fej=False)
+        self.t_ns = -1
+        self.initialized = False
+        self.stats = OdometryStats()
+        # history as columns; `history()` converts (rot_to_quat per record would dominate the run time)
+        self._h_t: list[int] = []
+        self._h_R: list[np.ndarray] = []
+        self._h_p: list[np.ndarray] = []
+        self._h_cov: list[np.ndarray] = []
+        # odometry pose at self.t_ns (raw or interpolated): increments are taken from here
+        self._R_ref = np.eye(3)
+        self._p_ref = np.zeros(3)
+
+    @classmethod
+    def from_recording(
+        cls, reader: RecordingReader, config: OdometryFilterConfig | None = None
+    ) -> OdometryEstimator:
+        config = config or OdometryFilterConfig()
+        src = str(getattr(reader, "path", "recording"))
+        topics = reader.topics()
+        if config.topic not in topics or topics[config.topic].count == 0:
+            have = ", ".join(sorted(topics)) or "none"
+            raise InputError(
+                f"{src}: no '{config.topic}' messages (topics: {have}); the odometry pose source needs an "
+                "external odometry (convert with poses, or use the MSCKF with IMU + camera)"
+            )
+        return cls(config, src)
+
+    @property
+    def warnings(self) -> list[str]:
+        return self.stats.warnings()
+
+    def history(self) -> TrajectoryRecord:
+        n = len(self._h_t)
+        q = rot_to_quat(np.asarray(self._h_R).reshape(n, 3, 3)).reshape(n, 4)
+        return TrajectoryRecord(list(self._h_t), list(self._h_p), list(q), list(self._h_cov))
+
+    @property
+    def pose(self) -> Pose:
+        return self.state.value(IMU)
+
+    # -- filter steps ----------------------------------------------------------------------------------------------
+    def initialize(self, t_ns: int, R: np.ndarray, p: np.ndarray, cov_ros: np.ndarray | None = None) -> None:
+        c = self.config
+        if c.initial_from_message and cov_ros is not None and np.any(np.diag(cov_ros) > 0):
+            P0 = np.asarray(cov_ros, float)[np.ix_(_ROS_TO_OURS, _ROS_TO_OURS)]
+        else:
+            P0 = np.diag([np.radians(c.initial_sigma_theta_deg) ** 2] * 3 + [c.initial_sigma_p**2] * 3)
+        self.state.add(IMU, Pose(R, p), P0)
+        self._R_ref, self._p_ref = np.array(R, float), np.array(p, float)
+        self.t_ns = int(t_ns)
+        self.initialized = True
+
+    def advance(self, t_ns: int, R_odom: np.ndarray, p_odom: np.ndarray) -> None:
+        """Apply the odometry increment from the reference pose to ``(R_odom, p_odom)`` at ``t_ns``."""
+        dR, dp = relative(self._R_ref, self._p_ref, R_odom, p_odom)
+        x = self.state.value(IMU)
+        F, G = compose_jacobians(x.R, dR, dp)
+        Q = G @ increment_noise(self.config, dR, dp, (t_ns - self.t_ns) * 1e-9) @ G.T
+        sl = self.state.slice(IMU)
+        P = self.state.P
+        P[sl, :] = F @ P[sl, :]
+        P[:, sl] = P[:, sl] @ F.T
+        P[sl, sl] += Q
+        self.state.P = 0.5 * (P + P.T)
+        R_new, p_new = compose(x.R, x.p, dR, dp)
+        self.state.set_value(IMU, Pose(R_new, p_new))
+        self._R_ref, self._p_ref = np.array(R_odom, float), np.array(p_odom, float)
+        self.t_ns = int(t_ns)
+
+    def _record(self) -> None:
+        x = self.state.value(IMU)
+        sl = self.state.slice(IMU)
+        row = (x.R.copy(), x.p.copy(), self.state.P[sl, sl].copy())
+        if self._h_t and self.t_ns <= self._h_t[-1]:
+            if self.t_ns == self._h_t[-1]:  # same instant again (range at an odometry stamp): keep newest
+                self._h_R[-1], self._h_p[-1], self._h_cov[-1] = row
+            return
+        self._h_t.append(self.t_ns)
+        self._h_R.append(row[0])
+        self._h_p.append(row[1])
+        self._h_cov.append(row[2])
+
+    # -- main loop -------------------------------------------------------------------------------------------------
+    def run(
+        self,
+        reader: RecordingReader,
+        start_ns: int | None,
+        end_ns: int | None,
+        *,
+        on_range: RangeHandler | None = None,
+        log: RunLog | None = None,
+    ) -> None:
+        from convert.recording import TOPIC_RANGE
+
+        c = self.config
+        src = str(getattr(reader, "path", self.source))
+        topics = reader.topics()
+        if c.topic not in topics or topics[c.topic].count == 0:
+            raise InputError(f"{src}: no '{c.topic}' messages; the odometry pose source needs them")
+        info = topics[c.topic]
+        start = max(start_ns if start_ns is not None else info.start_ns, info.start_ns)
+        if self.initialized:
+            start = max(start, self.t_ns)
+        end = end_ns if end_ns is not None else info.end_ns + 1
+        if end <= start:
+            return
+        # read from the state time on (no end: the message after `end` interpolates ranges just before it)
+        od = reader.read_odometry(c.topic, self.t_ns if self.initialized else start, None)
+        stats = OdometryStats()
+        t, Rs, ps, covs = clean_odometry(od.t_ns, od.p, od.q_xyzw, od.cov, src, c.topic, stats)
+        for k in ("duplicates", "out_of_order"):
+            setattr(self.stats, k, getattr(self.stats, k) + getattr(stats, k))
+        first_record = len(self._h_t)
+        first_run = not self.initialized
+        if first_run:
+            i0 = int(np.searchsorted(t, start))
+            if i0 >= len(t) or t[i0] >= end:
+                raise InputError(f"{src}: {c.topic}: no odometry in [{start}, {end}); nothing to run on")
+            self.initialize(int(t[i0]), Rs[i0], ps[i0], covs[i0])
+            self.stats.messages += 1
+            self._record()
+        # messages strictly after the state time and before `end`
+        i = int(np.searchsorted(t, self.t_ns, side="right"))
+        i_end = int(np.searchsorted(t, end, side="left"))
+        ranges = None
+        if TOPIC_RANGE in topics:
+            # all ranges of [start_ns, end_ns): those outside the odometry span are counted, not silently lost
+            r_lo = start_ns if start_ns is not None else (None if first_run else self.t_ns + 1)
+            rd = reader.read_ranges(TOPIC_RANGE, r_lo, end_ns)
+            ranges = rd if len(rd) else None
+        nr = len(ranges) if ranges is not None else 0
+        j = 0
+        gap_ns = int(c.gap_warn_s * 1e9)
+        while i < i_end or j < nr:
+            t_r = int(ranges.t_ns[j]) if j < nr else None
+            if i < i_end and (t_r is None or int(t[i]) <= t_r):
+                if t[i] - self.t_ns > gap_ns:
+                    self.stats.gaps += 1
+                    self.stats.max_gap_s = max(self.stats.max_gap_s, (t[i] - self.t_ns) * 1e-9)
+                self.advance(int(t[i]), Rs[i], ps[i])
+                self.stats.messages += 1
+                self._record()
+                i += 1
+                continue
+            j += 1
+            self.stats.ranges += 1
+            if t_r < self.t_ns:
+                self.stats.ranges_before_odometry += 1
+                continue
+            if t_r > self.t_ns:
+                k = int(np.searchsorted(t, t_r, side="left"))  # next odometry at or after the range
+                if k >= len(t):
+                    self.stats.ranges_after_odometry += 1
+                    continue
+                if t[k] - self.t_ns > gap_ns:
+                    self.stats.ranges_in_gaps += 1
+                s = (t_r - self.t_ns) / float(t[k] - self.t_ns)
+                R_i, p_i = se3_interpolate(self._R_ref, self._p_ref, Rs[k], ps[k], s)
+                self.advance(t_r, R_i, p_i)
+            self._record()
+            if on_range is not None:
+                rm = RangeMeasurement(
+                    t_r,
+                    int(ranges.tag[j - 1]),
+                    int(ranges.antenna[j - 1]),
+                    int(ranges.anchor[j - 1]),
+                    float(ranges.distance[j - 1]),
+                )
+                on_range(self, rm)
+        for w in self.stats.warnings():
+            _log.warning("%s: %s", src, w)
+        if log is not None:
+            self._log(log, first_record)
+
+    def _log(self, log: RunLog, first: int) -> None:
+        from . import runlog as rl
+
+        h = self.history().arrays()
+        tt, p, q, cov = (h[k][first:] for k in ("t_ns", "p", "q_xyzw", "cov"))
+        if not len(tt):
+            return
+        sig3 = 3.0 * np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0))
+        step = max(1, len(tt) // 500)
+        for method, args in (
+            ("trajectory", (rl.VIO, tt, p, q)),
+            ("ellipsoid_series", (rl.VIO_COV, tt[::step], p[::step], cov[::step, 3:6, 3:6])),
+            ("scalars", (f"{rl.SIGMA}/vio_p3sigma", tt, sig3[:, 3:6], ["x", "y", "z"])),
+            ("scalars", (f"{rl.SIGMA}/vio_theta3sigma_deg", tt, np.degrees(sig3[:, 0:3]), ["x", "y", "z"])),
+        ):
+            try:
+                getattr(log, method)(*args)
+            except Exception as exc:  # logging never breaks the filter
+                _log.warning("runlog.%s failed: %s", method, exc)
+
+
+__all__ = [
+    "OdometryEstimator",
+    "OdometryFilterConfig",
+    "OdometryStats",
+    "clean_odometry",
+    "compose",
+    "compose_jacobians",
+    "increment_noise",
+    "relative",
+    "se3_exp",
+    "se3_interpolate",
+    "se3_log",
+]

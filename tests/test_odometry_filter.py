@@ -1,0 +1,293 @@
+import pickle
+
+import numpy as np
+import pytest
+
+from convert.errors import InputError
+from convert.recording import RecordingReader, RecordingWriter
+from pipeline.lie import exp_so3, log_so3, quat_to_rot, rot_to_quat, skew
+from pipeline.odometry_filter import (
+    OdometryEstimator,
+    OdometryFilterConfig,
+    OdometryStats,
+    clean_odometry,
+    compose,
+    compose_jacobians,
+    increment_noise,
+    relative,
+    se3_exp,
+    se3_interpolate,
+    se3_log,
+)
+from pipeline.state import Pose, ekf_update
+
+T0 = 1_600_000_000_000_000_000
+
+
+def _trajectory(n=200, dt_s=0.1, seed=0):
+    """Smooth 3-D trajectory: stamps, rotations [N,3,3], positions [N,3]."""
+    rng = np.random.default_rng(seed)
+    s = np.arange(n) * dt_s
+    p = np.column_stack([3 * np.cos(0.3 * s), 2 * np.sin(0.5 * s), 0.2 * s])
+    w = np.column_stack([0.1 * np.sin(0.7 * s), 0.05 * np.cos(0.4 * s), 0.3 * s]) + 0.01 * rng.normal(
+        size=(n, 3)
+    )
+    R = exp_so3(w)
+    t = T0 + (s * 1e9).astype(np.int64)
+    return t, R, p
+
+
+def _write(path, t, R, p, ranges=None, cov=None):
+    with RecordingWriter(path) as w:
+        w.write_odometry_batch(t, p, rot_to_quat(R), np.eye(6) * 0.01 if cov is None else cov)
+        if ranges is not None:
+            tr = np.asarray(ranges, np.int64)
+            n = len(tr)
+            w.write_range_batch(tr, np.zeros(n), np.zeros(n), np.full(n, 7), np.full(n, 5.0))
+    return RecordingReader(path)
+
+
+def _rot_err(Ra, Rb):
+    return np.linalg.norm(log_so3(np.swapaxes(Ra, -1, -2) @ Rb), axis=-1)
+
+
+def test_no_updates_reproduces_odometry_and_covariance_grows(tmp_path):
+    t, R, p = _trajectory()
+    rd = _write(tmp_path / "o.mcap", t, R, p)
+    est = OdometryEstimator.from_recording(rd)
+    est.run(rd, None, None)
+    h = est.history().arrays()
+    assert np.array_equal(h["t_ns"], t)
+    assert np.abs(h["p"] - p).max() < 1e-9
+    assert _rot_err(quat_to_rot(h["q_xyzw"]), R).max() < 1e-9
+    # In the world-frame (left-invariant) error xi, T = Exp(xi) T_hat, the odometry only ever adds noise:
+    # P_w,k - P_w,k-1 = Ad Q Ad^T >= 0. Our error [dtheta_body, dp] maps to it with J = [[R, 0], [p^ R, I]].
+    Rh = quat_to_rot(h["q_xyzw"])
+    J = np.zeros((len(t), 6, 6))
+    J[:, 0:3, 0:3] = Rh
+    J[:, 3:6, 0:3] = skew(h["p"]) @ Rh
+    J[:, 3:6, 3:6] = np.eye(3)
+    Pw = J @ h["cov"] @ np.swapaxes(J, 1, 2)
+    growth = np.linalg.eigvalsh(np.diff(Pw, axis=0))
+    assert growth.min() > -1e-12
+    assert np.all(np.trace(np.diff(Pw, axis=0), axis1=1, axis2=2) > 0)
+
+
+def test_position_sigma_follows_random_walk_per_metre(tmp_path):
+    # straight line, no rotation noise: var_p = sigma0^2 + s^2 * L + floor^2 * T on every axis
+    n = 101
+    t = T0 + np.arange(n, dtype=np.int64) * 100_000_000
+    p = np.column_stack([np.arange(n) * 0.5, np.zeros(n), np.zeros(n)])
+    R = np.repeat(np.eye(3)[None], n, axis=0)
+    cfg = OdometryFilterConfig(
+        sigma_p_per_sqrt_m=0.03,
+        sigma_p_per_sqrt_s=0.001,
+        initial_sigma_p=0.01,
+        sigma_theta_per_sqrt_rad=0.0,
+        sigma_theta_per_sqrt_m=0.0,
+        sigma_theta_per_sqrt_s=0.0,
+        initial_sigma_theta_deg=1e-12,
+    )
+    rd = _write(tmp_path / "line.mcap", t, R, p)
+    est = OdometryEstimator.from_recording(rd, cfg)
+    est.run(rd, None, None)
+    cov = est.history().arrays()["cov"][-1]
+    L, T = 50.0, 10.0
+    expected = 0.01**2 + 0.03**2 * L + 0.001**2 * T
+    assert cov[3, 3] == pytest.approx(expected, rel=1e-9)
+    assert cov[4, 4] == pytest.approx(expected, rel=1e-9)
+    assert cov[5, 5] == pytest.approx(expected, rel=1e-9)
+    # with heading noise the lateral variance grows faster than the along-track one (lever arm)
+    est = OdometryEstimator.from_recording(rd, OdometryFilterConfig(sigma_p_per_sqrt_m=0.03))
+    est.run(rd, None, None)
+    cov = est.history().arrays()["cov"][-1]
+    assert cov[4, 4] > 2 * cov[3, 3]
+
+
+def test_compose_jacobians_finite_differences():
+    rng = np.random.default_rng(3)
+    R = exp_so3(rng.normal(size=3))
+    p = rng.normal(size=3)
+    dR = exp_so3(0.3 * rng.normal(size=3))
+    dp = rng.normal(size=3)
+    F, G = compose_jacobians(R, dR, dp)
+    R1, p1 = compose(R, p, dR, dp)
+    eps = 1e-6
+    for k in range(6):
+        dx = np.zeros(6)
+        dx[k] = eps
+        x = Pose(R, p).boxplus(dx)
+        Ra, pa = compose(x.R, x.p, dR, dp)
+        num = np.concatenate([log_so3(R1.T @ Ra), pa - p1]) / eps
+        assert np.allclose(num, F[:, k], atol=1e-5)
+        Rb, pb = compose(R, p, dR @ exp_so3(dx[0:3]), dp + dx[3:6])
+        num = np.concatenate([log_so3(R1.T @ Rb), pb - p1]) / eps
+        assert np.allclose(num, G[:, k], atol=1e-5)
+
+
+def test_se3_exp_log_round_trip_and_constant_twist_interpolation():
+    rng = np.random.default_rng(5)
+    xi = np.concatenate([0.8 * rng.normal(size=3), rng.normal(size=3)])
+    R, p = se3_exp(xi)
+    assert np.allclose(se3_log(R, p), xi, atol=1e-12)
+    # motion with a constant body twist: T(s) = T0 Exp(s xi); interpolation must be exact
+    R0, p0 = exp_so3(rng.normal(size=3)), rng.normal(size=3)
+    R1, p1 = compose(R0, p0, R, p)
+    for s in (0.0, 0.25, 0.5, 0.9, 1.0):
+        Rs, ps = compose(R0, p0, *se3_exp(s * xi))
+        Ri, pi = se3_interpolate(R0, p0, R1, p1, s)
+        assert _rot_err(Ri, Rs) < 1e-12
+        assert np.allclose(pi, ps, atol=1e-12)
+
+
+def test_range_stamps_are_interpolated(tmp_path):
+    t, R, p = _trajectory(50)
+    tr = [int(t[3] + 30_000_000), int(t[10]), int(t[20] + 77_000_000), int(t[30] + 1)]
+    rd = _write(tmp_path / "r.mcap", t, R, p, ranges=tr)
+    seen = []
+
+    def handler(est, m):
+        x = est.state.value("imu")
+        seen.append((m.t_ns, est.t_ns, x.R.copy(), x.p.copy(), m.anchor, m.distance))
+
+    est = OdometryEstimator.from_recording(rd)
+    est.run(rd, None, None, on_range=handler)
+    assert [s[0] for s in seen] == tr
+    for t_r, t_state, Rx, px, anchor, dist in seen:
+        assert t_state == t_r and anchor == 7 and dist == 5.0
+        k = int(np.searchsorted(t, t_r, side="left"))
+        if t[k] == t_r:
+            Re, pe = R[k], p[k]
+        else:
+            s = (t_r - t[k - 1]) / (t[k] - t[k - 1])
+            Re, pe = se3_interpolate(R[k - 1], p[k - 1], R[k], p[k], s)
+        assert _rot_err(Rx, Re) < 1e-9
+        assert np.abs(px - pe).max() < 1e-9
+    # the history holds the range stamps and still every odometry stamp, with the odometry poses
+    h = est.history().arrays()
+    assert set(tr) <= set(h["t_ns"].tolist()) and set(t.tolist()) <= set(h["t_ns"].tolist())
+    at = np.searchsorted(h["t_ns"], t)
+    assert np.abs(h["p"][at] - p).max() < 1e-9
+
+
+def test_position_update_pulls_pose_and_later_increments_apply_to_it(tmp_path):
+    t, R, p = _trajectory(60)
+    t_fix = int(t[20] + 40_000_000)
+    rd = _write(tmp_path / "u.mcap", t, R, p, ranges=[t_fix])
+    offset = np.array([0.5, -0.3, 0.2])
+    truth = {}
+
+    def handler(est, m):
+        x = est.state.value("imu")
+        target = x.p + offset
+        truth["target"] = target
+        H = np.zeros((3, 6))
+        H[:, 3:6] = np.eye(3)
+        res = ekf_update(est.state, {"imu": H}, target - x.p, 1e-12)
+        assert res.accepted
+        truth["R"] = est.state.value("imu").R.copy()
+        truth["p"] = est.state.value("imu").p.copy()
+        truth["sigma_p"] = np.sqrt(np.diag(est.state.cov("imu"))[3:6])
+
+    est = OdometryEstimator.from_recording(rd)
+    est.run(rd, None, None, on_range=handler)
+    assert np.allclose(truth["p"], truth["target"], atol=1e-6)
+    assert truth["sigma_p"].max() < 1e-5
+    # after the fix: T_hat_k = T_fix (T_odom(t_fix)^-1 T_k)
+    k = int(np.searchsorted(t, t_fix))
+    s = (t_fix - t[k - 1]) / (t[k] - t[k - 1])
+    Ro, po = se3_interpolate(R[k - 1], p[k - 1], R[k], p[k], s)
+    Rl, pl = compose(truth["R"], truth["p"], *relative(Ro, po, R[-1], p[-1]))
+    x = est.state.value("imu")
+    assert _rot_err(x.R, Rl) < 1e-9
+    assert np.allclose(x.p, pl, atol=1e-9)
+    assert not np.allclose(x.p, p[-1], atol=1e-3)
+
+
+def test_split_run_and_pickle_equal_one_run(tmp_path):
+    t, R, p = _trajectory(80)
+    tr = (t[:-1] + 33_000_000).tolist()
+    rd = _write(tmp_path / "s.mcap", t, R, p, ranges=tr)
+    one = OdometryEstimator.from_recording(rd)
+    one.run(rd, None, None)
+    mid = int(t[37] + 50_000_000)
+    two = OdometryEstimator.from_recording(rd)
+    two.run(rd, None, mid)
+    assert two.t_ns < mid
+    two = pickle.loads(pickle.dumps(two))
+    two.run(rd, mid, None)
+    a, b = one.history().arrays(), two.history().arrays()
+    assert np.array_equal(a["t_ns"], b["t_ns"])
+    assert np.allclose(a["p"], b["p"], atol=1e-12)
+    assert np.allclose(a["cov"], b["cov"], rtol=1e-9, atol=1e-15)
+    assert one.stats.ranges == len(tr)
+
+
+def test_duplicates_skipped_and_counted_out_of_order_sorted(tmp_path):
+    t, R, p = _trajectory(30)
+    td = np.insert(t, 10, t[10])
+    Rd = np.insert(R, 10, R[10], axis=0)  # a re-sent message
+    pd = np.insert(p, 10, p[10], axis=0)
+    rd = _write(tmp_path / "d.mcap", td, Rd, pd)
+    est = OdometryEstimator.from_recording(rd)
+    est.run(rd, None, None)
+    assert est.stats.duplicates == 1
+    assert any("duplicate" in w for w in est.warnings)
+    h = est.history().arrays()
+    assert len(h["t_ns"]) == len(t)
+    assert np.abs(h["p"] - p).max() < 1e-9
+    # header stamps out of order (as a reader of a broken source may return): sorted, counted
+    st = OdometryStats()
+    perm = np.r_[0:5, 6, 5, 7:30]
+    ts, Rs, ps, _ = clean_odometry(
+        t[perm], p[perm], rot_to_quat(R[perm]), np.zeros((30, 6, 6)), "x", "/odometry", st
+    )
+    assert st.out_of_order == 1 and np.array_equal(ts, t) and np.allclose(ps, p)
+
+
+def test_nan_odometry_names_the_stamp(tmp_path):
+    t, R, p = _trajectory(20)
+    p = p.copy()
+    p[7, 1] = np.nan
+    rd = _write(tmp_path / "n.mcap", t, R, p)
+    est = OdometryEstimator.from_recording(rd)
+    with pytest.raises(InputError, match=str(int(t[7]))):
+        est.run(rd, None, None)
+
+
+def test_missing_topic_and_ranges_outside_odometry(tmp_path):
+    with RecordingWriter(tmp_path / "empty.mcap") as w:
+        w.write_range_batch([T0], [0], [0], [1], [3.0])
+    with pytest.raises(InputError, match="/odometry"):
+        OdometryEstimator.from_recording(RecordingReader(tmp_path / "empty.mcap"))
+    t, R, p = _trajectory(10)
+    rd = _write(tmp_path / "o.mcap", t, R, p, ranges=[int(t[0] - 5), int(t[4]), int(t[-1] + 5)])
+    calls = []
+    est = OdometryEstimator.from_recording(rd)
+    est.run(rd, int(t[0] - 10), None, on_range=lambda e, m: calls.append(m.t_ns))
+    assert calls == [int(t[4])]
+    assert est.stats.ranges_before_odometry == 1
+
+
+def test_increment_noise_is_rate_independent():
+    cfg = OdometryFilterConfig()
+    dR = exp_so3(np.array([0.0, 0.0, 0.4]))
+    dp = np.array([1.0, 0.0, 0.0])
+    whole = increment_noise(cfg, dR, dp, 1.0)
+    half = increment_noise(cfg, exp_so3(np.array([0.0, 0.0, 0.2])), dp / 2, 0.5)
+    assert np.allclose(whole, 2 * half)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-3, 0.5, 2.0, np.pi - 1e-3, np.pi - 1e-7])
+def test_fast_so3_helpers_match_lie(angle):
+    from pipeline.lie import jr_inv_so3, jr_so3
+    from pipeline.odometry_filter import _exp, _left_jacobian, _so3_log
+
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    w = angle * axis
+    R = exp_so3(w)
+    assert np.allclose(_exp(w), R, atol=1e-12)
+    assert np.allclose(exp_so3(_so3_log(R)), R, atol=1e-9)
+    assert np.allclose(_left_jacobian(w), jr_so3(-w), atol=1e-9)
+    if angle < 3.0:
+        assert np.allclose(_left_jacobian(w, inverse=True), jr_inv_so3(-w), atol=1e-9)
