@@ -86,7 +86,7 @@ def demo(output: Annotated[Path, typer.Option("-o", "--output")] = Path("recordi
     """Simulate the built-in trajectory, run every stage, evaluate and print a summary."""
     from pipeline.demo import run_demo
 
-    run_demo(output)
+    typer.echo(run_demo(output))
 
 
 @app.command()

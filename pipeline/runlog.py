@@ -186,8 +186,10 @@ class RunLog:
         run_kind: str = "simulation",
         enabled: bool = True,
         anchors: Iterable[object] = (),
+        blueprint: bool = True,
     ) -> None:
         self.path = Path(path) if path is not None else None
+        self._send_blueprint = blueprint  # stage parts of a run leave it to merge_run_logs
         self.run_kind = run_kind if run_kind in RUN_KINDS else "simulation"
         self._anchors: dict[str, None] = {_part(a): None for a in anchors}
         self._stage: int | None = None
@@ -232,7 +234,7 @@ class RunLog:
         rec, stack = self._rec, self._stack
         self._rec, self._stack = None, None
         try:
-            if keep:
+            if keep and self._send_blueprint:
                 rec.send_blueprint(self.blueprint(), make_active=True, make_default=True)
             rec.flush()
         finally:
@@ -573,22 +575,34 @@ def merge_run_logs(
     if not stores:
         raise InputError(f"{parts[0]}: no recording inside; re-run the stage that writes it")
     first = stores[0][1]
-    chunks = [ch for r, st in stores for ch in r.stream(store=st).to_chunks()]
+    chunks = [ch for r, st in stores for ch in r.stream(store=st).to_chunks()]  # entity paths only
     probe = RunLog(None, run_kind=run_kind or "simulation")
     for ch in chunks:
         probe._note(ch.entity_path.lstrip("/"))
     bp = make_blueprint(
         probe.run_kind, probe.anchors(), camera=probe._has_camera or probe.run_kind != "ntu-viral"
     )
+    # Data: rerun's own merge (re-sending chunks through a new stream lost temporal transform/point chunks).
+    # Blueprint: one blueprint-only part, merged last, so the merged run opens on the layout of every stage.
+    import subprocess
+    import tempfile
+
     target = Path(target)
-    with atomic_path(target) as tmp:
+    with tempfile.TemporaryDirectory(prefix="uwbcal-merge-") as tdir, atomic_path(target) as tmp:
+        bp_part = Path(tdir) / "blueprint.rrd"
         rec = rr.RecordingStream(first.application_id, recording_id=first.recording_id, send_properties=False)
         try:
-            rec.save(tmp, default_blueprint=bp)
-            rec.send_chunks(chunks)
+            rec.save(bp_part, default_blueprint=bp)
             rec.flush()
         finally:
             rec.disconnect()
+        res = subprocess.run(
+            [*_rerun_exe(), "rrd", "merge", *map(str, parts), str(bp_part), "-o", str(tmp)],
+            capture_output=True,
+            text=True,
+        )
+        if res.returncode != 0:
+            raise RuntimeError(f"rerun rrd merge failed: {res.stderr.strip()[-400:]}")
     return target
 
 

@@ -211,7 +211,7 @@ def test_merge_run_logs_one_blueprint_with_all_anchors(tmp_path: Path) -> None:
     parts = []
     for i, (stage, anchor) in enumerate([("vio", "a0"), ("refine", "a1")]):
         parts.append(tmp_path / "logs" / f"{i:02d}_{stage}.rrd")
-        with L.RunLog(parts[-1], recording_id="R") as log:
+        with L.RunLog(parts[-1], recording_id="R", blueprint=False) as log:
             log.stage(stage, int(t[0]))
             log.scalars(L.uwb(anchor, "residual"), t, np.zeros(5))
     out = L.merge_run_logs(parts, tmp_path / "run.rrd", run_kind="ntu-viral")

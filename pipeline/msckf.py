@@ -1,0 +1,721 @@
+"""MSCKF visual-inertial odometry with first-estimate Jacobians (FEJ).
+
+State: variable ``"imu"`` (ImuState) plus stochastic clones ``"clone/<t_ns>"`` (Pose of the IMU at each camera
+frame). Per camera frame: propagate to the frame, clone, update with the selected feature tracks, marginalise the
+oldest clone when the window is full.
+
+Feature selection (OpenVINS style): a track is used once, when it is lost (not seen in the current frame) or
+when the oldest clone is about to be marginalised and the track has an observation in it; in both cases with at
+least ``min_track_length`` observations. A used track is deleted from the database (a feature id that keeps
+being tracked starts a new track), so no observation is used twice.
+
+Per update, all selected features are processed in batches: linear triangulation (sum of the projectors orthogonal
+to the bearings) and Gauss-Newton in world xyz, Jacobians in distorted pixel space (clone columns at the clones'
+first estimates when FEJ is on, feature at its triangulated value), left-nullspace projection of the feature
+Jacobian (batched QR per track length), a chi-squared test per feature, stacking, QR compression when there are
+more rows than clone columns, and one ``ekf_update``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import logging
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.stats import chi2
+
+from convert.errors import InputError
+
+from .camera import Camera
+from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
+from .imu import ImuNoise, imu_intervals, propagate
+from .lie import quat_slerp, quat_to_rot, skew
+from .state import ImuState, Pose, State, ekf_update
+
+if TYPE_CHECKING:
+    from convert.recording import RecordingReader
+
+    from .runlog import RunLog
+
+_log = logging.getLogger(__name__)
+
+TOPIC_IMU = "/imu"
+TOPIC_FEATURES = "/cam0/features"
+TOPIC_RANGE = "/uwb/range"
+TOPIC_GT_POSE = "/groundtruth/pose"
+
+
+class VioConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    fej: bool = Field(True, description="first-estimate Jacobians (keeps the 4-DoF unobservable subspace)")
+    max_clones: int = Field(11, ge=2, description="sliding-window length (clones)")
+    pixel_sigma: float = Field(1.0, gt=0, description="feature measurement noise [px]")
+    chi2_quantile: float = Field(0.95, gt=0, lt=1, description="per-feature chi-squared gate")
+    min_track_length: int = Field(3, ge=2)
+    max_features_per_update: int = Field(150, ge=1, description="longest tracks first")
+    init_from_groundtruth: bool = Field(True, description="initial R, p, v (and biases) from ground truth")
+    sigma_theta0: float = Field(1e-3, gt=0, description="initial orientation sigma [rad]")
+    sigma_p0: float = Field(1e-3, gt=0, description="initial position sigma [m]")
+    sigma_v0: float = Field(1e-2, gt=0, description="initial velocity sigma [m/s]")
+    sigma_bg0: float = Field(1e-3, gt=0, description="initial gyro bias sigma [rad/s]")
+    sigma_ba0: float = Field(2e-2, gt=0, description="initial accelerometer bias sigma [m/s^2]")
+    imu_noise_inflation: float = Field(1.0, gt=0, description="factor on the calibration's noise densities")
+    imu_gap_warn_s: float = Field(0.05, gt=0, description="IMU gap counted as a warning")
+    imu_gap_max_s: float = Field(1.0, gt=0, description="IMU gap that aborts (InputError)")
+    max_propagation_s: float = Field(0.1, gt=0, description="longest single propagation step")
+    min_depth: float = Field(0.2, gt=0)
+    max_depth: float = Field(80.0, gt=0)
+    triangulation_iterations: int = Field(5, ge=0)
+    min_parallax_deg: float = Field(0.0, ge=0, description="RMS bearing spread a track needs to be used")
+
+
+@dataclass
+class VioStats:
+    frames: int = 0
+    updates: int = 0
+    frames_before_imu: int = 0
+    frames_without_features: int = 0
+    imu_gaps: int = 0
+    imu_max_gap_s: float = 0.0
+    features_used: int = 0
+    features_rejected_chi2: int = 0
+    features_failed_triangulation: int = 0
+
+    def warnings(self) -> list[str]:
+        out = []
+        if self.frames_before_imu:
+            out.append(f"vio: {self.frames_before_imu} camera frame(s) before the first IMU sample skipped")
+        if self.imu_gaps:
+            out.append(f"vio: {self.imu_gaps} IMU gap(s) > threshold (longest {self.imu_max_gap_s:.3f} s)")
+        if self.frames and self.frames_without_features > 0.1 * self.frames:
+            out.append(f"vio: {self.frames_without_features} of {self.frames} frames had no usable features")
+        total = self.features_used + self.features_rejected_chi2
+        if total and self.features_rejected_chi2 > 0.2 * total:
+            out.append(f"vio: {self.features_rejected_chi2} of {total} feature tracks failed the chi2 test")
+        return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# feature database
+# ---------------------------------------------------------------------------------------------------------------
+@dataclass
+class FeatureDatabase:
+    """Observations in the window as columns: frame stamp, track id, raw pixels, undistorted normalised."""
+
+    t: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    def add(self, t_ns: int, ids: np.ndarray, uv: np.ndarray, xy: np.ndarray) -> None:
+        self.t = np.concatenate([self.t, np.full(len(ids), t_ns, np.int64)])
+        self.ids = np.concatenate([self.ids, ids])
+        self.uv = np.concatenate([self.uv, uv])
+        self.xy = np.concatenate([self.xy, xy])
+
+    def keep(self, mask: np.ndarray) -> None:
+        self.t, self.ids, self.uv, self.xy = self.t[mask], self.ids[mask], self.uv[mask], self.xy[mask]
+
+    def select(
+        self, t_now: int, t_oldest: int | None, min_len: int, max_features: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Observation rows of the tracks to use now, and a mask of the rows to delete afterwards."""
+        if len(self.ids) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, bool)
+        uid, inv, counts = np.unique(self.ids, return_inverse=True, return_counts=True)
+        seen_now = np.zeros(len(uid), bool)
+        seen_now[inv[self.t == t_now]] = True
+        lost = ~seen_now
+        cand = lost.copy()
+        if t_oldest is not None:
+            in_oldest = np.zeros(len(uid), bool)
+            in_oldest[inv[self.t == t_oldest]] = True
+            cand |= in_oldest
+        use = cand & (counts >= min_len)
+        if use.sum() > max_features:
+            order = np.argsort(-counts[use], kind="stable")
+            idx = np.flatnonzero(use)[order[:max_features]]
+            use = np.zeros(len(uid), bool)
+            use[idx] = True
+        rows = np.flatnonzero(use[inv])
+        drop = (lost | use)[inv]
+        return rows, drop
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# batched feature math
+# ---------------------------------------------------------------------------------------------------------------
+def triangulate(
+    R_wc: np.ndarray,
+    p_wc: np.ndarray,
+    C: np.ndarray,
+    xy: np.ndarray,
+    valid: np.ndarray,
+    iterations: int = 4,
+    min_parallax_rad: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Batched triangulation of F features on the padded layout.
+
+    ``R_wc, p_wc``: camera poses (world_from_camera) per clone; ``C`` (F, M): clone index of each observation
+    slot, ``xy`` (F, M, 2) normalised undistorted observations, ``valid`` (F, M) which slots hold one. Linear
+    solution (sum of the projectors orthogonal to the bearings), then Gauss-Newton on the normalised
+    reprojection error in world xyz. Returns points (F, 3) and a mask of well-conditioned features (F,): the
+    RMS angle of the bearings about their mean, sqrt(min/max eigenvalue of the projector sum), must exceed
+    ``min_parallax_rad`` (small-parallax tracks linearise badly and make the filter overconfident).
+    """
+    F, M = C.shape
+    wv = valid.astype(float)[..., None, None]
+    Rw = R_wc[C]  # (F, M, 3, 3)
+    pw = p_wc[C]
+    b = np.einsum("fmij,fmj->fmi", Rw, np.concatenate([xy, np.ones((F, M, 1))], axis=-1))
+    b /= np.linalg.norm(b, axis=-1, keepdims=True)
+    A = (np.eye(3) - b[..., :, None] * b[..., None, :]) * wv
+    As = A.sum(axis=1)
+    rhs = np.einsum("fmij,fmj->fi", A, pw)
+    ev = np.linalg.eigvalsh(As)
+    ok = ev[:, 0] > max(1e-7, min_parallax_rad**2) * np.maximum(ev[:, 2], 1e-12)
+    As[~ok] = np.eye(3)
+    pf = np.linalg.solve(As, rhs[..., None])[..., 0]
+    Rcw = np.swapaxes(Rw, -1, -2)
+    eye_eps = 1e-9 * np.eye(3)
+    for _ in range(iterations):
+        pc = np.einsum("fmij,fmj->fmi", Rcw, pf[:, None, :] - pw)
+        z = pc[..., 2]
+        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        r = (xy - pc[..., :2] / zs[..., None]) * wv[..., 0]
+        Jn = np.zeros((F, M, 2, 3))
+        Jn[..., 0, 0] = Jn[..., 1, 1] = 1.0 / zs
+        Jn[..., 0, 2] = -pc[..., 0] / zs**2
+        Jn[..., 1, 2] = -pc[..., 1] / zs**2
+        J = (Jn @ Rcw) * wv
+        Hn = np.einsum("fmki,fmkj->fij", J, J)
+        Hn += (1e-9 * np.trace(Hn, axis1=1, axis2=2))[:, None, None] * np.eye(3) + eye_eps
+        g = np.einsum("fmki,fmk->fi", J, r)
+        bad = ~(ok & np.isfinite(Hn).all(axis=(1, 2)) & np.isfinite(g).all(axis=1))
+        Hn[bad] = np.eye(3)
+        g[bad] = 0.0
+        try:
+            step = np.linalg.solve(Hn, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = (np.linalg.pinv(Hn) @ g[..., None])[..., 0]
+        pf = pf + step
+    ok &= np.isfinite(pf).all(axis=1)
+    return pf, ok
+
+
+def compress_normal(H: np.ndarray, r: np.ndarray, rel_tol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    """Measurement compression through the information matrix: ``Hc^T Hc = H^T H``, ``Hc^T rc = H^T r``.
+
+    Same information as the QR compression (`compress`) with one Gram product and a small eigendecomposition
+    instead of a QR of all stacked rows; directions without information (the MSCKF gauge) are dropped.
+    """
+    if H.shape[0] <= H.shape[1]:
+        return H, r
+    G = H.T @ H
+    b = H.T @ r
+    lam, V = np.linalg.eigh(G)
+    keep = lam > rel_tol * max(lam[-1], 1e-300)
+    sq = np.sqrt(lam[keep])
+    return (V[:, keep] * sq).T, (V[:, keep].T @ b) / sq
+
+
+def feature_jacobians(
+    cam: Camera,
+    R_wi: np.ndarray,
+    p_wi: np.ndarray,
+    pf: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel prediction and Jacobians of one observation per row.
+
+    ``R_wi, p_wi`` (K, 3, 3)/(K, 3): the clone (IMU) pose of each observation; ``pf`` (K, 3): the feature in the
+    world. Returns ``uv`` (K, 2), ``H_pose`` (K, 2, 6) wrt the clone error [dtheta, dp] (right perturbation),
+    ``H_f`` (K, 2, 3) wrt the feature, and the camera-frame points (K, 3).
+    """
+    Rt = np.swapaxes(R_wi, 1, 2)
+    p_i = np.einsum("kij,kj->ki", Rt, pf - p_wi)
+    Rci = cam.R_imu_cam.T
+    p_c = (p_i - cam.p_imu_cam) @ Rci.T
+    uv, Jp = cam.project_jacobian(p_c)
+    JR = Jp @ Rci
+    H_pose = np.empty((len(pf), 2, 6))
+    H_pose[:, :, 0:3] = JR @ skew(p_i)
+    H_f = JR @ Rt
+    H_pose[:, :, 3:6] = -H_f
+    return uv, H_pose, H_f, p_c
+
+
+def nullspace_project(H_f: np.ndarray, H_x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project (K, 2m, .) stacks onto the left nullspace of H_f (K, 2m, 3): rows 2m-3 remain."""
+    Qm = np.linalg.qr(H_f, mode="complete")[0]
+    N = Qm[:, :, 3:]
+    Nt = np.swapaxes(N, 1, 2)
+    return Nt @ H_x, np.einsum("kij,kj->ki", Nt, r)
+
+
+def compress(H: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """QR measurement compression: same information with at most ``H.shape[1]`` rows."""
+    n = H.shape[1]
+    if H.shape[0] <= n:
+        return H, r
+    Rm = np.linalg.qr(np.column_stack([H, r]), mode="r")
+    return Rm[:n, :n], Rm[:n, n]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# estimator
+# ---------------------------------------------------------------------------------------------------------------
+def _clone_name(t_ns: int) -> str:
+    return f"clone/{t_ns}"
+
+
+def _interp_pose(t: np.ndarray, p: np.ndarray, q: np.ndarray, t0: int) -> tuple[np.ndarray, np.ndarray]:
+    i = int(np.clip(np.searchsorted(t, t0) - 1, 0, len(t) - 2))
+    s = float(np.clip((t0 - t[i]) / max(t[i + 1] - t[i], 1), 0.0, 1.0))
+    pos = (1 - s) * p[i] + s * p[i + 1]
+    quat = quat_slerp(q[i : i + 1], q[i + 1 : i + 2], np.array([s]))[0]
+    return quat_to_rot(quat), pos
+
+
+def _truth_biases(truth: dict | None) -> tuple[np.ndarray, np.ndarray]:
+    bg = np.zeros(3)
+    ba = np.zeros(3)
+    if not truth:
+        return bg, ba
+    src = truth.get("imu", truth)
+    for key in ("gyroscope_bias", "gyro_bias", "bias_gyro", "bg"):
+        if key in src:
+            bg = np.asarray(src[key], float).reshape(3)
+            break
+    for key in ("accelerometer_bias", "accel_bias", "acc_bias", "bias_acc", "ba"):
+        if key in src:
+            ba = np.asarray(src[key], float).reshape(3)
+            break
+    return bg, ba
+
+
+def groundtruth_state(reader: RecordingReader, t0_ns: int) -> ImuState:
+    """IMU state at ``t0_ns`` from /groundtruth/pose (velocity by central differences) and uwbcal.truth biases."""
+    topics = reader.topics()
+    if TOPIC_GT_POSE not in topics:
+        raise InputError(
+            f"{reader.path}: vio.init_from_groundtruth is set but there is no '{TOPIC_GT_POSE}' topic; "
+            "use the static initialiser (vio.init_from_groundtruth = false)"
+        )
+    gt = reader.read_poses(TOPIC_GT_POSE)
+    if len(gt.t_ns) < 3 or t0_ns < gt.t_ns[0] or t0_ns > gt.t_ns[-1]:
+        raise InputError(f"{reader.path}: {TOPIC_GT_POSE}: does not cover the start time {t0_ns}")
+    R, p = _interp_pose(gt.t_ns, gt.p, gt.q_xyzw, t0_ns)
+    ts = (gt.t_ns - gt.t_ns[0]) * 1e-9
+    i = int(np.clip(np.searchsorted(gt.t_ns, t0_ns), 1, len(ts) - 2))
+    # velocity: slope of a local least-squares line over ~ +-20 ms (robust to GT stamp jitter)
+    tc = (t0_ns - gt.t_ns[0]) * 1e-9
+    sel = np.flatnonzero(np.abs(ts - tc) <= max(0.02, 1.5 * (ts[i + 1] - ts[i - 1])))
+    tt = ts[sel] - tc
+    v = (
+        np.polyfit(tt, gt.p[sel], 2)[1]
+        if len(sel) >= 3
+        else (gt.p[i + 1] - gt.p[i - 1]) / (ts[i + 1] - ts[i - 1])
+    )
+    lever = np.asarray(reader.calibration.get("groundtruth", {}).get("lever_arm", [0, 0, 0]), float)
+    p = p - R @ lever
+    bg, ba = _truth_biases(reader.truth)
+    return ImuState(R, p, np.asarray(v, float), bg, ba)
+
+
+class MsckfEstimator:
+    """The MSCKF pose source (Estimator protocol)."""
+
+    def __init__(
+        self, config: VioConfig, camera: Camera, noise: ImuNoise, initial: ImuState | None = None
+    ) -> None:
+        self.config = config
+        self.camera = camera
+        self.noise = noise
+        self.state = State(use_fej=config.fej)
+        self.t_ns = -1
+        self.initial = initial
+        self.initialized = False
+        self.db = FeatureDatabase()
+        self.clones: list[int] = []
+        self.stats = VioStats()
+        self._history = TrajectoryRecord()
+        self._chi2 = chi2.ppf(config.chi2_quantile, np.maximum(np.arange(2 * config.max_clones + 8), 1))
+        self.source = "recording"
+
+    # -- construction ------------------------------------------------------------------------------------------
+    @classmethod
+    def from_recording(
+        cls, reader: RecordingReader, config: VioConfig | None = None, initial: ImuState | None = None
+    ) -> MsckfEstimator:
+        config = config or VioConfig()
+        src = str(getattr(reader, "path", "recording"))
+        calib = reader.calibration
+        cam = Camera.from_calibration(calib, "cam0", src)
+        noise = ImuNoise.from_calibration(calib, src, config.imu_noise_inflation)
+        est = cls(config, cam, noise, initial)
+        est.source = src
+        if initial is None and not config.init_from_groundtruth:
+            raise InputError(
+                f"{src}: the MSCKF needs an initial IMU state: set vio.init_from_groundtruth (simulation) or "
+                "pass one from the static initialiser"
+            )
+        return est
+
+    def _initialize(self, reader: RecordingReader, t0_ns: int) -> None:
+        x0 = self.initial if self.initial is not None else groundtruth_state(reader, t0_ns)
+        c = self.config
+        sig = np.repeat([c.sigma_theta0, c.sigma_p0, c.sigma_v0, c.sigma_bg0, c.sigma_ba0], 3)
+        self.state.add("imu", x0, np.diag(sig**2))
+        self.t_ns = int(t0_ns)
+        self.initialized = True
+
+    @property
+    def warnings(self) -> list[str]:
+        return self.stats.warnings()
+
+    def history(self) -> TrajectoryRecord:
+        return self._history
+
+    # -- propagation -------------------------------------------------------------------------------------------
+    def _propagate_to(self, t_ns: int, imu_t: np.ndarray, gyro: np.ndarray, acc: np.ndarray) -> None:
+        if t_ns <= self.t_ns:
+            return
+        step = int(self.config.max_propagation_s * 1e9)
+        while self.t_ns < t_ns:
+            t1 = min(t_ns, self.t_ns + step)
+            dt, w, a = imu_intervals(imu_t, gyro, acc, self.t_ns, t1)
+            x = self.state.value("imu")
+            prop = propagate(x, dt, w, a, self.noise, self.state.fej("imu"))
+            sl = self.state.slice("imu")
+            P = self.state.P
+            P[sl, :] = prop.Phi @ P[sl, :]
+            P[:, sl] = P[:, sl] @ prop.Phi.T
+            P[sl, sl] += prop.Q
+            self.state.set_value("imu", prop.state)
+            self.state.set_fej("imu", prop.state)
+            self.t_ns = t1
+
+    def _record(self) -> None:
+        x = self.state.value("imu")
+        sl = self.state.slice("imu")
+        P6 = self.state.P[sl.start : sl.start + 6, sl.start : sl.start + 6]
+        self._history.append(self.t_ns, x.R, x.p, P6)
+
+    # -- camera update -----------------------------------------------------------------------------------------
+    def _camera_frame(self, t_ns: int, ids: np.ndarray, uv: np.ndarray, trace: dict | None) -> None:
+        self.stats.frames += 1
+        x = self.state.value("imu")
+        J = np.zeros((6, 15))
+        J[:, :6] = np.eye(6)
+        self.state.augment(_clone_name(t_ns), Pose(x.R, x.p), {"imu": J})
+        self.clones.append(t_ns)
+        ok = np.isfinite(uv).all(axis=1)
+        if not ok.all():
+            ids, uv = ids[ok], uv[ok]
+        if len(ids) == 0:
+            self.stats.frames_without_features += 1
+        else:
+            _, first = np.unique(ids, return_index=True)  # duplicate ids in one frame: keep the first
+            ids, uv = ids[first], uv[first]
+            self.db.add(t_ns, ids, uv, self.camera.undistort(uv))
+        oldest = self.clones[0] if len(self.clones) > self.config.max_clones else None
+        rows, drop = self.db.select(
+            t_ns, oldest, self.config.min_track_length, self.config.max_features_per_update
+        )
+        if len(rows):
+            self._update(rows, t_ns, trace)
+        self.db.keep(~drop)
+        if oldest is not None:
+            self.state.remove(_clone_name(oldest))
+            self.clones.pop(0)
+            self.db.keep(self.db.t != oldest)
+
+    def _update(self, rows: np.ndarray, t_ns: int, trace: dict | None) -> None:
+        cfg = self.config
+        db = self.db
+        rows = rows[np.lexsort((db.t[rows], db.ids[rows]))]
+        uid, fidx, counts = np.unique(db.ids[rows], return_inverse=True, return_counts=True)
+        nf = len(uid)
+        M = int(counts.max())
+        # padded (feature, observation) layout: slot j < counts[f] holds an observation, the rest are masked
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        valid = np.arange(M)[None, :] < counts[:, None]
+        O = np.where(valid, starts[:, None] + np.arange(M)[None, :], starts[:, None])
+        orow = rows[O]
+        clone_t = np.asarray(self.clones, np.int64)
+        nc = len(clone_t)
+        C = np.searchsorted(clone_t, db.t[orow])  # (F, M) clone index
+        names = [_clone_name(t) for t in self.clones]
+        cur = [self.state.value(n) for n in names]
+        Rc = np.stack([c.R for c in cur])
+        pc = np.stack([c.p for c in cur])
+        cam = self.camera
+        pts, ok = triangulate(
+            Rc @ cam.R_imu_cam,
+            pc + Rc @ cam.p_imu_cam,
+            C,
+            db.xy[orow],
+            valid,
+            cfg.triangulation_iterations,
+            np.radians(cfg.min_parallax_deg),
+        )
+        Cf = C.reshape(-1)
+        pf_rep = np.repeat(pts, M, axis=0)
+        uv_hat, H_pose, H_f, p_c = feature_jacobians(cam, Rc[Cf], pc[Cf], pf_rep)
+        if self.state.use_fej:  # residual at the current clone estimates, Jacobians at the first estimates
+            fej = [self.state.fej(n) for n in names]
+            Rf = np.stack([c.R for c in fej])
+            pff = np.stack([c.p for c in fej])
+            _, H_pose, H_f, _ = feature_jacobians(cam, Rf[Cf], pff[Cf], pf_rep)
+        vflat = valid.reshape(-1)
+        depth_ok = ((p_c[:, 2] > cfg.min_depth) & (p_c[:, 2] < cfg.max_depth)) | ~vflat
+        good = ok & np.isfinite(pts).all(axis=1) & depth_ok.reshape(nf, M).all(axis=1)
+        self.stats.features_failed_triangulation += int((~good).sum())
+        if trace is not None:
+            trace["t"].append(t_ns)
+        if not good.any():
+            self._trace(trace, 0, 0, 0.0, None)
+            return
+        s = 1.0 / cfg.pixel_sigma
+        w = (vflat * s)[:, None]
+        r = ((db.uv[orow].reshape(-1, 2) - uv_hat) * w).reshape(nf, M, 2)[good].reshape(-1, 2 * M)
+        Hf = (H_f * w[:, :, None]).reshape(nf, M, 2, 3)[good].reshape(-1, 2 * M, 3)
+        k = len(r)
+        Hx = np.zeros((k, M, 2, nc, 6))
+        kk, jj = np.meshgrid(np.arange(k), np.arange(M), indexing="ij")
+        Hx[kk, jj, :, C[good], :] = (H_pose * w[:, :, None]).reshape(nf, M, 2, 6)[good]
+        Hx = Hx.reshape(k, 2 * M, 6 * nc)
+        Ho, ro = nullspace_project(Hf, Hx, r)
+        Sidx = np.concatenate([np.arange(self.state.slice(n).start, self.state.slice(n).stop) for n in names])
+        Pcc = self.state.P[np.ix_(Sidx, Sidx)]
+        S = Ho @ Pcc @ np.swapaxes(Ho, 1, 2) + np.eye(2 * M - 3)
+        nis = np.einsum("ki,ki->k", ro, np.linalg.solve(S, ro[..., None])[..., 0])
+        accept = nis < self._chi2[2 * counts[good] - 3]
+        n_used = int(accept.sum())
+        n_rej = k - n_used
+        self.stats.features_used += n_used
+        self.stats.features_rejected_chi2 += n_rej
+        self._trace(trace, n_used, n_rej, float(nis[accept].sum()), pts[good][accept])
+        if not n_used:
+            return
+        H, rr = compress_normal(Ho[accept].reshape(-1, 6 * nc), ro[accept].reshape(-1))
+        ekf_update(self.state, {n: H[:, 6 * j : 6 * j + 6] for j, n in enumerate(names)}, rr, 1.0)
+        self.stats.updates += 1
+
+    def _trace(
+        self, trace: dict | None, used: int, rejected: int, nis: float, pts: np.ndarray | None
+    ) -> None:
+        if trace is None:
+            return
+        trace["used"].append(used)
+        trace["rejected"].append(rejected)
+        trace["nis"].append(nis)
+        if pts is not None and len(pts):
+            trace["points"].append(pts[:50])
+
+    # -- main loop ---------------------------------------------------------------------------------------------
+    def run(
+        self,
+        reader: RecordingReader,
+        start_ns: int | None,
+        end_ns: int | None,
+        *,
+        on_range: RangeHandler | None = None,
+        log: RunLog | None = None,
+    ) -> None:
+        with single_blas_thread():
+            self._run(reader, start_ns, end_ns, on_range, log)
+
+    def _run(self, reader, start_ns, end_ns, on_range, log) -> None:
+        src = str(getattr(reader, "path", self.source))
+        topics = reader.topics()
+        if TOPIC_IMU not in topics:
+            raise InputError(f"{src}: no '{TOPIC_IMU}' topic; the MSCKF needs IMU data")
+        first_imu = topics[TOPIC_IMU].start_ns
+        start = max(start_ns if start_ns is not None else first_imu, first_imu)
+        if self.initialized:
+            start = max(start, self.t_ns)
+        end = end_ns if end_ns is not None else topics[TOPIC_IMU].end_ns + 1
+        margin = int(0.5e9)
+        imu = reader.read_imu(TOPIC_IMU, (self.t_ns if self.initialized else start) - margin, end + margin)
+        self._check_imu(imu.t_ns, imu.gyro, imu.acc, src)
+        if len(imu.t_ns) < 2:
+            raise InputError(
+                f"{src}: {TOPIC_IMU}: fewer than 2 samples in [{start}, {end}); nothing to run on"
+            )
+        first_run = not self.initialized
+        if first_run:
+            i0 = int(np.searchsorted(imu.t_ns, start))
+            if i0 >= len(imu.t_ns) or imu.t_ns[i0] >= end:
+                raise InputError(f"{src}: {TOPIC_IMU}: no IMU sample in [{start}, {end}); nothing to run on")
+            t0 = int(imu.t_ns[i0])
+            self._initialize(reader, t0)
+        ranges = None
+        if TOPIC_RANGE in topics:
+            rd = reader.read_ranges(TOPIC_RANGE, self.t_ns, end)
+            if len(rd):
+                ranges = rd
+        f_start = start_ns if first_run else start
+        frames = reader.iter_features(TOPIC_FEATURES, f_start, end) if TOPIC_FEATURES in topics else iter(())
+        first_record = len(self._history)
+        trace = {k: [] for k in ("t", "used", "rejected", "nis", "points")} if log else None
+        ri = 0
+        nr = len(ranges) if ranges is not None else 0
+        args = (imu.t_ns, imu.gyro, imu.acc)
+
+        def ranges_until(t_lim: int) -> None:
+            nonlocal ri
+            while ri < nr and ranges.t_ns[ri] <= t_lim:
+                t = int(ranges.t_ns[ri])
+                if t >= self.t_ns:
+                    self._propagate_to(t, *args)
+                    if on_range is not None:
+                        on_range(
+                            self,
+                            RangeMeasurement(
+                                t,
+                                int(ranges.tag[ri]),
+                                int(ranges.antenna[ri]),
+                                int(ranges.anchor[ri]),
+                                float(ranges.distance[ri]),
+                            ),
+                        )
+                    self._record()  # after the handler: the pose including its update
+                ri += 1
+
+        for t_ns, ids, uv in frames:
+            if t_ns < self.t_ns or (self.clones and t_ns <= self.clones[-1]):
+                if t_ns < first_imu:
+                    self.stats.frames_before_imu += 1
+                continue
+            ranges_until(t_ns - 1)
+            self._propagate_to(t_ns, *args)
+            self._camera_frame(t_ns, ids, uv, trace)
+            self._record()
+        ranges_until(end - 1)
+        if self.stats.frames_before_imu:
+            _log.warning(
+                "%s: %d camera frame(s) before the IMU start skipped", src, self.stats.frames_before_imu
+            )
+        if log and trace is not None:
+            self._log(log, trace, first_record)
+
+    def _check_imu(self, t: np.ndarray, gyro: np.ndarray, acc: np.ndarray, src: str) -> None:
+        bad = ~(np.isfinite(gyro).all(axis=1) & np.isfinite(acc).all(axis=1))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(
+                f"{src}: {TOPIC_IMU} @ {int(t[i])}: NaN/inf in the IMU measurement ({int(bad.sum())} sample(s)); "
+                "drop or repair these samples"
+            )
+        if len(t) < 2:
+            return
+        gaps = np.diff(t) * 1e-9
+        if (gaps <= 0).any():
+            i = int(np.flatnonzero(gaps <= 0)[0])
+            raise InputError(f"{src}: {TOPIC_IMU} @ {int(t[i + 1])}: stamps not increasing; fix the stamps")
+        big = gaps > self.config.imu_gap_warn_s
+        if big.any():
+            self.stats.imu_gaps += int(big.sum())
+            self.stats.imu_max_gap_s = max(self.stats.imu_max_gap_s, float(gaps.max()))
+            i = int(np.argmax(gaps))
+            if gaps[i] > self.config.imu_gap_max_s:
+                raise InputError(
+                    f"{src}: {TOPIC_IMU} @ {int(t[i])}: gap of {gaps[i]:.3f} s in the IMU data "
+                    f"(> vio.imu_gap_max_s = {self.config.imu_gap_max_s}); split the recording"
+                )
+            _log.warning("%s: %d IMU gap(s) > %.3f s", src, int(big.sum()), self.config.imu_gap_warn_s)
+
+    def _log(self, log: RunLog, trace: dict, first: int) -> None:
+        """Column-wise rerun logging of this run's part of the history and the per-update trace."""
+        from . import runlog as rl
+
+        h = self._history.arrays()
+        t, p, q, cov = (h[k][first:] for k in ("t_ns", "p", "q_xyzw", "cov"))
+        if len(t):
+            sig3 = 3.0 * np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0))
+            _call(log, "trajectory", rl.VIO, t, p, q)
+            _call(log, "ellipsoid_series", rl.VIO_COV, t[::10], p[::10], cov[::10, 3:6, 3:6])
+            _call(log, "scalars", f"{rl.SIGMA}/vio_p3sigma", t, sig3[:, 3:6], ["x", "y", "z"])
+            _call(
+                log,
+                "scalars",
+                f"{rl.SIGMA}/vio_theta3sigma_deg",
+                t,
+                np.degrees(sig3[:, 0:3]),
+                ["x", "y", "z"],
+            )
+        if trace["t"]:
+            tt = np.asarray(trace["t"], np.int64)
+            cols = np.column_stack([trace["used"], trace["rejected"]]).astype(float)
+            _call(log, "scalars", f"{rl.FILTER}/vio/features", tt, cols, ["used", "rejected_chi2"])
+            _call(log, "scalars", f"{rl.FILTER}/vio/nis_sum", tt, np.asarray(trace["nis"], float))
+        if trace["points"]:
+            _call(
+                log,
+                "points3d",
+                rl.FEATURES,
+                np.concatenate(trace["points"][-100:]),
+                None,
+                0.03,
+                None,
+                self.t_ns,
+            )
+        clones = np.stack([self.state.value(_clone_name(c)).p for c in self.clones]) if self.clones else None
+        if clones is not None:
+            _call(log, "points3d", f"{rl.VIO}/clones", clones, None, 0.05, None, self.t_ns)
+
+
+@contextmanager
+def single_blas_thread():
+    """Run the filter's many small LAPACK calls on one OpenBLAS thread (this thread only).
+
+    Multi-threaded OpenBLAS on small matrices (QR of ~500 x 70) is 10-100x slower on a loaded 2-core
+    machine than one thread. Uses OpenBLAS' thread-local setter of the libraries bundled with numpy/scipy;
+    a no-op when they are not found. (threadpoolctl would do the same but is not a dependency.)
+    """
+    setters = []
+    for mod in ("numpy", "scipy"):
+        try:
+            base = os.path.dirname(__import__(mod).__file__)
+            for so in glob.glob(os.path.join(base, os.pardir, f"{mod}.libs", "*openblas*.so*")):
+                fn = ctypes.CDLL(so).openblas_set_num_threads_local
+                fn.restype, fn.argtypes = ctypes.c_int, [ctypes.c_int]
+                setters.append(fn)
+        except (OSError, AttributeError, ImportError, TypeError):
+            continue
+    prev = [fn(1) for fn in setters]
+    try:
+        yield
+    finally:
+        for fn, n in zip(setters, prev, strict=True):
+            fn(max(n, 1))
+
+
+def _call(log, method: str, *args) -> None:
+    fn = getattr(log, method, None)
+    if fn is not None:
+        try:
+            fn(*args)
+        except Exception as exc:  # logging must never break the filter
+            _log.warning("runlog.%s(%s) failed: %s", method, args[0], exc)
+
+
+__all__ = [
+    "FeatureDatabase",
+    "MsckfEstimator",
+    "VioConfig",
+    "VioStats",
+    "compress",
+    "feature_jacobians",
+    "groundtruth_state",
+    "nullspace_project",
+    "triangulate",
+]

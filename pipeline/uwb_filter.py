@@ -1,0 +1,456 @@
+"""UWB on the filter side: anchor covariance initialisation, refinement (EKF / SKF) and localisation updates.
+
+- `windows_from_trajectory` builds the per-anchor initialisation windows (poses + 6x6 covariances interpolated at
+  the range stamps) from a `TrajectoryRecord` and the ranges;
+- `initialize_anchors` runs the initialiser (`uwb_init`) on every anchor;
+- `add_anchor_to_state` adds an initialised anchor to the filter state with its covariance and cross-covariances
+  (paper Sec. III-B, OpenVINS-style "state variable initialisation");
+- `UwbUpdater` is the `on_range` handler of an `Estimator`: modes ekf, skf, none, frozen.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from convert.errors import InputError
+
+from .lie import quat_slerp, quat_to_rot
+from .state import State, UpdateResult, Vec, ekf_update
+from .uwb_init import InitResult, InitWindow, initialize_anchor
+from .uwb_model import jacobians, range_variance
+
+if TYPE_CHECKING:
+    from .estimator import RangeMeasurement
+    from .runlog import RunLog
+
+# Method names of tables and CLI: (initialiser, refinement).
+METHODS: dict[str, tuple[str, str]] = {
+    "viro": ("lsi", "ekf"),
+    "lsi+ekf": ("lsi", "ekf"),
+    "lsi+skf": ("lsi", "skf"),
+    "ri+ekf": ("ri", "ekf"),
+    "ri+skf": ("ri", "skf"),
+    "ri-robust+ekf": ("ri-robust", "ekf"),
+    "ri-robust+skf": ("ri-robust", "skf"),
+}
+
+
+def anchor_var(anchor: Any) -> str:
+    return f"anchor/{anchor}"
+
+
+class UwbConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    init_method: Literal["lsi", "ri", "ri-robust"] = "ri"
+    refine_method: Literal["ekf", "skf", "none"] = "skf"
+    sigma_range: float | None = Field(
+        None, gt=0, description="range noise sigma [m]; default calibration or 0.1"
+    )
+    sigma_scale: float = Field(
+        1.0, gt=0, description="assumed / nominal noise ratio (sigma_U of paper Table 1)"
+    )
+    init_window_s: float | None = Field(None, gt=0, description="see run.init_window_s (that one wins)")
+    refine_window_s: float | None = Field(None, gt=0, description="see run.refine_window_s (that one wins)")
+    chi2_quantile: float | None = Field(0.95, gt=0, lt=1, description="NIS gate of range updates; None: off")
+    robust_loss: Literal["huber", "cauchy"] = "cauchy"
+    robust_scale: float = Field(0.5, gt=0, description="robust loss scale [m] at the nominal sigma")
+    force: bool = Field(False, description="initialise even on a degenerate (rank-deficient) geometry")
+    beta_sigma: float = Field(0.05, gt=0, description="prior sigma of beta (fixed to 1 at init)")
+    min_ranges: int = Field(20, ge=5, description="fewer ranges in the init window: anchor skipped")
+    n_perturbed_starts: int = Field(4, ge=0)
+    gamma_prior_mean: float | None = Field(
+        None, description="override uwb.gamma_prior.mean of the calibration"
+    )
+    gamma_prior_sigma: float | None = Field(None, gt=0, description="override uwb.gamma_prior.sigma")
+    pose_sigma_floor_m: float = Field(0.0, ge=0, description="added to the pose position sigma at init")
+    residual_factor: float = Field(
+        3.0, gt=1, description="post-fit residual spread > factor x sigma: warning"
+    )
+
+    def sigma(self, calibration: Mapping | None = None) -> float:
+        """The nominal range sigma: config, else calibration uwb.sigma_range, else 0.1 m."""
+        if self.sigma_range is not None:
+            return float(self.sigma_range)
+        uwb = (calibration or {}).get("uwb", {}) or {}
+        return float(uwb.get("sigma_range") or 0.1)
+
+    def gamma_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
+        uwb = (calibration or {}).get("uwb", {}) or {}
+        gp = uwb.get("gamma_prior") or {}
+        mean = self.gamma_prior_mean if self.gamma_prior_mean is not None else gp.get("mean")
+        sigma = self.gamma_prior_sigma if self.gamma_prior_sigma is not None else gp.get("sigma")
+        if mean is None:
+            return None
+        return float(mean), float(sigma if sigma else 1.0)
+
+
+def lever_arms(calibration: Mapping) -> dict[tuple[int, int], np.ndarray]:
+    """(tag, antenna) -> p_T from calibration uwb.tags; a missing table means a tag at the IMU origin."""
+    tags = ((calibration or {}).get("uwb", {}) or {}).get("tags", {}) or {}
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for tag, spec in tags.items():
+        for i, a in enumerate(spec.get("antennas", [])):
+            out[(int(tag), i)] = np.asarray(a, float)
+    return out
+
+
+def _lever_arm(arms: Mapping[tuple[int, int], np.ndarray], tag: int, antenna: int) -> np.ndarray:
+    if not arms:
+        return np.zeros(3)
+    try:
+        return arms[(int(tag), int(antenna))]
+    except KeyError:
+        raise InputError(
+            f"calibration: uwb.tags: no lever arm for tag {tag} antenna {antenna}; add it to the antenna table"
+        ) from None
+
+
+# -----------------------------------------------------------------------------------------------------------------
+def interpolate_poses(traj: Mapping[str, np.ndarray], t_ns: np.ndarray):
+    """Pose (R, p) and 6x6 covariance linearly interpolated (slerp for R) at ``t_ns``; mask of stamps inside."""
+    tt = np.asarray(traj["t_ns"], np.int64)
+    t_ns = np.asarray(t_ns, np.int64)
+    inside = (t_ns >= tt[0]) & (t_ns <= tt[-1]) if len(tt) else np.zeros(len(t_ns), bool)
+    t = t_ns[inside]
+    i1 = (
+        np.clip(np.searchsorted(tt, t, side="right"), 1, len(tt) - 1)
+        if len(tt) > 1
+        else np.zeros(len(t), int)
+    )
+    i0 = np.maximum(i1 - 1, 0)
+    dt = (tt[i1] - tt[i0]).astype(float)
+    s = np.where(dt > 0, (t - tt[i0]) / np.where(dt > 0, dt, 1.0), 0.0)
+    p = traj["p"][i0] + s[:, None] * (traj["p"][i1] - traj["p"][i0])
+    q = quat_slerp(traj["q_xyzw"][i0], traj["q_xyzw"][i1], s)
+    cov = traj["cov"][i0] + s[:, None, None] * (traj["cov"][i1] - traj["cov"][i0])
+    return quat_to_rot(q), p, cov, inside
+
+
+def windows_from_trajectory(
+    traj: Mapping[str, np.ndarray],
+    ranges: Mapping[str, np.ndarray],
+    calibration: Mapping,
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+    pose_cov: np.ndarray | None = None,
+) -> dict[int, InitWindow]:
+    """Per-anchor windows: ranges (``t_ns, tag, antenna, anchor, distance``) in [start, end) with the pose
+    estimates interpolated at their stamps. ``pose_cov`` (6x6) replaces the trajectory's covariances."""
+    t = np.asarray(ranges["t_ns"], np.int64)
+    sel = np.ones(len(t), bool)
+    if start_ns is not None:
+        sel &= t >= start_ns
+    if end_ns is not None:
+        sel &= t < end_ns
+    idx = np.flatnonzero(sel)
+    R, p, cov, inside = interpolate_poses(traj, t[idx])
+    idx = idx[inside]
+    if pose_cov is not None:
+        cov = np.broadcast_to(np.asarray(pose_cov, float), (len(idx), 6, 6))
+    arms = lever_arms(calibration)
+    tag = np.asarray(ranges["tag"])[idx]
+    ant = np.asarray(ranges["antenna"])[idx]
+    pT = np.zeros((len(idx), 3))
+    for key in {(int(a), int(b)) for a, b in zip(tag, ant, strict=True)}:
+        pT[(tag == key[0]) & (ant == key[1])] = _lever_arm(arms, *key)
+    anchors = np.asarray(ranges["anchor"])[idx]
+    d = np.asarray(ranges["distance"], float)[idx]
+    out = {}
+    for a in np.unique(anchors):
+        m = anchors == a
+        out[int(a)] = InitWindow(d[m], pT[m], R[m], p[m], cov[m], t[idx][m])
+    return out
+
+
+def initialize_anchors(
+    windows: Mapping[Any, InitWindow],
+    config: UwbConfig,
+    calibration: Mapping | None = None,
+    method: str | None = None,
+) -> dict[Any, InitResult]:
+    """Run the configured initialiser on every anchor window."""
+    sigma = config.sigma(calibration) * config.sigma_scale
+    out = {}
+    for a, w in windows.items():
+        if config.pose_sigma_floor_m > 0:
+            w = InitWindow(w.d, w.p_T, w.R, w.p, w.P_pose.copy(), w.t_ns)
+            w.P_pose[:, 3:6, 3:6] += np.eye(3) * config.pose_sigma_floor_m**2
+        out[a] = initialize_anchor(
+            w,
+            method or config.init_method,
+            anchor=str(a),
+            sigma_range=sigma,
+            gamma_prior=config.gamma_prior(calibration),
+            beta_sigma=config.beta_sigma,
+            robust_loss=config.robust_loss,
+            robust_scale=config.robust_scale,
+            min_ranges=config.min_ranges,
+            n_perturbed=config.n_perturbed_starts,
+            force=config.force,
+            residual_factor=config.residual_factor,
+        )
+    return out
+
+
+# -----------------------------------------------------------------------------------------------------------------
+def _psd(A: np.ndarray) -> np.ndarray:
+    A = 0.5 * (A + np.swapaxes(A, -1, -2))
+    w, V = np.linalg.eigh(A)
+    return (V * np.maximum(w, 0.0)[..., None, :]) @ np.swapaxes(V, -1, -2)
+
+
+def anchor_init_covariance(
+    result: InitResult,
+    R_now: np.ndarray,
+    P_now: np.ndarray,
+    *,
+    sigma_range: float,
+    gamma_prior: tuple[float, float] | None,
+    beta_sigma: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(J, Q) such that x~_U = J e_now + v, v ~ N(0, Q) independent of the filter state.
+
+    Stacked linearisation over the window (paper eqs. H_A, H_B): r = H_A X~ + H_B x~_U + n. At the optimum of the
+    (weighted) least squares the normal equations give the estimator's error map
+    x~_(p_a,gamma) = -G^-1 [sum_k H_Bk^T w_k (H_Ak X~_k + h_beta,k beta~ + n_k) + e_gamma eps / s^2],
+    G = sum H_Bk^T w_k H_Bk + prior. For the GLS weights this is exactly the invertible block of the paper's QR split
+    (x~_U = H_B1^-1 (r_1 - H_A1 X~ - n_1)); written this way it also holds for LSI's unit weights, RI's weights,
+    robust weights, beta fixed at 1 (beta~ ~ N(0, beta_sigma^2), independent) and the gamma prior.
+
+    Past poses: the window's poses are no longer in the filter state; only their marginal covariances P_k are
+    known. Approximation: in the world frame ([R dtheta, dp]) the pose errors are a random walk up to now,
+    Cov(e_j, e_k) = P_min(j,k) and Cov(e_k, e_now) = P_k, with increments P_k - P_k-1 clipped to PSD (covariances
+    that shrink are treated as not decorrelating, which is conservative). With a constant P_k the window shares one
+    common error with the current pose (full correlation); with growing P_k the early poses decorrelate. The part
+    correlated with the current pose enters through J (so the cross-covariance with every state variable is
+    J P[imu_pose, :]); the rest is independent noise in Q.
+    """
+    w = result.window
+    x = result.x
+    assert w is not None
+    n = len(w)
+    J = jacobians(w.R, w.p, w.p_T, x)
+    ag = [0, 1, 2, 4]
+    HB = J.H_U[:, ag]
+    if result.method == "lsi":
+        s2 = np.full(n, sigma_range**2)
+    else:
+        s2, _ = range_variance(w.R, w.p, w.p_T, x, w.P_pose, sigma_range**2)
+    wk = (result.weights if result.weights is not None else np.ones(n)) / s2
+    G = (HB * wk[:, None]).T @ HB
+    if gamma_prior is not None:
+        G[3, 3] += 1.0 / gamma_prior[1] ** 2
+    Ginv = np.linalg.inv(G)
+    L = np.zeros((5, 4))
+    L[ag, range(4)] = 1.0
+    a = (Ginv @ (HB * wk[:, None]).T).T  # (n,4) a_k = G^-1 H_Bk^T w_k
+    La = a @ L.T  # (n,5)
+    # world-frame pose Jacobians and covariances
+    HW = J.H_I.copy()
+    HW[:, 0:3] = np.einsum("nj,nij->ni", J.H_I[:, 0:3], w.R)  # H_theta R_k^T
+    T = np.zeros((n, 6, 6))
+    T[:, 0:3, 0:3] = w.R
+    T[:, 3:6, 3:6] = np.eye(3)
+    PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
+    order = np.argsort(w.t_ns, kind="stable") if w.t_ns is not None else np.arange(n)
+    B = -La[order, :, None] * HW[order, None, :]  # (n,5,6)
+    dP = np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6)))
+    dP = _psd(dP)
+    S = np.cumsum(B[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
+    cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
+    Pk = np.cumsum(dP, axis=0)  # implied P_k under the random-walk model
+    Tn = np.eye(6)
+    Tn[0:3, 0:3] = R_now
+    C = np.einsum("nij,njk->ik", B, Pk) @ Tn  # Cov(x~_U, e_now (body))
+    P_now = 0.5 * (P_now + P_now.T)
+    Jn = np.linalg.solve(P_now.T, C.T).T if np.all(np.isfinite(P_now)) else np.zeros((5, 6))
+    cov = cov_pose - Jn @ P_now @ Jn.T
+    cov += sigma_range**2 * (La.T @ La)  # range noise (robust weights are inside a_k)
+    g_beta = np.zeros(5)
+    g_beta[3] = 1.0
+    g_beta -= L @ (a.T @ J.rho)
+    cov += np.outer(g_beta, g_beta) * beta_sigma**2
+    if gamma_prior is not None:
+        gp = L @ Ginv[:, 3] / gamma_prior[1]
+        cov += np.outer(gp, gp)
+    return Jn, _psd(cov)
+
+
+def add_anchor_to_state(
+    state: State,
+    anchor: Any,
+    result: InitResult,
+    *,
+    sigma_range: float,
+    gamma_prior: tuple[float, float] | None,
+    beta_sigma: float = 0.05,
+    pose_var: str = "imu",
+) -> None:
+    """Add ``anchor/<id>`` = result.x with covariance and cross-covariances (see `anchor_init_covariance`)."""
+    if not result.ok:
+        raise ValueError(f"anchor {anchor}: initialisation {result.status}; not added to the state")
+    P_now = state.cov(pose_var)[0:6, 0:6]
+    if not np.all(np.isfinite(P_now)):
+        raise FloatingPointError(f"anchor {anchor}: the filter's pose covariance has NaN/inf")
+    Jn, Q = anchor_init_covariance(
+        result,
+        state.value(pose_var).R,
+        P_now,
+        sigma_range=sigma_range,
+        gamma_prior=gamma_prior,
+        beta_sigma=beta_sigma,
+    )
+    Jfull = np.zeros((5, state.dim(pose_var)))
+    Jfull[:, 0:6] = Jn
+    state.augment(anchor_var(anchor), Vec(result.x), {pose_var: Jfull}, Q=Q)
+
+
+# -----------------------------------------------------------------------------------------------------------------
+@dataclass
+class AnchorRecord:
+    t_ns: list[int] = field(default_factory=list)
+    x: list[np.ndarray] = field(default_factory=list)
+    cov: list[np.ndarray] = field(default_factory=list)
+    residual: list[float] = field(default_factory=list)
+    nis: list[float] = field(default_factory=list)
+    rejected: list[bool] = field(default_factory=list)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        n = len(self.t_ns)
+        return {
+            "t_ns": np.asarray(self.t_ns, np.int64),
+            "x": np.asarray(self.x, float).reshape(n, 5),
+            "cov": np.asarray(self.cov, float).reshape(n, 5, 5),
+            "residual": np.asarray(self.residual, float),
+            "nis": np.asarray(self.nis, float),
+            "rejected": np.asarray(self.rejected, bool),
+        }
+
+
+class UwbUpdater:
+    """`on_range` handler. Modes: ``ekf`` (joint update of navigation state and anchor), ``skf`` (Schmidt: every
+    non-anchor variable considered, not estimated), ``none`` (no update; residuals recorded), ``frozen``
+    (localisation: anchors are constants, only the navigation state is updated with H_I and Q_d).
+
+    Anchor Jacobians use the anchor's first estimate (``state.fej``) when ``state.use_fej``; residuals use the
+    current estimates. Updates whose NIS exceeds the chi-square ``chi2_quantile`` gate are rejected and counted.
+    """
+
+    def __init__(
+        self,
+        mode: Literal["ekf", "skf", "none", "frozen"],
+        lever_arms: Mapping[tuple[int, int], np.ndarray],
+        *,
+        sigma_range: float = 0.1,
+        chi2_quantile: float | None = 0.95,
+        anchors: Mapping[Any, np.ndarray] | None = None,
+        pose_var: str = "imu",
+    ) -> None:
+        if mode not in ("ekf", "skf", "none", "frozen"):
+            raise ValueError(f"unknown UWB update mode {mode!r}")
+        self.mode = mode
+        self.arms = dict(lever_arms)
+        self.sigma = float(sigma_range)
+        self.chi2_quantile = chi2_quantile
+        self.frozen = {k: np.asarray(v, float) for k, v in (anchors or {}).items()}
+        self.pose_var = pose_var
+        self.records: dict[Any, AnchorRecord] = {}
+        self.counts = {"accepted": 0, "rejected": 0, "skipped": 0, "recorded": 0}
+
+    @classmethod
+    def from_config(
+        cls,
+        config: UwbConfig,
+        calibration: Mapping,
+        mode: str | None = None,
+        anchors: Mapping[Any, np.ndarray] | None = None,
+    ) -> UwbUpdater:
+        return cls(
+            mode or config.refine_method,  # type: ignore[arg-type]
+            lever_arms(calibration),
+            sigma_range=config.sigma(calibration) * config.sigma_scale,
+            chi2_quantile=config.chi2_quantile,
+            anchors=anchors,
+        )
+
+    def __call__(self, estimator: Any, meas: RangeMeasurement) -> UpdateResult | None:
+        return self.update(estimator.state, meas)
+
+    def update(self, state: State, meas: RangeMeasurement) -> UpdateResult | None:
+        name = anchor_var(meas.anchor)
+        in_state = name in state
+        if self.mode == "frozen" and meas.anchor in self.frozen:
+            x_cur = x_lin = self.frozen[meas.anchor]
+        elif in_state:
+            x_cur = state.value(name).x
+            x_lin = state.fej(name).x
+        else:
+            self.counts["skipped"] += 1
+            return None
+        pose = state.value(self.pose_var)
+        p_T = _lever_arm(self.arms, meas.tag, meas.antenna)
+        J = jacobians(pose.R, pose.p, p_T, x_lin)
+        h = jacobians(pose.R, pose.p, p_T, x_cur).h[0]
+        r = float(meas.distance - h)
+        R = (self.sigma * x_cur[3]) ** 2
+        H_imu = np.zeros((1, state.dim(self.pose_var)))
+        H_imu[:, 0:6] = J.H_I
+        res: UpdateResult | None = None
+        if self.mode == "none":
+            # record only: NIS of the would-be joint update
+            Hs = {
+                self.pose_var: H_imu,
+                **({name: J.H_U[None, :] if J.H_U.ndim == 1 else J.H_U} if in_state else {}),
+            }
+            S = R
+            for a, Ha in Hs.items():
+                for b, Hb in Hs.items():
+                    S += float((Ha @ state.cov(a, b) @ Hb.T).squeeze())
+            res = UpdateResult(True, r * r / S, 1, None)
+            self.counts["recorded"] += 1
+        else:
+            if self.mode == "frozen":
+                H = {self.pose_var: H_imu}
+                schmidt = [n for n in state.names if n.startswith("anchor/")]
+            else:
+                H = {self.pose_var: H_imu, name: J.H_U}
+                schmidt = (
+                    [n for n in state.names if not n.startswith("anchor/")] if self.mode == "skf" else []
+                )
+            res = ekf_update(state, H, np.array([r]), R, schmidt=schmidt, chi2_gate=self.chi2_quantile)
+            self.counts["accepted" if res.accepted else "rejected"] += 1
+        rec = self.records.setdefault(meas.anchor, AnchorRecord())
+        rec.t_ns.append(int(meas.t_ns))
+        if in_state:
+            rec.x.append(state.value(name).x.copy())
+            rec.cov.append(state.cov(name).copy())
+        else:
+            rec.x.append(np.asarray(x_cur, float).copy())
+            rec.cov.append(np.zeros((5, 5)))
+        rec.residual.append(r)
+        rec.nis.append(res.nis)
+        rec.rejected.append(not res.accepted)
+        return res
+
+    def arrays(self) -> dict[Any, dict[str, np.ndarray]]:
+        return {a: rec.arrays() for a, rec in self.records.items()}
+
+    def log(self, log: RunLog | None) -> None:
+        """Column-wise series per anchor: uwb/<id>/{residual,nis,rejected}, anchors/<id>/{beta,gamma}."""
+        if log is None:
+            return
+        from . import runlog as rl
+
+        for a, arr in self.arrays().items():
+            t = arr["t_ns"]
+            log.scalars(rl.uwb(a, "residual"), t, arr["residual"])
+            log.scalars(rl.uwb(a, "nis"), t, arr["nis"])
+            log.scalars(rl.uwb(a, "rejected"), t, arr["rejected"].astype(float))
+            log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
+            log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])

@@ -1,0 +1,328 @@
+"""MSCKF: feature Jacobians (finite differences), nullspace projection, triangulation, and end-to-end
+runs on a small synthetic visual-inertial recording written through the real recording writer."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+from convert.errors import InputError
+from convert.euroc import EUROC_CAMERAS, EUROC_IMU
+from convert.recording import META_CALIBRATION, META_TRUTH, RecordingReader, RecordingWriter
+from pipeline.camera import Camera
+from pipeline.imu import GRAVITY
+from pipeline.lie import exp_so3, log_so3, quat_to_rot, rot_to_quat
+from pipeline.msckf import (
+    FeatureDatabase,
+    MsckfEstimator,
+    VioConfig,
+    compress,
+    feature_jacobians,
+    nullspace_project,
+    triangulate,
+)
+
+CAM = Camera.from_calibration({"cameras": EUROC_CAMERAS})
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# a small visual-inertial simulator (independent of convert/simulator.py)
+# ---------------------------------------------------------------------------------------------------------------
+def _traj(t: np.ndarray):
+    """Smooth 3-D motion: position, acceleration and rotation (world_from_imu) at times t [s]."""
+    w = 0.5
+    p = np.stack([3 * np.cos(w * t), 3 * np.sin(w * t), 1.2 + 0.3 * np.sin(2 * w * t)], axis=1)
+    acc = np.stack(
+        [-3 * w * w * np.cos(w * t), -3 * w * w * np.sin(w * t), -1.2 * w * w * np.sin(2 * w * t)], 1
+    )
+    yaw = w * t + np.pi  # look towards the centre-ish / walls
+    rot = np.stack([0.1 * np.sin(1.3 * t), 0.1 * np.cos(0.9 * t), yaw], axis=1)
+    # imu z up, x forward; camera looks along imu x (EuRoC T_imu_cam has the camera z ~ imu x)
+    return p, acc, rot
+
+
+def _R(rot: np.ndarray) -> np.ndarray:
+    rz = exp_so3(np.column_stack([np.zeros(len(rot)), np.zeros(len(rot)), rot[:, 2]]))
+    ry = exp_so3(np.column_stack([np.zeros(len(rot)), rot[:, 1], np.zeros(len(rot))]))
+    rx = exp_so3(np.column_stack([rot[:, 0], np.zeros(len(rot)), np.zeros(len(rot))]))
+    # EuRoC mounting: the camera looks along the IMU z axis, the IMU x axis points up
+    R_mount = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
+    return rz @ ry @ rx @ R_mount
+
+
+def simulate_vi(path, duration=20.0, seed=0, pixel_sigma=1.0, noise=True, n_landmarks=700):
+    rng = np.random.default_rng(seed)
+    rate = 200.0
+    t = np.arange(0, duration + 1e-9, 1 / rate)
+    t_ns = (t * 1e9).round().astype(np.int64) + 1_000_000_000
+    p, acc_w, rot = _traj(t)
+    R = _R(rot)
+    h = 1e-5
+    Rp, Rm = _R(_traj(t + h)[2]), _R(_traj(t - h)[2])
+    wB = log_so3(np.swapaxes(Rm, 1, 2) @ Rp) / (2 * h)
+    aB = np.einsum("kji,kj->ki", R, acc_w - GRAVITY)
+    cal = dict(EUROC_IMU)
+    dt = 1 / rate
+    bg0 = rng.normal(0, 2e-3, 3) if noise else np.zeros(3)
+    ba0 = rng.normal(0, 2e-2, 3) if noise else np.zeros(3)
+    bg = bg0 + (
+        np.cumsum(rng.normal(0, cal["gyroscope_random_walk"] * np.sqrt(dt), (len(t), 3)), 0) if noise else 0
+    )
+    ba = ba0 + (
+        np.cumsum(rng.normal(0, cal["accelerometer_random_walk"] * np.sqrt(dt), (len(t), 3)), 0)
+        if noise
+        else 0
+    )
+    gyro = (
+        wB + bg + (rng.normal(0, cal["gyroscope_noise_density"] / np.sqrt(dt), (len(t), 3)) if noise else 0)
+    )
+    acc = (
+        aB
+        + ba
+        + (rng.normal(0, cal["accelerometer_noise_density"] / np.sqrt(dt), (len(t), 3)) if noise else 0)
+    )
+    # landmarks on a cylinder wall around the motion
+    ang = rng.uniform(0, 2 * np.pi, n_landmarks)
+    rad = rng.uniform(6.0, 9.0, n_landmarks)
+    L = np.column_stack([rad * np.cos(ang), rad * np.sin(ang), rng.uniform(-1.0, 4.0, n_landmarks)])
+    calib = {"imu": cal, "cameras": {"cam0": EUROC_CAMERAS["cam0"]}}
+    with RecordingWriter(path) as w:
+        w.set_metadata(META_CALIBRATION, calib)
+        w.set_metadata(
+            META_TRUTH, {"imu": {"gyro_bias": bg0.tolist(), "accel_bias": ba0.tolist()}, "seed": seed}
+        )
+        w.write_imu_batch(t_ns, gyro, acc)
+        w.write_pose_batch(t_ns, p, rot_to_quat(R))
+        for i in range(0, len(t), 10):  # 20 Hz
+            Rc = R[i] @ CAM.R_imu_cam
+            pc = p[i] + R[i] @ CAM.p_imu_cam
+            P = (L - pc) @ Rc
+            vis = P[:, 2] > 0.3
+            uv = CAM.project(P[vis])
+            inside = (uv[:, 0] > 5) & (uv[:, 0] < 747) & (uv[:, 1] > 5) & (uv[:, 1] < 475)
+            ids = np.flatnonzero(vis)[inside]
+            uv = uv[inside] + (rng.normal(0, pixel_sigma, uv[inside].shape) if noise else 0)
+            w.write_features(int(t_ns[i]) + 1, ids, uv)  # camera a little after the IMU sample
+    return t_ns, p, R
+
+
+def _errors(est: MsckfEstimator, t_ns, p, R):
+    h = est.history().arrays()
+    idx = np.clip(np.searchsorted(t_ns, h["t_ns"], side="right") - 1, 0, len(t_ns) - 1)
+    Rh = quat_to_rot(h["q_xyzw"])
+    # GT at the (1 ns later) stamps: interpolation error is negligible
+    dth = log_so3(np.swapaxes(Rh, 1, 2) @ R[idx])
+    dp = p[idx] - h["p"]
+    return h, dth, dp
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# unit tests
+# ---------------------------------------------------------------------------------------------------------------
+def test_feature_jacobians_finite_differences():
+    rng = np.random.default_rng(0)
+    k = 20
+    R = exp_so3(rng.normal(size=(k, 3)) * 0.3)
+    pw = rng.normal(size=(k, 3))
+    # features in front of the camera
+    pc = np.column_stack([rng.uniform(-1, 1, (k, 2)), rng.uniform(2, 6, k)])
+    pf = pw + np.einsum("kij,kj->ki", R, pc @ CAM.R_imu_cam.T + CAM.p_imu_cam)
+    uv, H_pose, H_f, _ = feature_jacobians(CAM, R, pw, pf)
+    eps = 1e-6
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = eps
+        up = feature_jacobians(CAM, R @ exp_so3(d[:3]), pw + d[3:], pf)[0]
+        um = feature_jacobians(CAM, R @ exp_so3(-d[:3]), pw - d[3:], pf)[0]
+        np.testing.assert_allclose(H_pose[:, :, i], (up - um) / (2 * eps), rtol=1e-5, atol=1e-4)
+    for i in range(3):
+        d = np.zeros(3)
+        d[i] = eps
+        up = feature_jacobians(CAM, R, pw, pf + d)[0]
+        um = feature_jacobians(CAM, R, pw, pf - d)[0]
+        np.testing.assert_allclose(H_f[:, :, i], (up - um) / (2 * eps), rtol=1e-5, atol=1e-4)
+
+
+def _window(seed=1, m=6):
+    rng = np.random.default_rng(seed)
+    R = exp_so3(rng.normal(size=(m, 3)) * 0.05 + np.array([0, 0, 0.0])) @ CAM.R_imu_cam.T
+    p = np.column_stack([np.linspace(0, 1, m), rng.normal(0, 0.1, (m, 2))])
+    return R, p
+
+
+def test_triangulation_and_nullspace_noise_free():
+    R, p = _window()
+    m = len(p)
+    rng = np.random.default_rng(3)
+    nf = 30
+    # points ~4 m in front of the cameras (camera z ~ world z here)
+    pts = np.column_stack([rng.uniform(-2, 2, nf), rng.uniform(-2, 2, nf), rng.uniform(3, 6, nf)])
+    pts = p.mean(0) + np.einsum("ij,kj->ki", R[0] @ CAM.R_imu_cam, pts)
+    fidx = np.repeat(np.arange(nf), m)
+    cidx = np.tile(np.arange(m), nf)
+    R_wc = R @ CAM.R_imu_cam
+    p_wc = p + R @ CAM.p_imu_cam
+    uv, H_pose, H_f, p_c = feature_jacobians(CAM, R[cidx], p[cidx], pts[fidx])
+    xy = CAM.undistort(uv)
+    # perturbed linear start is recovered by Gauss-Newton
+    C = cidx.reshape(nf, m)
+    est, ok = triangulate(R_wc, p_wc, C, xy.reshape(nf, m, 2), np.ones((nf, m), bool), iterations=5)
+    assert ok.all() and np.abs(est - pts).max() < 1e-8
+    # padded slots are ignored
+    Cp = np.concatenate([C, np.zeros((nf, 2), int)], axis=1)
+    xyp = np.concatenate([xy.reshape(nf, m, 2), np.full((nf, 2, 2), 7.0)], axis=1)
+    est, ok = triangulate(R_wc, p_wc, Cp, xyp, np.arange(m + 2)[None, :] < m, iterations=5)
+    assert ok.all() and np.abs(est - pts).max() < 1e-8
+    # nullspace projection: the feature drops out; the noise-free residual of the true state is 0
+    Hf = H_f.reshape(nf, 2 * m, 3)
+    Hx = np.zeros((nf, m, 2, m, 6))
+    for j in range(m):
+        Hx[:, j, :, j, :] = H_pose.reshape(nf, m, 2, 6)[:, j]
+    Hx = Hx.reshape(nf, 2 * m, 6 * m)
+    r = np.zeros((nf, 2 * m))
+    Ho, ro = nullspace_project(Hf, Hx, r)
+    assert Ho.shape == (nf, 2 * m - 3, 6 * m)
+    assert np.abs(np.swapaxes(Ho, 1, 2) @ np.zeros((nf, 2 * m - 3, 1))).max() == 0
+    Qn = np.linalg.qr(Hf, mode="complete")[0][:, :, 3:]
+    assert np.abs(np.swapaxes(Qn, 1, 2) @ Hf).max() < 1e-10
+    # with a wrong feature guess, the projected residual only depends on the pose error (first order)
+    dpf = rng.normal(0, 1e-4, (nf, 3))
+    uv2 = feature_jacobians(CAM, R[cidx], p[cidx], (pts + dpf)[fidx])[0]
+    _, ro2 = nullspace_project(Hf, Hx, (uv - uv2).reshape(nf, 2 * m))
+    assert np.abs(ro2).max() < 1e-3 * np.abs(uv - uv2).max()
+    Hc, rc = compress(np.concatenate(Ho), np.concatenate(ro))
+    assert Hc.shape == (6 * m, 6 * m) and np.abs(rc).max() < 1e-12
+
+
+def test_feature_database_selection():
+    db = FeatureDatabase()
+    for t in range(5):
+        ids = np.array([1, 2, 3]) if t < 4 else np.array([2, 3])
+        db.add(t, ids, np.zeros((len(ids), 2)), np.zeros((len(ids), 2)))
+    rows, drop = db.select(4, None, 3, 10)
+    assert set(db.ids[rows]) == {1} and drop.sum() == 4
+    rows, drop = db.select(4, 0, 3, 10)
+    assert set(db.ids[rows]) == {1, 2, 3}
+    rows, _ = db.select(4, 0, 3, 1)
+    assert len(set(db.ids[rows])) == 1
+
+
+@pytest.fixture(scope="module")
+def vi_recording(tmp_path_factory):
+    path = tmp_path_factory.mktemp("vio") / "vi.mcap"
+    truth = simulate_vi(path, duration=20.0, seed=0)
+    return path, truth
+
+
+@pytest.mark.parametrize("fej", [True, False])
+def test_msckf_tracks_synthetic_motion(vi_recording, fej):
+    path, (t_ns, p, R) = vi_recording
+    reader = RecordingReader(path)
+    est = MsckfEstimator.from_recording(reader, VioConfig(fej=fej))
+    est.run(reader, None, None)
+    h, dth, dp = _errors(est, t_ns, p, R)
+    assert len(h["t_ns"]) > 350
+    prmse = np.sqrt((dp**2).sum(1).mean())
+    ormse = np.degrees(np.sqrt((dth**2).sum(1).mean()))
+    assert prmse < 0.2 and ormse < 1.0, (prmse, ormse)
+    assert est.stats.updates > 300 and est.stats.features_used > 1000
+    assert est.stats.features_rejected_chi2 < 0.1 * est.stats.features_used
+    # consistency on this one run: mean NEES of position and orientation in a generous band
+    cov = h["cov"]
+    nees_p = np.einsum("ki,ki->k", dp, np.linalg.solve(cov[:, 3:6, 3:6], dp[..., None])[..., 0])
+    nees_t = np.einsum("ki,ki->k", dth, np.linalg.solve(cov[:, 0:3, 0:3], dth[..., None])[..., 0])
+    if fej:
+        assert nees_p[50:].mean() < 15 and nees_t[50:].mean() < 15, (nees_p.mean(), nees_t.mean())
+
+
+def test_msckf_resumes_after_pickle(vi_recording):
+    path, (t_ns, p, R) = vi_recording
+    reader = RecordingReader(path)
+    mid, end = int(t_ns[0] + 4e9), int(t_ns[0] + 8e9)
+    a = MsckfEstimator.from_recording(reader, VioConfig())
+    a.run(reader, None, mid)
+    b = pickle.loads(pickle.dumps(a))
+    b.run(reader, mid, end)
+    full = MsckfEstimator.from_recording(reader, VioConfig())
+    full.run(reader, None, end)
+    hb, hf = b.history().arrays(), full.history().arrays()
+    assert len(hb["t_ns"]) == len(hf["t_ns"])
+    assert np.abs(hb["p"] - hf["p"]).max() < 1e-6
+
+
+def test_msckf_bad_input(tmp_path):
+    path = tmp_path / "nan.mcap"
+    t = np.arange(100, dtype=np.int64) * 5_000_000 + 1_000_000_000
+    g = np.zeros((100, 3))
+    a = np.tile([0, 0, 9.81], (100, 1))
+    g[50, 1] = np.nan
+    with RecordingWriter(path) as w:
+        w.set_metadata(META_CALIBRATION, {"imu": dict(EUROC_IMU), "cameras": {"cam0": EUROC_CAMERAS["cam0"]}})
+        w.write_imu_batch(t, g, a)
+        w.write_pose_batch(t, np.zeros((100, 3)), np.tile([0, 0, 0, 1.0], (100, 1)))
+    reader = RecordingReader(path)
+    est = MsckfEstimator.from_recording(reader, VioConfig())
+    with pytest.raises(InputError, match=r"/imu @ 1250000000"):
+        est.run(reader, None, None)
+    with pytest.raises(InputError, match="initial IMU state"):
+        MsckfEstimator.from_recording(reader, VioConfig(init_from_groundtruth=False))
+
+
+def test_msckf_imu_gap_and_no_features(tmp_path):
+    path = tmp_path / "gap.mcap"
+    t = np.arange(400, dtype=np.int64) * 5_000_000 + 1_000_000_000
+    t[200:] += 200_000_000  # 0.2 s gap
+    g = np.zeros((400, 3))
+    a = np.tile([0, 0, 9.81], (400, 1))
+    with RecordingWriter(path) as w:
+        w.set_metadata(META_CALIBRATION, {"imu": dict(EUROC_IMU), "cameras": {"cam0": EUROC_CAMERAS["cam0"]}})
+        w.write_imu_batch(t, g, a)
+        w.write_pose_batch(t, np.zeros((400, 3)), np.tile([0, 0, 0, 1.0], (400, 1)))
+        w.write_features(900_000_000, [1], [[10.0, 10.0]])  # before the IMU starts
+        for k in range(1, 20):
+            w.write_features(int(t[0]) + k * 50_000_000, np.zeros(0), np.zeros((0, 2)))
+        tr = int(t[0]) + np.arange(1, 8) * 100_000_000 + 7
+        w.write_range_batch(tr, 1, 0, np.arange(7) % 2, np.full(7, 3.0))
+    reader = RecordingReader(path)
+    est = MsckfEstimator.from_recording(reader, VioConfig())
+    seen = []
+    est.run(reader, None, None, on_range=lambda e, m: seen.append((e.t_ns, m.t_ns, m.anchor, m.distance)))
+    assert [s[0] for s in seen] == tr.tolist() and [s[1] for s in seen] == tr.tolist()
+    assert [s[2] for s in seen] == [0, 1, 0, 1, 0, 1, 0] and seen[0][3] == 3.0
+    assert set(tr.tolist()) <= set(est.history().arrays()["t_ns"].tolist())
+    assert est.stats.imu_gaps == 1 and est.stats.frames_before_imu == 1
+    assert est.stats.frames_without_features == 19
+    x = est.state.value("imu")
+    assert np.abs(x.p).max() < 1e-9 and np.abs(x.v).max() < 1e-9  # static IMU, exact gravity
+    assert any("IMU gap" in s for s in est.warnings)
+
+
+def test_msckf_logs_to_rerun(vi_recording, tmp_path):
+    from pipeline.runlog import RunLog, read_rrd_summary
+
+    path, (t_ns, _, _) = vi_recording
+    reader = RecordingReader(path)
+    est = MsckfEstimator.from_recording(reader, VioConfig())
+    with RunLog(tmp_path / "vio.rrd") as log:
+        est.run(reader, None, int(t_ns[0] + 3e9), log=log)
+    summary = read_rrd_summary(tmp_path / "vio.rrd")
+    n = len(est.history())
+    assert summary.rows.get("world/vio/pose", 0) == n
+    assert summary.rows.get("filter/vio/features", 0) > 0
+    assert "world/features" in summary.rows
+
+
+def test_compress_normal_keeps_information():
+    from pipeline.msckf import compress_normal
+
+    rng = np.random.default_rng(4)
+    H = rng.normal(size=(200, 30)) @ np.diag(np.r_[np.ones(26), np.zeros(4)])  # 4 gauge directions
+    r = rng.normal(size=200)
+    Hq, rq = compress(H, r)
+    Hn, rn = compress_normal(H, r)
+    assert Hn.shape[0] == 26
+    np.testing.assert_allclose(Hn.T @ Hn, H.T @ H, atol=1e-9)
+    np.testing.assert_allclose(Hn.T @ rn, H.T @ r, atol=1e-9)
+    np.testing.assert_allclose(Hq.T @ Hq, H.T @ H, atol=1e-9)

@@ -1,0 +1,242 @@
+"""UWB filter side: covariance initialisation, EKF/SKF/frozen updates, anchor NEES over Monte Carlo runs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from pipeline.estimator import RangeMeasurement
+from pipeline.lie import exp_so3, log_so3, rot_to_quat
+from pipeline.state import Pose, State, Vec
+from pipeline.uwb_filter import (
+    METHODS,
+    UwbConfig,
+    UwbUpdater,
+    add_anchor_to_state,
+    anchor_var,
+    initialize_anchors,
+    windows_from_trajectory,
+)
+from pipeline.uwb_init import smooth_trajectory
+
+ARMS = {(1, 0): np.array([0.2, 0.3, 0.0]), (1, 1): np.array([0.2, -0.3, 0.0])}
+CALIB = {
+    "uwb": {
+        "tags": {"1": {"antennas": [[0.2, 0.3, 0.0], [0.2, -0.3, 0.0]]}},
+        "sigma_range": 0.1,
+        "gamma_prior": {"mean": 0.5, "sigma": 0.3},
+    }
+}
+ANCHORS = {7: np.array([8.0, -6.0, 4.0]), 9: np.array([-7.0, 9.0, 5.0])}
+
+
+class _Est:
+    def __init__(self, state: State) -> None:
+        self.state = state
+        self.t_ns = 0
+
+
+def _propagate(state: State, dR: np.ndarray, q_pos: float) -> None:
+    """Pose-only 'odometry' propagation: dtheta <- dR^T dtheta, dp <- dp + w (world random walk)."""
+    sl = state.slice("imu")
+    Phi = np.eye(6)
+    Phi[0:3, 0:3] = dR.T
+    P = state.P
+    P[sl, :] = Phi @ P[sl, :]
+    P[:, sl] = P[:, sl] @ Phi.T
+    P[sl.start + 3 : sl.stop, sl.start + 3 : sl.stop] += np.eye(3) * q_pos
+    v = state.value("imu")
+    return v
+
+
+def _simulate_run(
+    seed: int, mode: str, *, init_s=30.0, refine_s=30.0, beta_sigma=1e-3, sig_th0=0.01, sig_p0=0.1, rw=0.02
+):
+    rng = np.random.default_rng(seed)
+    dt = 0.1
+    t = np.arange(0.0, init_s + refine_s, dt)
+    R_nom, p_nom = smooth_trajectory(rng, t, extent=(5.0, 5.0, 3.0), z0=2.0, freq=(0.03, 0.12))
+    q_pos = rw**2 * dt
+    P0 = np.diag([sig_th0**2] * 3 + [sig_p0**2] * 3)
+    e0 = rng.normal(size=6) * np.sqrt(np.diag(P0))
+    R_true, p_true = R_nom[0] @ exp_so3(e0[:3]), p_nom[0].copy()
+    state = State(use_fej=True)
+    state.add("imu", Pose(R_nom[0], p_nom[0] - e0[3:]), P0)
+    truth = {a: np.r_[pa, rng.normal(1.0, beta_sigma), rng.normal(0.5, 0.3)] for a, pa in ANCHORS.items()}
+    cfg = UwbConfig(init_method="ri", refine_method=mode, beta_sigma=beta_sigma, n_perturbed_starts=0)
+    traj = {"t_ns": [], "p": [], "q_xyzw": [], "cov": []}
+    ranges = {k: [] for k in ("t_ns", "tag", "antenna", "anchor", "distance")}
+    updater = None
+    nees_init = {}
+    n_init = int(round(init_s / dt))
+    for k in range(len(t)):
+        t_ns = int(round(t[k] * 1e9))
+        if k > 0:
+            dR = R_nom[k - 1].T @ R_nom[k]
+            R_true = R_true @ dR
+            p_true = p_true + (p_nom[k] - p_nom[k - 1]) + rng.normal(0, np.sqrt(q_pos), 3)
+            v = state.value("imu")
+            state.set_value("imu", Pose(v.R @ dR, v.p + (p_nom[k] - p_nom[k - 1])))
+            _propagate(state, dR, q_pos)
+        if k == n_init:
+            tr = {kk: np.asarray(vv) for kk, vv in traj.items()}
+            rg = {kk: np.asarray(vv) for kk, vv in ranges.items()}
+            wins = windows_from_trajectory(tr, rg, CALIB)
+            res = initialize_anchors(wins, cfg, CALIB)
+            for a, r in res.items():
+                assert r.ok, r.warnings
+                add_anchor_to_state(
+                    state, a, r, sigma_range=0.1, gamma_prior=(0.5, 0.3), beta_sigma=beta_sigma
+                )
+                e = truth[a] - state.value(anchor_var(a)).x
+                nees_init[a] = float(e @ np.linalg.solve(state.cov(anchor_var(a)), e))
+            updater = UwbUpdater.from_config(cfg, CALIB)
+        v = state.value("imu")
+        for j, (a, xa) in enumerate(truth.items()):
+            ant = (k + j) % 2
+            pT = ARMS[(1, ant)]
+            d = xa[3] * (np.linalg.norm(p_true + R_true @ pT - xa[:3]) + rng.normal(0, 0.1)) + xa[4]
+            m = RangeMeasurement(t_ns + j, 1, ant, a, float(d))
+            if updater is None:
+                for kk, vv in zip(ranges, (m.t_ns, 1, ant, a, d), strict=True):
+                    ranges[kk].append(vv)
+            else:
+                updater(_Est(state), m)
+        if updater is None:
+            v = state.value("imu")
+            for j in range(2):
+                traj["t_ns"].append(t_ns + j)
+                traj["p"].append(v.p)
+                traj["q_xyzw"].append(rot_to_quat(v.R))
+                traj["cov"].append(state.cov("imu")[:6, :6])
+    nees_end = {}
+    for a in truth:
+        e = truth[a] - state.value(anchor_var(a)).x
+        nees_end[a] = float(e @ np.linalg.solve(state.cov(anchor_var(a)), e))
+    v = state.value("imu")
+    ep = np.r_[log_so3(v.R.T @ R_true), p_true - v.p]
+    nees_pose = float(ep @ np.linalg.solve(state.cov("imu")[:6, :6], ep))
+    return nees_init, nees_end, nees_pose, updater
+
+
+@pytest.mark.parametrize("mode", ["ekf", "skf"])
+def test_anchor_nees_consistent_monte_carlo(mode):
+    runs = 25
+    init, end, pose = [], [], []
+    for s in range(runs):
+        ni, ne, npo, upd = _simulate_run(100 + s, mode)
+        init += list(ni.values())
+        end += list(ne.values())
+        pose.append(npo)
+    K = len(init)
+    lo, hi = chi2.ppf([0.025, 0.975], 5 * K) / K
+    print(mode, "ANEES init", np.mean(init), "end", np.mean(end), "bounds", lo, hi, "pose", np.mean(pose))
+    assert lo < np.mean(init) < hi
+    assert lo < np.mean(end) < hi
+    lo6, hi6 = chi2.ppf([0.025, 0.975], 6 * runs) / runs
+    assert lo6 < np.mean(pose) < hi6
+
+
+def test_methods_mapping():
+    assert METHODS["viro"] == ("lsi", "ekf")
+    assert METHODS["ri+skf"] == ("ri", "skf")
+
+
+def _state_with_anchor():
+    rng = np.random.default_rng(0)
+    state = State()
+    A = rng.normal(size=(6, 6)) * 0.05
+    state.add(
+        "imu",
+        Pose(exp_so3(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, 0.5])),
+        A @ A.T + 1e-4 * np.eye(6),
+    )
+    state.add("clone/1", Pose(np.eye(3), np.zeros(3)), np.eye(6) * 0.01)
+    state.P[0:6, 6:12] = state.P[6:12, 0:6] = 0.005 * np.eye(6)
+    # anchor correlated with imu through the initialisation map
+    J = np.zeros((5, 6))
+    J[0:3, 3:6] = -np.eye(3)
+    state.augment(
+        "anchor/3",
+        Vec(np.array([5.0, 4.0, 3.0, 1.0, 0.2])),
+        {"imu": J},
+        Q=np.diag([0.04, 0.04, 0.04, 0.0025, 0.04]),
+    )
+    return state
+
+
+def test_skf_keeps_navigation_state_and_covariance_updates_anchor_and_cross():
+    state = _state_with_anchor()
+    imu0, clone0 = state.value("imu"), state.value("clone/1")
+    sl_nav = np.r_[0:12]
+    P0 = state.P.copy()
+    upd = UwbUpdater("skf", ARMS, sigma_range=0.1, chi2_quantile=None)
+    x0 = state.value("anchor/3").x.copy()
+    res = upd.update(state, RangeMeasurement(1, 1, 0, 3, 6.0))
+    assert res.accepted
+    assert np.array_equal(state.value("imu").R, imu0.R) and np.array_equal(state.value("imu").p, imu0.p)
+    assert np.array_equal(state.value("clone/1").p, clone0.p)
+    assert np.allclose(state.P[np.ix_(sl_nav, sl_nav)], P0[np.ix_(sl_nav, sl_nav)], atol=1e-15)
+    assert not np.allclose(state.value("anchor/3").x, x0)
+    sa = state.slice("anchor/3")
+    assert not np.allclose(state.P[sa, sa], P0[sa, sa])
+    assert not np.allclose(state.P[0:6, sa], P0[0:6, sa])
+    # EKF moves the navigation state
+    st2 = _state_with_anchor()
+    UwbUpdater("ekf", ARMS, sigma_range=0.1, chi2_quantile=None).update(
+        st2, RangeMeasurement(1, 1, 0, 3, 6.0)
+    )
+    assert not np.allclose(st2.value("imu").p, imu0.p)
+
+
+def test_frozen_updates_only_navigation_and_gate_counts():
+    state = _state_with_anchor()
+    x0 = state.value("anchor/3").x.copy()
+    upd = UwbUpdater("frozen", ARMS, sigma_range=0.1, chi2_quantile=0.95)
+    p0 = state.value("imu").p.copy()
+    h = np.linalg.norm(p0 + state.value("imu").R @ ARMS[(1, 0)] - x0[:3]) + x0[4]
+    upd.update(state, RangeMeasurement(1, 1, 0, 3, h + 0.05))
+    assert np.array_equal(state.value("anchor/3").x, x0)
+    assert not np.allclose(state.value("imu").p, p0)
+    upd.update(state, RangeMeasurement(2, 1, 0, 3, h + 50.0))  # gross outlier: gated
+    assert upd.counts["rejected"] == 1 and upd.counts["accepted"] == 1
+    arr = upd.arrays()[3]
+    assert arr["rejected"].tolist() == [False, True] and arr["cov"].shape == (2, 5, 5)
+    # frozen anchors not in the state: given as constants
+    st = State()
+    st.add("imu", Pose(np.eye(3), np.zeros(3)), np.eye(6) * 0.01)
+    UwbUpdater("frozen", ARMS, anchors={3: x0}, chi2_quantile=None).update(
+        st, RangeMeasurement(3, 1, 1, 3, 7.0)
+    )
+    assert st.size == 6
+    # none: nothing changes
+    st3 = _state_with_anchor()
+    P3 = st3.P.copy()
+    u3 = UwbUpdater("none", ARMS)
+    u3.update(st3, RangeMeasurement(4, 1, 0, 3, 6.0))
+    assert np.array_equal(st3.P, P3) and u3.counts["recorded"] == 1
+    # unknown anchor: skipped
+    u3.update(st3, RangeMeasurement(5, 1, 0, 42, 6.0))
+    assert u3.counts["skipped"] == 1
+
+
+def test_windows_from_trajectory_interpolates():
+    t = np.array([0, 10, 20], np.int64) * 10**8
+    traj = {
+        "t_ns": t,
+        "p": np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]]),
+        "q_xyzw": np.array([[0, 0, 0, 1.0]] * 3),
+        "cov": np.stack([np.eye(6) * v for v in (1.0, 2.0, 3.0)]),
+    }
+    ranges = {
+        "t_ns": np.array([5, 15, 25]) * 10**8,
+        "tag": np.array([1, 1, 1]),
+        "antenna": np.array([0, 1, 0]),
+        "anchor": np.array([3, 3, 4]),
+        "distance": np.array([1.0, 2.0, 3.0]),
+    }
+    w = windows_from_trajectory(traj, ranges, CALIB)
+    assert set(w) == {3}  # the range at 2.5 s is outside the trajectory
+    assert np.allclose(w[3].p[:, 0], [0.5, 1.5]) and np.allclose(w[3].P_pose[:, 0, 0], [1.5, 2.5])
+    assert np.allclose(w[3].p_T, [ARMS[(1, 0)], ARMS[(1, 1)]])
