@@ -35,19 +35,21 @@ class TrajectoryRecord:
 
     t_ns: list[int] = field(default_factory=list)
     p: list[np.ndarray] = field(default_factory=list)
-    q_xyzw: list[np.ndarray] = field(default_factory=list)
+    R: list[np.ndarray] = field(default_factory=list)  # turned into quaternions in one batch by arrays()
     cov: list[np.ndarray] = field(default_factory=list)
 
     def append(self, t_ns: int, R: np.ndarray, p: np.ndarray, cov6: np.ndarray) -> None:
         if self.t_ns and t_ns <= self.t_ns[-1]:
-            if (
-                t_ns == self.t_ns[-1]
-            ):  # same instant recorded twice (e.g. range at a camera stamp): keep newest
-                self.p[-1], self.q_xyzw[-1], self.cov[-1] = p.copy(), rot_to_quat(R), cov6.copy()
+            if t_ns == self.t_ns[-1]:  # the same instant twice (a range at a camera stamp): keep the newest
+                self.p[-1], self.R[-1], self.cov[-1] = (
+                    np.array(p, float),
+                    np.array(R, float),
+                    np.array(cov6, float),
+                )
             return
         self.t_ns.append(int(t_ns))
         self.p.append(np.array(p, float))
-        self.q_xyzw.append(rot_to_quat(R))
+        self.R.append(np.array(R, float))
         self.cov.append(np.array(cov6, float))
 
     def __len__(self) -> int:
@@ -58,7 +60,7 @@ class TrajectoryRecord:
         return {
             "t_ns": np.asarray(self.t_ns, dtype=np.int64),
             "p": np.asarray(self.p, float).reshape(n, 3),
-            "q_xyzw": np.asarray(self.q_xyzw, float).reshape(n, 4),
+            "q_xyzw": rot_to_quat(np.asarray(self.R, float).reshape(n, 3, 3)).reshape(n, 4),
             "cov": np.asarray(self.cov, float).reshape(n, 6, 6),
         }
 

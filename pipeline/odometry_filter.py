@@ -33,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from convert.errors import InputError
 
 from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
-from .lie import log_so3, quat_to_rot, rot_to_quat
+from .lie import log_so3, quat_to_rot
 from .state import Pose, State
 
 if TYPE_CHECKING:
@@ -280,9 +280,7 @@ class OdometryEstimator:
         return self.stats.warnings()
 
     def history(self) -> TrajectoryRecord:
-        n = len(self._h_t)
-        q = rot_to_quat(np.asarray(self._h_R).reshape(n, 3, 3)).reshape(n, 4)
-        return TrajectoryRecord(list(self._h_t), list(self._h_p), list(q), list(self._h_cov))
+        return TrajectoryRecord(list(self._h_t), list(self._h_p), list(self._h_R), list(self._h_cov))
 
     @property
     def pose(self) -> Pose:

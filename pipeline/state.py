@@ -253,7 +253,8 @@ class State:
     def boxplus(self, dx: np.ndarray, names: Iterable[str] | None = None) -> None:
         for n in names if names is not None else self._names:
             sl = self._slices[n]
-            self._values[n] = self._values[n].boxplus(dx[sl])
+            if dx[sl].any():  # Schmidt (considered) variables get exactly zero corrections
+                self._values[n] = self._values[n].boxplus(dx[sl])
 
 
 def ekf_update(
