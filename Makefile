@@ -2,7 +2,7 @@
 UV = $(shell command -v uv 2>/dev/null || echo python3 -m uv)
 PYTEST_WORKERS ?= 2
 
-.PHONY: setup demo test lint format bench
+.PHONY: setup demo test lint format bench regression
 
 setup:
 	@command -v uv >/dev/null 2>&1 || python3 -m uv --version >/dev/null 2>&1 || python3 -m pip install -q uv
@@ -24,3 +24,8 @@ format: setup
 
 bench: setup
 	$(UV) run uwbcal bench -o recordings/bench.json
+
+# Re-run the small seeded experiment and compare it with the committed reference (exit 1 on a regression).
+regression: setup
+	$(UV) run uwbcal experiment ri-vs-lsi --runs 8 --seed 0 -o recordings/ci/ri-vs-lsi
+	$(UV) run uwbcal diff recordings/reference/ri-vs-lsi/summary.json recordings/ci/ri-vs-lsi/summary.json --rtol 0.05

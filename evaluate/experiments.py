@@ -1,0 +1,272 @@
+"""`uwbcal experiment`: the paper's experiments as seeded Monte Carlo sweeps (DESIGN §7).
+
+Each experiment is a list of job parameters and one picklable job function; `montecarlo.run_jobs` runs them
+in-process, on local processes (``--jobs``) or on a Dask cluster (``--scheduler``) with identical results.
+An output folder holds the config, per-run metrics (parquet), tables (md/csv/tex), plots and ``summary.json``
+(the flat metrics that `uwbcal diff` compares against ``recordings/reference/``).
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+from convert.atomic import atomic_path, write_text_atomic
+from convert.datasets import data_root
+from convert.errors import InputError
+
+from .montecarlo import run_jobs, run_seeds
+from .tables import PAPER_TABLE1, PAPER_TABLE2, render, side_by_side, write_tables
+
+RI_VS_LSI_SIGMAS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.8)
+TABLE1_CELLS = ((0.1, 1.0), (0.3, 1.0), (0.3, 0.9), (0.5, 0.9))
+DEFAULT_RUNS = {"ri-vs-lsi": 100, "table1": 50, "ntu-viral": 1}
+
+
+# -- ri-vs-lsi ----------------------------------------------------------------------------------------------------
+def ri_vs_lsi_job(p: dict) -> dict:
+    """One localisation-error level: `runs` seeded windows, every initialiser on each (common random numbers)."""
+    from pipeline.uwb_init import ri_vs_lsi_sweep
+
+    res = ri_vs_lsi_sweep([p["sigma_r"]], runs=p["runs"], seed=p["seed"])
+    return {
+        "sigma_r": p["sigma_r"],
+        "errors": {m: e[0].tolist() for m, e in res["errors"].items()},
+        "gamma_errors": {m: e[0].tolist() for m, e in res["gamma_errors"].items()},
+    }
+
+
+def _ri_vs_lsi(
+    out: Path, runs: int, jobs: int, scheduler: str | None, seed: int
+) -> tuple[pl.DataFrame, dict]:
+    from .plots import plot_ri_vs_lsi
+
+    params = [{"sigma_r": s, "runs": runs, "seed": seed} for s in RI_VS_LSI_SIGMAS]
+    results = run_jobs(ri_vs_lsi_job, params, jobs=jobs, scheduler=scheduler, description="ri-vs-lsi")
+    rows = [
+        {
+            "sigma_r": r["sigma_r"],
+            "run": i,
+            "method": m,
+            "anchor_error_m": e,
+            "gamma_error_m": r["gamma_errors"][m][i],
+        }
+        for r in results
+        for m, errs in r["errors"].items()
+        for i, e in enumerate(errs)
+    ]
+    per_run = pl.DataFrame(rows)
+    table = (
+        per_run.group_by("sigma_r", "method", maintain_order=True)
+        .agg(
+            pl.col("anchor_error_m").mean().alias("mean_m"),
+            pl.col("anchor_error_m").median().alias("median_m"),
+            pl.col("anchor_error_m").quantile(0.9).alias("p90_m"),
+        )
+        .sort("sigma_r", "method")
+    )
+    wide = per_run.pivot(on="method", index=["sigma_r", "run"], values="anchor_error_m")
+    wins = wide.group_by("sigma_r", maintain_order=True).agg(
+        (pl.col("ri") < pl.col("lsi")).mean().alias("ri_beats_lsi")
+    )
+    table = table.join(wins, on="sigma_r", how="left")
+    errors = {m: np.array([r["errors"][m] for r in results]) for m in results[0]["errors"]}
+    plot_ri_vs_lsi(out / "ri_vs_lsi.png", np.array(RI_VS_LSI_SIGMAS), errors)
+    summary = {
+        f"sigma_{r['sigma']:.2f}.{r['method']}.anchor_error_m": r["mean_m"]
+        for r in table.rename({"sigma_r": "sigma"}).iter_rows(named=True)
+    }
+    return table, {"per_run": per_run, "summary": summary}
+
+
+# -- table1 -------------------------------------------------------------------------------------------------------
+def table1_job(p: dict) -> dict:
+    """One seed of the EuRoC-trajectory simulation: VIO once, then every (σ_I, σ_U, method) cell from the same
+    checkpoint. σ_I perturbs the initial anchor positions (per axis), σ_U scales the filter's range noise."""
+    import pickle
+
+    from convert.simulator import SimConfig, simulate_to_file
+    from pipeline.config import load_config
+    from pipeline.run import Pipeline
+    from pipeline.state import Vec
+    from pipeline.uwb_filter import UwbUpdater, anchor_var
+
+    from .export import compare, load_ground_truth
+    from .metrics import prmse
+
+    rng = np.random.default_rng(p["seed"])
+    out = []
+    with tempfile.TemporaryDirectory(prefix="uwbcal-table1-") as tmp:
+        rec = Path(tmp) / "sim.mcap"
+        simulate_to_file(
+            SimConfig(trajectory=p["trajectory"], seed=p["seed"], duration=p.get("duration"), n_anchors=4),
+            rec,
+        )
+        cfg = load_config(None, {"run": {"recording": str(rec), "log": False, "stages": ["vio"]}})
+        pipe = Pipeline(cfg, Path(tmp) / "run")
+        pipe.run(progress=lambda *_: None)
+        win = pipe.windows()
+        truth = pipe.reader.truth["anchors"]
+        cal = pipe.reader.calibration
+        gt = load_ground_truth(rec)
+        blob = pipe.dir.file("checkpoint_init.pkl").read_bytes()
+        offsets = {a: rng.normal(size=3) for a in truth}  # one draw per seed, scaled by σ_I per cell
+        for sigma_i, sigma_u in p["cells"]:
+            for method in ("ekf", "skf"):
+                est = pickle.loads(blob)
+                for a, t in truth.items():
+                    x0 = np.r_[np.asarray(t["position"]) + sigma_i * offsets[a], 1.0, 0.0]
+                    P0 = np.diag([sigma_i**2] * 3 + [0.1**2, 0.5**2])
+                    est.state.add(anchor_var(int(a)), Vec(x0), P0)
+                ucfg = cfg.uwb.model_copy(update={"sigma_scale": sigma_u, "refine_method": method})
+                upd = UwbUpdater.from_config(ucfg, cal)
+                est.run(pipe.reader, win.init_end_ns, win.refine_end_ns, on_range=upd)
+                h = est.history().arrays()
+                seg = (h["t_ns"] >= win.init_end_ns) & (h["t_ns"] < win.refine_end_ns)
+                c = compare(h["t_ns"][seg], h["p"][seg], h["q_xyzw"][seg], gt)
+                errs = [
+                    np.linalg.norm(est.state.value(anchor_var(int(a))).x[:3] - np.asarray(t["position"]))
+                    for a, t in truth.items()
+                ]
+                out.append(
+                    {
+                        "seed": p["seed"],
+                        "sigma_i": sigma_i,
+                        "sigma_u": sigma_u,
+                        "method": method,
+                        "prmse_m": prmse(c.p_est, c.p_gt),
+                        "anchor_error_m": float(np.mean(errs)),
+                        "rejected": upd.counts["rejected"],
+                    }
+                )
+    return {"rows": out}
+
+
+def _table1(
+    out: Path,
+    runs: int,
+    jobs: int,
+    scheduler: str | None,
+    seed: int,
+    trajectory: str = "MH_01_easy",
+    duration: float | None = None,
+) -> tuple[pl.DataFrame, dict]:
+    params = [
+        {"seed": s, "trajectory": trajectory, "duration": duration, "cells": TABLE1_CELLS}
+        for s in run_seeds(seed, runs)
+    ]
+    results = run_jobs(table1_job, params, jobs=jobs, scheduler=scheduler, description="table1")
+    per_run = pl.DataFrame([r for res in results for r in res["rows"]])
+    ours = (
+        per_run.group_by("sigma_i", "sigma_u", "method", maintain_order=True)
+        .agg(pl.col("prmse_m").mean(), pl.col("anchor_error_m").mean(), pl.len().alias("runs"))
+        .sort("sigma_i", "sigma_u", "method", descending=[False, True, False])
+    )
+    paper = PAPER_TABLE1.with_columns(pl.col("method").str.to_lowercase())
+    table = side_by_side(
+        ours, paper, on=["sigma_i", "sigma_u", "method"], metrics=["prmse_m", "anchor_error_m"]
+    )
+    summary = {
+        f"si{r['sigma_i']}_su{r['sigma_u']}.{r['method']}.{k}": r[k]
+        for r in ours.iter_rows(named=True)
+        for k in ("prmse_m", "anchor_error_m")
+    }
+    return table, {"per_run": per_run, "summary": summary}
+
+
+# -- ntu-viral ----------------------------------------------------------------------------------------------------
+NTU_METHODS = {"viro": ("lsi", "ekf"), "ri+ekf": ("ri", "ekf"), "ri+skf": ("ri", "skf")}
+
+
+def ntu_job(p: dict) -> dict:
+    from convert.ntu_viral import convert_ntu_viral
+    from pipeline.config import load_config
+    from pipeline.run import Pipeline
+
+    folder = Path(p["folder"])
+    with tempfile.TemporaryDirectory(prefix="uwbcal-ntu-") as tmp:
+        rec = Path(tmp) / f"{folder.name}.mcap"
+        convert_ntu_viral(folder, rec)
+        cfg = load_config(
+            None,
+            {
+                "run": {"recording": str(rec), "log": False},
+                "uwb": {"init_method": p["init"], "refine_method": p["refine"]},
+            },
+        )
+        Pipeline(cfg, Path(tmp) / "run").run(progress=lambda *_: None)
+        m = json.loads((Path(tmp) / "run" / "metrics.json").read_text())
+    return {
+        "sequence": folder.name,
+        "method": p["method"],
+        "prmse_m": m.get("prmse_m", {}).get("refine"),
+        "anchor_error_m": m.get("anchor_error_m"),
+        "anchors": {a: v.get("error_m") for a, v in m.get("anchors", {}).items()},
+    }
+
+
+def _ntu(out: Path, runs: int, jobs: int, scheduler: str | None, seed: int) -> tuple[pl.DataFrame, dict]:
+    root = data_root() / "ntu_viral"
+    seqs = sorted(d for d in root.glob("*_0*") if (d / "uwb_ranges.csv").is_file()) if root.is_dir() else []
+    if not seqs:
+        raise InputError(f"{root}: no NTU-VIRAL sequence folders (set UWBCAL_DATA)")
+    params = [
+        {"folder": str(s), "method": m, "init": i, "refine": r}
+        for s in seqs
+        for m, (i, r) in NTU_METHODS.items()
+    ]
+    results = run_jobs(ntu_job, params, jobs=jobs, scheduler=scheduler, description="ntu-viral")
+    ours = pl.DataFrame(
+        [{k: v for k, v in r.items() if k != "anchors"} for r in results],
+        schema={"sequence": pl.Utf8, "method": pl.Utf8, "prmse_m": pl.Float64, "anchor_error_m": pl.Float64},
+    )
+    table = side_by_side(ours, PAPER_TABLE2, on=["sequence", "method"], metrics=["prmse_m", "anchor_error_m"])
+    summary = {
+        f"{r['sequence']}.{r['method']}.{k}": r[k]
+        for r in ours.iter_rows(named=True)
+        for k in ("prmse_m", "anchor_error_m")
+        if r[k] is not None
+    }
+    per_anchor = pl.DataFrame(
+        [
+            {"sequence": r["sequence"], "method": r["method"], "anchor": a, "error_m": e}
+            for r in results
+            for a, e in r["anchors"].items()
+        ]
+    )
+    return table, {"per_run": per_anchor, "summary": summary}
+
+
+EXPERIMENTS = {"ri-vs-lsi": _ri_vs_lsi, "table1": _table1, "ntu-viral": _ntu}
+
+
+def run_experiment(
+    name: str,
+    output: Path,
+    *,
+    runs: int | None = None,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    seed: int = 0,
+) -> str:
+    if name not in EXPERIMENTS:
+        raise InputError(f"unknown experiment {name!r}; known: {', '.join(EXPERIMENTS)}")
+    out = Path(output)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = runs or DEFAULT_RUNS[name]
+    config = {"experiment": name, "runs": runs, "jobs": jobs, "scheduler": scheduler, "seed": seed}
+    write_text_atomic(out / "config.json", json.dumps(config, indent=2) + "\n")
+    t0 = time.perf_counter()
+    table, extra = EXPERIMENTS[name](out, runs, jobs, scheduler, seed)
+    wall = time.perf_counter() - t0
+    with atomic_path(out / "runs.parquet") as tmp:
+        extra["per_run"].write_parquet(tmp)
+    write_tables(table, out / name)
+    summary = {name: extra["summary"], "runs": runs, "seed": seed, "wall_s": wall}
+    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return f"{render(table, 'md')}\n\n{name}: {runs} run(s) per cell, {wall:.1f} s -> {out}"
