@@ -375,7 +375,7 @@ def initialize_anchor(
             f"{anchor}: gamma {x[4]:.2f} m is {abs(x[4] - gamma_prior[0]) / gamma_prior[1]:.1f} sigma from "
             f"its prior {gamma_prior[0]:.2f} m"
         )
-    if len(res.warnings) > len(warns) or warns:
+    if res.warnings:
         res.status = "warning"
     if lbl_best != "closed-form":
         res.starts.append(

@@ -109,7 +109,7 @@ def _simulate_run(
                 traj["t_ns"].append(t_ns + j)
                 traj["p"].append(v.p)
                 traj["q_xyzw"].append(rot_to_quat(v.R))
-                traj["cov"].append(state.cov("imu")[:6, :6])
+                traj["cov"].append(state.cov("imu")[:6, :6].copy())
     nees_end = {}
     for a in truth:
         e = truth[a] - state.value(anchor_var(a)).x
@@ -240,3 +240,26 @@ def test_windows_from_trajectory_interpolates():
     assert set(w) == {3}  # the range at 2.5 s is outside the trajectory
     assert np.allclose(w[3].p[:, 0], [0.5, 1.5]) and np.allclose(w[3].P_pose[:, 0, 0], [1.5, 2.5])
     assert np.allclose(w[3].p_T, [ARMS[(1, 0)], ARMS[(1, 1)]])
+
+
+def test_log_and_summaries_write_an_rrd(tmp_path):
+    from pipeline.runlog import RunLog, read_rrd_summary
+    from pipeline.uwb_filter import init_rows, init_summary, log_init
+    from pipeline.uwb_init import simulate_window
+
+    w = simulate_window(np.random.default_rng(0), 0.05)
+    res = initialize_anchors({5: w}, UwbConfig(init_method="lsi", n_perturbed_starts=0), CALIB)
+    rows = init_rows(res)
+    assert rows[0]["anchor"] == "5" and rows[0]["method"] == "lsi" and rows[0]["beta"] == 1.0
+    summ = init_summary(res)
+    assert summ["5"]["fim"]["logdet"] > 0 and summ["5"]["n_used"] == len(w)
+    state = _state_with_anchor()
+    upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
+    for k in range(5):
+        upd.update(state, RangeMeasurement(10 + k, 1, k % 2, 3, 6.0))
+    path = tmp_path / "init.rrd"
+    with RunLog(path, anchors=[3, 5]) as log:
+        log_init(log, res, 1_000)
+        upd.log(log)
+    assert path.is_file() and path.stat().st_size > 0
+    assert read_rrd_summary(path) is not None
