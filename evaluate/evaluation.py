@@ -141,6 +141,12 @@ def evaluate_run(run_dir: Path, align: str | None = None) -> dict:
                 metrics["gamma_error"] = ae.mean_abs_gamma
             if ae.missing:
                 metrics["warnings"].append(f"anchors not calibrated: {', '.join(ae.missing)}")
+        init_path = run_dir / "init.json"
+        if init_path.is_file():
+            init = json.loads(init_path.read_text())
+            for aid, r in init["methods"].get(init["chosen"], {}).items():
+                if aid in anchors and "fim" in r:
+                    anchors[aid]["fim"] = r["fim"]  # log det, condition number, weakest direction
         metrics["anchors"] = anchors
         state_path = run_dir / "anchor_states.json"
         if ref_kind == "truth" and state_path.is_file():
