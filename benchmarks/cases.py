@@ -4,6 +4,7 @@ own wall time, peak memory and the data seconds it processed. Add a case by regi
 from __future__ import annotations
 
 import json
+import os
 import resource
 import sys
 import tempfile
@@ -60,20 +61,106 @@ def _convert_bag(work: Path, quick: bool) -> tuple[float | None, dict]:
     }
 
 
+def _simulate(work: Path, name: str, **kw) -> Path:
+    from convert.simulator import SimConfig, simulate_to_file
+
+    rec = work / f"{name}.mcap"
+    simulate_to_file(SimConfig(**kw), rec)
+    return rec
+
+
+def _pipeline(rec: Path, out: Path, log: bool, stages: list[str] | None = None) -> float:
+    """Run the pipeline on a recording; returns the timed seconds (simulation excluded)."""
+    from pipeline.config import load_config
+    from pipeline.run import Pipeline
+
+    over: dict = {"run": {"recording": str(rec), "log": log}}
+    if stages:
+        over["run"]["stages"] = stages
+    t0 = time.perf_counter()
+    Pipeline(load_config(None, over), out).run(progress=lambda *_: None)
+    return time.perf_counter() - t0
+
+
+def _vio_mh01(work: Path, quick: bool) -> tuple[float | None, dict]:
+    dur = 30.0 if quick else None
+    rec = _simulate(work, "mh01", trajectory="MH_01_easy", duration=dur, seed=0)
+    timed = _pipeline(rec, work / "run", log=False, stages=["vio"])
+    data_s = _span(rec)
+    frames = json.loads((work / "run" / "stages.json").read_text())
+    return data_s, {
+        "timed_s": round(timed, 2),
+        "ms_per_camera_update": round(1e3 * timed / (20 * data_s), 2),
+        "summary": frames["vio"]["summary"],
+    }
+
+
+def _span(rec: Path) -> float:
+    from convert.recording import RecordingReader
+
+    a, b = RecordingReader(rec).time_span()
+    return (b - a) * 1e-9
+
+
+def _full_run(log: bool):
+    def case(work: Path, quick: bool) -> tuple[float | None, dict]:
+        dur = 40.0 if quick else None
+        rec = _simulate(work, "mh01", trajectory="MH_01_easy", duration=dur, seed=0)
+        timed = _pipeline(rec, work / "run", log=log)
+        return _span(rec), {"timed_s": round(timed, 2)}
+
+    return case
+
+
+def _table1_jobs(jobs: int):
+    def case(work: Path, quick: bool) -> tuple[float | None, dict]:
+        from evaluate.experiments import _table1
+
+        t0 = time.perf_counter()
+        _table1(work, 2, jobs, None, 0, trajectory=None, duration=30.0 if quick else 60.0)
+        return None, {"timed_s": round(time.perf_counter() - t0, 2), "runs": 2}
+
+    return case
+
+
+def _growth(anchors: int, length: float):
+    def case(work: Path, quick: bool) -> tuple[float | None, dict]:
+        base = 20.0 if quick else 40.0
+        rec = _simulate(work, "g", trajectory=None, duration=base * length, seed=0, n_anchors=anchors)
+        timed = _pipeline(rec, work / "run", log=False)
+        return _span(rec), {"timed_s": round(timed, 2), "anchors": anchors, "length_x": length}
+
+    return case
+
+
 CASES: dict[str, Case] = {
     "calibration": Case(_calibration, None, "fixed numpy/Python workload (machine yardstick)"),
     "simulate_mh01": Case(_simulate_mh01, "calibration", "simulate the 182 s of MH_01_easy"),
     "convert_bag": Case(_convert_bag, None, "ROS1 bag -> MCAP beside rosbags-convert (ratio in extra)"),
+    "vio_mh01": Case(_vio_mh01, "calibration", "MSCKF VIO on simulated MH_01_easy"),
+    "run_log_off": Case(_full_run(False), None, "full pipeline on simulated MH_01_easy, --no-log"),
+    "run_log_on": Case(_full_run(True), "run_log_off", "full pipeline with rerun logging (ratio = overhead)"),
+    "table1_jobs1": Case(_table1_jobs(1), None, "table1, 2 seeds, 60 s, --jobs 1"),
+    "table1_jobs2": Case(
+        _table1_jobs(2), "table1_jobs1", "table1, 2 seeds, 60 s, --jobs 2 (ratio = 1/speed-up)"
+    ),
+    "growth_a1_x1": Case(_growth(1, 1), None, "full pipeline, 1 anchor, 1x length"),
+    "growth_a4_x1": Case(_growth(4, 1), "growth_a1_x1", "4 anchors"),
+    "growth_a16_x1": Case(_growth(16, 1), "growth_a1_x1", "16 anchors"),
+    "growth_a4_x2": Case(_growth(4, 2), "growth_a4_x1", "4 anchors, 2x length"),
+    "growth_a4_x4": Case(_growth(4, 4), "growth_a4_x1", "4 anchors, 4x length"),
 }
 
 
 def _main(argv: list[str]) -> int:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     name = argv[0]
     quick = "--quick" in argv
     with tempfile.TemporaryDirectory(prefix=f"uwbcal-bench-{name}-") as tmp:
         t0 = time.perf_counter()
         data_s, extra = CASES[name].fn(Path(tmp), quick)
-        wall = time.perf_counter() - t0
+        # a case may time only its own part (e.g. without simulating its input)
+        wall = extra.pop("timed_s", None) or (time.perf_counter() - t0)
     self_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     child_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     print(
