@@ -155,8 +155,7 @@ class Pipeline:
             est.run(self._features_reader(), win.start_ns, win.init_end_ns, log=log)
             self.dir.save_pickle("checkpoint_init.pkl", est)
             est.run(self._features_reader(), win.init_end_ns, win.end_ns, log=log)
-            hist = est.history().arrays()
-            self._log_trajectory(log, "vio", hist)
+            hist = est.history().arrays()  # the estimators log world/vio themselves
         self.dir.save_npz("vio.npz", **hist)
         self._write_odometry("vio.mcap", hist)
         self._assemble_trajectory()

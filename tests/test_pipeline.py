@@ -65,6 +65,23 @@ def test_run_rrd_has_every_stage(run_dir):
         assert f"world/anchors/{a}/ri" in s.static and f"world/anchors/{a}/truth" in s.static
         assert f"uwb/{a}/residual" in paths and f"world/anchors/{a}/estimate" in paths
     assert "sensor_time" in s.timelines and "stage" in s.timelines
+    # counts against what the run computed: one VIO pose row per estimate, one residual per range processed
+    import numpy as np
+
+    # (the filter logs world/vio in every stage it runs: vio over everything, then refine and localize again)
+    n_poses = 0
+    for name in ("vio", "refine", "localize"):
+        with np.load(run_dir / f"{name}.npz") as z:
+            n_poses += len(z["t_ns"])
+    assert s.rows["world/vio/pose"] == n_poses
+    stages = json.loads((run_dir / "stages.json").read_text())
+    n_refine = sum(int(w) for w in stages["refine"]["summary"].split(":")[1].split()[0:1])
+    n_rej = int(stages["refine"]["summary"].split(", ")[1].split()[0])
+    n_loc = int(stages["localize"]["summary"].split(": ")[1].split()[0])
+    n_loc_rej = int(stages["localize"]["summary"].split(", ")[1].split()[0])
+    residuals = sum(s.rows[f"uwb/{a}/residual"] for a in range(4))
+    assert residuals == n_refine + n_rej + n_loc + n_loc_rej
+    assert s.timelines_by_entity["uwb/0/residual"] >= {"sensor_time", "stage"}
 
 
 def test_stage_rerun_alone_keeps_other_artefacts(run_dir, sim):
