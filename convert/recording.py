@@ -325,7 +325,7 @@ class RecordingWriter:
 
     def set_metadata(self, name: str, data: dict) -> None:
         """Store ``data`` as the MCAP metadata record ``name`` (``{"json": ...}``); the last call wins."""
-        json.dumps(data, default=_json_default)  # fail here, not at close
+        json.dumps(data, default=json_default)  # fail here, not at close
         self._metadata[name] = data
 
     # -- lifecycle -----------------------------------------------------------------------------------------------
@@ -337,7 +337,7 @@ class RecordingWriter:
                 k: {"start_ns": v[0], "end_ns": v[1]} for k, v in self._spans.items()
             }
             for name, data in self._metadata.items():
-                self._writer.add_metadata(name, {"json": json.dumps(data, default=_json_default)})
+                self._writer.add_metadata(name, {"json": json.dumps(data, default=json_default)})
             self._writer.finish()
             self._file.close()
         except BaseException:
@@ -379,7 +379,8 @@ def _header_msg(t_ns: int, frame_id: str):
     )
 
 
-def _json_default(o: Any) -> Any:
+def json_default(o: Any) -> Any:
+    """``json.dumps(default=...)`` for numpy arrays/scalars and paths (metadata, run-directory JSON)."""
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, np.generic):

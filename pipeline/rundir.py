@@ -11,6 +11,7 @@ import numpy as np
 
 from convert.atomic import atomic_path, write_text_atomic
 from convert.errors import InputError
+from convert.recording import json_default
 
 CONFIG = "config.toml"
 METRICS = "metrics.json"
@@ -43,7 +44,7 @@ class RunDir:
 
     # -- artefacts ---------------------------------------------------------------------------------------------
     def save_json(self, name: str, data: Any) -> None:
-        write_text_atomic(self.path / name, json.dumps(data, indent=2, default=_json_default) + "\n")
+        write_text_atomic(self.path / name, json.dumps(data, indent=2, default=json_default) + "\n")
 
     def load_json(self, name: str) -> Any:
         return json.loads((self.path / name).read_text())
@@ -81,13 +82,3 @@ class RunDir:
 
 def write_text(path: Path, text: str) -> None:
     write_text_atomic(path, text)
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o)}")
