@@ -73,7 +73,8 @@ def reference_anchors(reader: RecordingReader) -> tuple[dict[str, dict], str] | 
     return None, None
 
 
-def evaluate_run(run_dir: Path, align: str | None = None) -> dict:
+def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = None) -> dict:
+    """metrics.json content; ``series`` (if given) receives the per-time NEES arrays for logging."""
     run_dir = Path(run_dir)
     t0 = time.perf_counter()
     rec_path = run_recording_path(run_dir)
@@ -118,6 +119,13 @@ def evaluate_run(run_dir: Path, align: str | None = None) -> dict:
                 metrics["nees_pose"] = summarize_nees(ne.pose, 6)
                 metrics["nees_orientation"] = summarize_nees(ne.orientation, 3)
                 metrics["nees_position"] = summarize_nees(ne.position, 3)
+                if series is not None:
+                    series.update(
+                        t_ns=cmp.t_ns,
+                        nees_pose=ne.pose,
+                        nees_orientation=ne.orientation,
+                        nees_position=ne.position,
+                    )
         metrics["matched_poses"] = int(len(cmp.t_ns))
 
     # -- anchors ---------------------------------------------------------------------------------------------
@@ -214,8 +222,10 @@ def render_metrics(metrics: dict, fmt: str = "md") -> str:
     return "\n\n".join(parts + (["\n".join(lines)] if lines else []))
 
 
-def evaluate_run_cli(run_dir: Path, align: str | None = None, fmt: str = "md") -> str:
-    metrics = evaluate_run(run_dir, align)
+def evaluate_run_cli(
+    run_dir: Path, align: str | None = None, fmt: str = "md", series: dict | None = None
+) -> str:
+    metrics = evaluate_run(run_dir, align, series)
     write_text_atomic(Path(run_dir) / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     text = render_metrics(metrics, fmt)
     write_text_atomic(

@@ -297,10 +297,27 @@ class Pipeline:
     def stage_evaluate(self) -> tuple[str, list[str]]:
         from evaluate.evaluation import evaluate_run_cli
 
+        series: dict = {}
         text = evaluate_run_cli(
-            self.dir.path, align=None if self.config.run.align == "auto" else self.config.run.align
+            self.dir.path,
+            align=None if self.config.run.align == "auto" else self.config.run.align,
+            series=series,
         )
         m = self.dir.load_json(rd.METRICS)
+        if series:
+            from evaluate.consistency import chi2_bounds
+
+            with self.runlog("evaluate") as log:
+                log.stage("evaluate", int(series["t_ns"][0]))
+                for key, dof, entity in (
+                    ("nees_pose", 6, rl.NEES_POSE),
+                    ("nees_position", 3, f"{rl.FILTER}/nees_position"),
+                    ("nees_orientation", 3, f"{rl.FILTER}/nees_orientation"),
+                ):
+                    log.scalars(entity, series["t_ns"], series[key])
+                    log.constant(
+                        f"{entity}_bounds", series["t_ns"], np.array(chi2_bounds(1, dof)), ["lo", "hi"]
+                    )
         parts = []
         if "prmse_m" in m:
             parts.append(f"PRMSE {m['prmse_m'].get('all', float('nan')):.3f} m")

@@ -31,7 +31,16 @@ APP_ID = "uwbcal"
 RUN_KINDS = ("simulation", "euroc", "ntu-viral")
 T_SENSOR = "sensor_time"
 T_STAGE = "stage"
-STAGE_INDEX = {"convert": 0, "recording": 0, "frontend": 1, "vio": 2, "init": 3, "refine": 4, "localize": 5}
+STAGE_INDEX = {
+    "convert": 0,
+    "recording": 0,
+    "frontend": 1,
+    "vio": 2,
+    "init": 3,
+    "refine": 4,
+    "localize": 5,
+    "evaluate": 6,
+}
 
 # -- entity paths (DESIGN §5) ------------------------------------------------------------------------------------
 WORLD = "world"

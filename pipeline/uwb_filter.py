@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.stats import chi2
 
 from convert.errors import InputError
 
@@ -449,6 +450,8 @@ class UwbUpdater:
             t = arr["t_ns"]
             log.scalars(rl.uwb(a, "residual"), t, arr["residual"])
             log.scalars(rl.uwb(a, "nis"), t, arr["nis"])
+            if self.chi2_quantile is not None and len(t):
+                log.constant(rl.uwb(a, "nis_gate"), t, float(chi2.ppf(self.chi2_quantile, 1)), ["gate"])
             log.scalars(rl.uwb(a, "rejected"), t, arr["rejected"].astype(float))
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])

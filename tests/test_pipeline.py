@@ -82,6 +82,10 @@ def test_run_rrd_has_every_stage(run_dir):
     residuals = sum(s.rows[f"uwb/{a}/residual"] for a in range(4))
     assert residuals == n_refine + n_rej + n_loc + n_loc_rej
     assert s.timelines_by_entity["uwb/0/residual"] >= {"sensor_time", "stage"}
+    # consistency plots with their chi2 bounds, NIS with its gate
+    n_gt = json.loads((run_dir / "metrics.json").read_text())["matched_poses"]
+    assert s.rows["filter/nees_pose"] == n_gt and s.rows["filter/nees_pose_bounds"] == 2
+    assert s.rows["uwb/0/nis_gate"] == 4  # refine and localize each draw the gate over their span
 
 
 def test_stage_rerun_alone_keeps_other_artefacts(run_dir, sim):
