@@ -125,7 +125,7 @@ def _table1_jobs(jobs: int):
 
 def _growth(anchors: int, length: float):
     def case(work: Path, quick: bool) -> tuple[float | None, dict]:
-        base = 20.0 if quick else 40.0
+        base = 10.0 if quick else 25.0  # 4x must fit in the 120 s built-in trajectory
         rec = _simulate(work, "g", trajectory=None, duration=base * length, seed=0, n_anchors=anchors)
         timed = _pipeline(rec, work / "run", log=False)
         return _span(rec), {"timed_s": round(timed, 2), "anchors": anchors, "length_x": length}
