@@ -19,6 +19,7 @@ import numpy as np
 import yaml
 
 from .errors import InputError
+from .recording import RangeData
 
 if TYPE_CHECKING:
     import polars as pl
@@ -378,34 +379,17 @@ def default_tags(tag: np.ndarray, antenna: np.ndarray) -> dict[str, dict]:
     return out
 
 
-@dataclass
-class RangeTable:
-    t_ns: np.ndarray
-    tag: np.ndarray
-    antenna: np.ndarray
-    anchor: np.ndarray
-    distance: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.t_ns)
-
-    def take(self, idx: np.ndarray) -> RangeTable:
-        return RangeTable(
-            self.t_ns[idx], self.tag[idx], self.antenna[idx], self.anchor[idx], self.distance[idx]
-        )
-
-
 RANGE_COLUMNS = ("stamp", "tag", "antenna", "anchor", "distance")
 
 
-def read_ranges_csv(path: str | Path) -> tuple[RangeTable, str]:
+def read_ranges_csv(path: str | Path) -> tuple[RangeData, str]:
     """``stamp,tag,antenna,anchor,distance`` (stamp in ns or s); returns the table and the detected unit."""
     path = Path(path)
     df = read_csv_strings(path, RANGE_COLUMNS, what="UWB range CSV")
     if df.height == 0:
         raise InputError(f"{path}: no range rows; expected columns {','.join(RANGE_COLUMNS)}")
     t, unit = to_stamps_ns(path, df, "stamp")
-    return RangeTable(
+    return RangeData(
         t,
         to_int(path, df, "tag"),
         to_int(path, df, "antenna"),
@@ -439,7 +423,7 @@ def order_and_dedup(t_ns: np.ndarray, key: np.ndarray | None, topic: str, drops:
     return order
 
 
-def clean_ranges(r: RangeTable, topic: str, drops: Drops, max_range: float = MAX_RANGE_M) -> RangeTable:
+def clean_ranges(r: RangeData, topic: str, drops: Drops, max_range: float = MAX_RANGE_M) -> RangeData:
     """Drop NaN/inf, negative and absurd (> max_range) distances, sort by time, drop duplicate rows."""
     d = r.distance
     bad_nan = ~np.isfinite(d)
@@ -453,12 +437,12 @@ def clean_ranges(r: RangeTable, topic: str, drops: Drops, max_range: float = MAX
         if mask.any():
             i = int(np.flatnonzero(mask)[0])
             drops.add(topic, reason, int(mask.sum()), f"t={r.t_ns[i]} anchor={r.anchor[i]} d={d[i]}")
-    kept = r.take(np.flatnonzero(~(bad_nan | bad_neg | bad_big)))
+    kept = r.select(np.flatnonzero(~(bad_nan | bad_neg | bad_big)))
     key = np.column_stack([kept.tag, kept.antenna, kept.anchor])
-    return kept.take(order_and_dedup(kept.t_ns, key, topic, drops))
+    return kept.select(order_and_dedup(kept.t_ns, key, topic, drops))
 
 
-def anchors_note(r: RangeTable) -> str:
+def anchors_note(r: RangeData) -> str:
     ids, counts = np.unique(r.anchor, return_counts=True)
     tags = np.unique(r.tag)
     return (
@@ -571,5 +555,5 @@ def pose_covariance(sigma_pos: float = 0.05, sigma_rot_deg: float = 1.0) -> np.n
     return np.diag([sigma_pos**2] * 3 + [s_rot**2] * 3)
 
 
-def write_ranges(writer, r: RangeTable, topic: str) -> None:
+def write_ranges(writer, r: RangeData, topic: str) -> None:
     writer.write_range_batch(r.t_ns, r.tag, r.antenna, r.anchor, r.distance, topic=topic)

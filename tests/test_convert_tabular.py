@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from convert.errors import InputError
-from convert.recording import RecordingReader
-from convert.sources import Drops, RangeTable, clean_ranges, order_and_dedup, parse_antennas, read_tum
+from convert.recording import RangeData, RecordingReader
+from convert.sources import Drops, clean_ranges, order_and_dedup, parse_antennas, read_tum
 from convert.tabular import convert_tabular
 
 T0 = 1_609_059_013_000_000_000
@@ -115,7 +115,7 @@ def test_order_and_dedup_and_clean():
     o = order_and_dedup(t, None, "/x", drops)
     np.testing.assert_array_equal(t[o], [1, 2, 3, 4, 5])
     assert drops.count("/x") == 1 and drops.notes
-    r = RangeTable(
+    r = RangeData(
         np.array([1, 1, 1, 2]),
         np.array([1, 1, 1, 1]),
         np.zeros(4, int),
