@@ -32,3 +32,20 @@ def test_ri_vs_lsi_reproducible_and_parallel_equal(tmp_path):
     (tmp_path / "worse.json").write_text(json.dumps(worse))
     res = runner.invoke(app, ["diff", str(a / "summary.json"), str(tmp_path / "worse.json")])
     assert res.exit_code == 1 and key in res.output
+
+
+def test_table1_cells_on_a_short_simulation(tmp_path):
+    """Every (sigma_I, sigma_U, method) cell runs from one VIO checkpoint per seed; numbers sit beside the paper's."""
+    from evaluate.experiments import _table1
+
+    table, extra = _table1(tmp_path, 1, 1, None, 0, trajectory=None, duration=20.0)
+    assert table.height == 8
+    assert {"prmse_m_ours", "prmse_m_paper", "anchor_error_m_ours", "anchor_error_m_paper"} <= set(
+        table.columns
+    )
+    runs = extra["per_run"]
+    assert runs.height == 8 and set(runs["method"]) == {"ekf", "skf"}
+    assert runs["prmse_m"].is_finite().all() and (runs["anchor_error_m"] > 0).all()
+    # SKF never moves the navigation state: its trajectory is the same for every cell of a seed
+    skf = runs.filter(runs["method"] == "skf")["prmse_m"].to_list()
+    assert max(skf) - min(skf) < 1e-9
