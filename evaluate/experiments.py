@@ -107,7 +107,9 @@ def table1_job(p: dict) -> dict:
             SimConfig(trajectory=p["trajectory"], seed=p["seed"], duration=p.get("duration"), n_anchors=4),
             rec,
         )
-        cfg = load_config(None, {"run": {"recording": str(rec), "log": False, "stages": ["vio"]}})
+        cfg = load_config(
+            None, {"run": {"recording": str(rec), "log": False, "stages": ["vio"], "vio_extent": "init"}}
+        )
         pipe = Pipeline(cfg, Path(tmp) / "run")
         pipe.run(progress=lambda *_: None)
         win = pipe.windows()

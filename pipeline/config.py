@@ -31,6 +31,12 @@ class RunSection(BaseModel):
     refine_window_s: float | None = Field(None, gt=0, description="length of paper stage 2; default 1/3")
     align: Literal["auto", "none", "posyaw", "se3", "sim3"] = "auto"
     log: bool = True
+    vio_extent: Literal["auto", "full", "init"] = Field(
+        "auto",
+        description="auto: the VIO-only pass stops at the end of the initialisation window when refine runs in "
+        "the same invocation (refine and localize carry the filter on); full: always to the end of the data "
+        "(a VIO-only baseline beside the UWB-aided estimate, ~1.6x the VIO cost); init: always stop there",
+    )
 
     @field_validator("stages")
     @classmethod

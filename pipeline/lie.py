@@ -8,6 +8,8 @@ Conventions used across uwbcal:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 _EPS = 1e-10
@@ -29,6 +31,8 @@ def skew(v: np.ndarray) -> np.ndarray:
 def exp_so3(w: np.ndarray) -> np.ndarray:
     """Rodrigues' formula for (3,) or (N, 3) rotation vectors."""
     w = np.asarray(w, dtype=float)
+    if w.shape == (3,):  # the filter's hot path: scalar arithmetic beats broadcasting on one vector
+        return _exp_so3_one(float(w[0]), float(w[1]), float(w[2]))
     theta = np.linalg.norm(w, axis=-1)[..., None, None]
     K = skew(w)
     small = theta < 1e-7
@@ -36,6 +40,22 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(th) / th)
     b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
     return np.eye(3) + a * K + b * (K @ K)
+
+
+def _exp_so3_one(x: float, y: float, z: float) -> np.ndarray:
+    t2 = x * x + y * y + z * z
+    if t2 < 1e-14:
+        a, b = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0
+    else:
+        t = math.sqrt(t2)
+        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
+    return np.array(
+        [
+            [1.0 - b * (y * y + z * z), b * x * y - a * z, b * x * z + a * y],
+            [b * x * y + a * z, 1.0 - b * (x * x + z * z), b * y * z - a * x],
+            [b * x * z - a * y, b * y * z + a * x, 1.0 - b * (x * x + y * y)],
+        ]
+    )
 
 
 def log_so3(R: np.ndarray) -> np.ndarray:

@@ -51,6 +51,7 @@ class Pipeline:
         self.dir = rd.RunDir(run_dir)
         self.recording = Path(config.run.recording)
         self._reader: RecordingReader | None = None
+        self._stages = list(config.run.stages)  # this invocation's stages (run() narrows it)
 
     # -- shared helpers ----------------------------------------------------------------------------------------
     @property
@@ -105,6 +106,7 @@ class Pipeline:
     # -- driver ------------------------------------------------------------------------------------------------
     def run(self, stages: list[str] | None = None, progress=print) -> list[StageResult]:
         stages = stages or list(self.config.run.stages)
+        self._stages = list(stages)
         self.dir.path.mkdir(parents=True, exist_ok=True)
         rd.write_text(self.dir.file(rd.CONFIG), self.config.to_toml())
         results = []
@@ -154,14 +156,18 @@ class Pipeline:
             self._log_groundtruth(log)
             est.run(self._features_reader(), win.start_ns, win.init_end_ns, log=log)
             self.dir.save_pickle("checkpoint_init.pkl", est)
-            est.run(self._features_reader(), win.init_end_ns, win.end_ns, log=log)
+            extent = self.config.run.vio_extent
+            vio_only_to_end = extent == "full" or (extent == "auto" and "refine" not in self._stages)
+            if vio_only_to_end:
+                est.run(self._features_reader(), win.init_end_ns, win.end_ns, log=log)
             hist = est.history().arrays()  # the estimators log world/vio themselves
         self.dir.save_npz("vio.npz", **hist)
         self._write_odometry("vio.mcap", hist)
         self._assemble_trajectory()
         warns = list(getattr(est, "warnings", []))
+        t_end = win.end_ns if vio_only_to_end else win.init_end_ns
         return (
-            f"{self.pose_source()}: {len(hist['t_ns'])} poses over {(win.end_ns - win.start_ns) * 1e-9:.1f} s",
+            f"{self.pose_source()}: {len(hist['t_ns'])} poses over {(t_end - win.start_ns) * 1e-9:.1f} s",
             warns,
         )
 

@@ -9,7 +9,8 @@ choice of variables whose gain is zeroed.
 
 from __future__ import annotations
 
-import copy
+import dataclasses
+import functools
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
@@ -136,7 +137,7 @@ class State:
         return self._fej[name] if self.use_fej else self._values[name]
 
     def set_fej(self, name: str, value: Value) -> None:
-        self._fej[name] = copy.deepcopy(value)
+        self._fej[name] = dataclasses.replace(value)  # __post_init__ copies the arrays
 
     def cov(self, name: str, other: str | None = None) -> np.ndarray:
         return self.P[self._slices[name], self._slices[other or name]]
@@ -170,7 +171,7 @@ class State:
         self.P = P
         self._names.append(name)
         self._values[name] = value
-        self._fej[name] = copy.deepcopy(value)
+        self._fej[name] = dataclasses.replace(value)  # __post_init__ copies the arrays
         self._reindex()
 
     def augment(
@@ -257,6 +258,11 @@ class State:
                 self._values[n] = self._values[n].boxplus(dx[sl])
 
 
+@functools.lru_cache(maxsize=4096)
+def _chi2_gate(quantile: float, dof: int) -> float:
+    return float(chi2.ppf(quantile, dof))
+
+
 def ekf_update(
     state: State,
     H: Mapping[str, np.ndarray],
@@ -295,7 +301,7 @@ def ekf_update(
         raise FloatingPointError(f"innovation covariance not positive definite ({m} rows)") from exc
     y = np.linalg.solve(cho, r)
     nis = float(y @ y)
-    gate = float(chi2.ppf(chi2_gate, m)) if chi2_gate is not None else None
+    gate = _chi2_gate(chi2_gate, m) if chi2_gate is not None else None
     if gate is not None and nis > gate:
         return UpdateResult(False, nis, m, gate)
     # K = P H^T S^-1
