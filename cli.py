@@ -241,11 +241,29 @@ def experiment(
     jobs: Annotated[int, typer.Option(min=1, help="Local worker processes.")] = 1,
     scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address.")] = None,
     seed: Annotated[int, typer.Option(help="Base seed.")] = 0,
+    param: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Experiment parameter KEY=VALUE (repeatable), e.g. table1: prior=tuned, duration=60."
+        ),
+    ] = None,
 ) -> None:
     """Run a Monte Carlo experiment (tables, plots, per-run metrics)."""
     from evaluate.experiments import run_experiment
 
-    typer.echo(run_experiment(name.value, output, runs=runs, jobs=jobs, scheduler=scheduler, seed=seed))
+    params = dict(_key_value(p) for p in param or [])
+    typer.echo(
+        run_experiment(
+            name.value, output, runs=runs, jobs=jobs, scheduler=scheduler, seed=seed, params=params
+        )
+    )
+
+
+def _key_value(text: str) -> tuple[str, str]:
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise typer.BadParameter(f"--param {text!r}: expected KEY=VALUE")
+    return key.strip(), value.strip()
 
 
 @app.command()

@@ -49,3 +49,36 @@ def test_table1_cells_on_a_short_simulation(tmp_path):
     # SKF never moves the navigation state: its trajectory is the same for every cell of a seed
     skf = runs.filter(runs["method"] == "skf")["prmse_m"].to_list()
     assert max(skf) - min(skf) < 1e-9
+
+
+def test_experiment_params_are_checked_and_typed(tmp_path):
+    from evaluate.experiments import _experiment_params
+
+    assert _experiment_params("table1", {"prior": "tuned", "duration": "20", "prior_sigma": "0.2"}) == {
+        "prior": "tuned",
+        "duration": 20.0,
+        "prior_sigma": 0.2,
+    }
+    res = runner.invoke(app, ["experiment", "table1", "-o", str(tmp_path / "x"), "--param", "sigma=3"])
+    assert res.exit_code == 2 and "unknown parameter 'sigma'" in res.output
+    assert not (tmp_path / "x").exists()
+    res = runner.invoke(app, ["experiment", "table1", "-o", str(tmp_path / "y"), "--param", "duration=soon"])
+    assert res.exit_code == 2 and "duration='soon' is not a float" in res.output
+    res = runner.invoke(app, ["experiment", "table1", "-o", str(tmp_path / "z"), "--param", "prior=magic"])
+    assert res.exit_code == 2 and "prior='magic'" in res.output
+
+
+def test_table1_prior_modes_differ_only_in_the_filter_belief(tmp_path):
+    """'tuned' and 'fixed' share the seed's anchor perturbation; at sigma_I = prior_sigma they are the same run."""
+    from evaluate.experiments import _table1
+
+    kw = {"trajectory": None, "duration": 15.0}
+    _, fixed = _table1(tmp_path / "f", 1, 1, None, 0, prior="fixed", prior_sigma=0.1, **kw)
+    _, tuned = _table1(tmp_path / "t", 1, 1, None, 0, prior="tuned", **kw)
+    f, t = fixed["per_run"], tuned["per_run"]
+    same = (f["sigma_i"] == 0.1).to_list()
+    assert f.filter(same)["anchor_error_m"].to_list() == t.filter(same)["anchor_error_m"].to_list()
+    assert (
+        f.filter([not s for s in same])["anchor_error_m"].to_list()
+        != t.filter([not s for s in same])["anchor_error_m"].to_list()
+    )
