@@ -356,14 +356,18 @@ def uwb_calibration(
     *,
     gamma_sigma: float = DEFAULT_GAMMA_SIGMA,
     sigma_range: float = DEFAULT_SIGMA_RANGE,
+    beta_sigma: float | None = None,
 ) -> dict:
     """`uwbcal.calibration.uwb`. ranging_bias b: true = measured + b, so with d = beta*|.| + gamma, gamma ~ -b."""
     gamma_mean = -float(np.mean(list(bias.values()))) if bias else 0.0
+    beta = dict(DEFAULT_BETA_PRIOR)
+    if beta_sigma is not None:
+        beta["sigma"] = float(beta_sigma)
     out = {
         "tags": tags,
         "sigma_range": sigma_range,
         "gamma_prior": {"mean": gamma_mean, "sigma": gamma_sigma},
-        "beta_prior": dict(DEFAULT_BETA_PRIOR),
+        "beta_prior": beta,
     }
     if bias and len(set(bias.values())) > 1:
         out["ranging_bias_per_tag"] = {str(k): v for k, v in bias.items()}

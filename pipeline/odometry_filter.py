@@ -15,6 +15,16 @@ i.e. after travelling L metres the position standard deviation is sigma_p_per_sq
 over time). The noise enters in the frame of the increment (body frame at T_{k-1}) for rotation; the position
 noise is isotropic, so its frame does not matter.
 
+That ``drift`` model fits dead-reckoning odometry (VIO, wheel or lidar odometry without a map), whose error
+grows without bound. A SLAM output expressed in the world frame of the calibration (NTU-VIRAL SLICT: the anchors
+are published in its frame) has a *bounded* error: it stays near the message covariance (SLICT vs the Leica
+prism: 3 cm RMS, correlation ~5-10 s), while the drift model lets the filter believe it grows to metres. The
+``bounded`` model treats the odometry's error as a first-order Gauss-Markov process around the odometry,
+with stationary covariance P_ss (the message covariance, else the initial sigmas) and correlation time tau:
+world-frame errors decay as e_k+1 = phi e_k + w, phi = exp(-dt / tau), Q = (1 - phi^2) P_ss. An estimate
+corrected by UWB updates relaxes back to the odometry with the same factor. ``auto`` takes the model from the
+recording's calibration (``odometry.error_model``), else ``drift``.
+
 Between odometry messages the pose at a range stamp is the SE(3) interpolation of the increment,
 ``T(t) = T_{k-1} Exp(s Log(T_{k-1}^-1 T_k))`` with ``s = (t - t_{k-1}) / (t_k - t_{k-1})``; the next increment
 starts from the interpolated odometry pose, so interpolation never changes where the filter ends up.
@@ -25,7 +35,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -69,6 +79,14 @@ class OdometryFilterConfig(BaseModel):
         False, description="take the initial covariance from the first message instead of the sigmas"
     )
     gap_warn_s: float = Field(1.0, gt=0, description="warn about odometry gaps longer than this")
+    error_model: Literal["auto", "drift", "bounded"] = Field(
+        "auto",
+        description="drift: random walk (odometry); bounded: Gauss-Markov around a SLAM output in the world "
+        "frame; auto: calibration odometry.error_model, else drift",
+    )
+    correlation_time_s: float | None = Field(
+        None, gt=0, description="bounded model: error correlation time [s]; default calibration or 10 s"
+    )
 
 
 @dataclass
@@ -205,6 +223,30 @@ def increment_noise(config: OdometryFilterConfig, dR: np.ndarray, dp: np.ndarray
     return np.diag([q_th] * 3 + [q_p] * 3)
 
 
+def bounded_step(
+    R_ref: np.ndarray,
+    p_ref: np.ndarray,
+    R_x: np.ndarray,
+    p_x: np.ndarray,
+    R_odom: np.ndarray,
+    p_odom: np.ndarray,
+    phi: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bounded (Gauss-Markov) model: the estimate's offset from the odometry at the reference stamp, expressed
+    as world-frame errors, decays by ``phi``; returns (R_new, p_new, F) with F the error-state transition
+    (``[dtheta_body, dp]``: dtheta' = phi dR^T dtheta, dp' = phi dp; no position-from-attitude coupling, the SLAM
+    error does not accumulate)."""
+    dR = R_ref.T @ R_odom
+    theta = _so3_log(R_ref.T @ R_x)  # body-frame offset of the estimate at the reference stamp
+    theta_new = phi * (dR.T @ theta)
+    R_new = R_odom @ _exp(theta_new)
+    p_new = p_odom + phi * (p_x - p_ref)
+    F = np.zeros((6, 6))
+    F[0:3, 0:3] = phi * dR.T
+    F[3:6, 3:6] = phi * np.eye(3)
+    return R_new, p_new, F
+
+
 def clean_odometry(
     t_ns: np.ndarray,
     p: np.ndarray,
@@ -238,15 +280,34 @@ def clean_odometry(
     return t_ns[keep], quat_to_rot(q_xyzw[idx]), np.asarray(p, float)[idx], cov
 
 
+def resolve_error_model(config: OdometryFilterConfig, calibration: dict | None) -> tuple[str, float]:
+    """(error model, correlation time [s]): config, else the recording's calibration ``odometry`` section."""
+    odo = ((calibration or {}).get("odometry") or {}) if isinstance(calibration, dict) else {}
+    model = config.error_model
+    if model == "auto":
+        model = str(odo.get("error_model") or "drift")
+        if model not in ("drift", "bounded"):
+            raise InputError(f"calibration: odometry.error_model {model!r}; expected drift or bounded")
+    tau = config.correlation_time_s or float(odo.get("correlation_time_s") or 10.0)
+    return model, tau
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # the estimator
 # ---------------------------------------------------------------------------------------------------------------
 class OdometryEstimator:
     """External-odometry pose source (Estimator protocol); state variable ``"imu"`` is a `Pose`."""
 
-    def __init__(self, config: OdometryFilterConfig | None = None, source: str = "recording") -> None:
+    def __init__(
+        self,
+        config: OdometryFilterConfig | None = None,
+        source: str = "recording",
+        calibration: dict | None = None,
+    ) -> None:
         self.config = config or OdometryFilterConfig()
         self.source = source
+        self.error_model, self.correlation_time_s = resolve_error_model(self.config, calibration)
+        self._P_ss: np.ndarray | None = None  # bounded model: stationary covariance (latest message)
         self.state = State(use_fej=False)
         self.t_ns = -1
         self.initialized = False
@@ -273,7 +334,7 @@ class OdometryEstimator:
                 f"{src}: no '{config.topic}' messages (topics: {have}); the odometry pose source needs an "
                 "external odometry (convert with poses, or use the MSCKF with IMU + camera)"
             )
-        return cls(config, src)
+        return cls(config, src, getattr(reader, "calibration", None))
 
     @property
     def warnings(self) -> list[str]:
@@ -287,33 +348,62 @@ class OdometryEstimator:
         return self.state.value(IMU)
 
     # -- filter steps ----------------------------------------------------------------------------------------------
+    def _config_P0(self) -> np.ndarray:
+        c = self.config
+        return np.diag([np.radians(c.initial_sigma_theta_deg) ** 2] * 3 + [c.initial_sigma_p**2] * 3)
+
+    def _stationary(self, cov_ros: np.ndarray | None) -> np.ndarray:
+        """Bounded model: the message covariance (ours order) when it has one, else the initial sigmas."""
+        if cov_ros is not None and np.all(np.diag(cov_ros) > 0):
+            return np.asarray(cov_ros, float)[np.ix_(_ROS_TO_OURS, _ROS_TO_OURS)]
+        return self._config_P0()
+
     def initialize(self, t_ns: int, R: np.ndarray, p: np.ndarray, cov_ros: np.ndarray | None = None) -> None:
         c = self.config
-        if c.initial_from_message and cov_ros is not None and np.any(np.diag(cov_ros) > 0):
+        if self.error_model == "bounded":
+            P0 = self._P_ss = self._stationary(cov_ros)
+        elif c.initial_from_message and cov_ros is not None and np.any(np.diag(cov_ros) > 0):
             P0 = np.asarray(cov_ros, float)[np.ix_(_ROS_TO_OURS, _ROS_TO_OURS)]
         else:
-            P0 = np.diag([np.radians(c.initial_sigma_theta_deg) ** 2] * 3 + [c.initial_sigma_p**2] * 3)
+            P0 = self._config_P0()
         self.state.add(IMU, Pose(R, p), P0)
         self._R_ref, self._p_ref = np.array(R, float), np.array(p, float)
         self.t_ns = int(t_ns)
         self.initialized = True
 
-    def advance(self, t_ns: int, R_odom: np.ndarray, p_odom: np.ndarray) -> None:
-        """Apply the odometry increment from the reference pose to ``(R_odom, p_odom)`` at ``t_ns``."""
-        dR, dp = relative(self._R_ref, self._p_ref, R_odom, p_odom)
+    def advance(
+        self, t_ns: int, R_odom: np.ndarray, p_odom: np.ndarray, cov_ros: np.ndarray | None = None
+    ) -> None:
+        """Apply the odometry increment from the reference pose to ``(R_odom, p_odom)`` at ``t_ns``
+        (``cov_ros``: that message's covariance, used by the bounded model)."""
         x = self.state.value(IMU)
+        if self.error_model == "bounded":
+            if cov_ros is not None:
+                self._P_ss = self._stationary(cov_ros)
+            P_ss = self._P_ss if self._P_ss is not None else self._config_P0()
+            phi = math.exp(-max(t_ns - self.t_ns, 0) * 1e-9 / self.correlation_time_s)
+            R_new, p_new, F = bounded_step(self._R_ref, self._p_ref, x.R, x.p, R_odom, p_odom, phi)
+            self._propagate(F, (1.0 - phi * phi) * P_ss)
+            self.state.set_value(IMU, Pose(R_new, p_new))
+            self._R_ref, self._p_ref = np.array(R_odom, float), np.array(p_odom, float)
+            self.t_ns = int(t_ns)
+            return
+        dR, dp = relative(self._R_ref, self._p_ref, R_odom, p_odom)
         F, G = compose_jacobians(x.R, dR, dp)
         Q = G @ increment_noise(self.config, dR, dp, (t_ns - self.t_ns) * 1e-9) @ G.T
+        self._propagate(F, Q)
+        R_new, p_new = compose(x.R, x.p, dR, dp)
+        self.state.set_value(IMU, Pose(R_new, p_new))
+        self._R_ref, self._p_ref = np.array(R_odom, float), np.array(p_odom, float)
+        self.t_ns = int(t_ns)
+
+    def _propagate(self, F: np.ndarray, Q: np.ndarray) -> None:
         sl = self.state.slice(IMU)
         P = self.state.P
         P[sl, :] = F @ P[sl, :]
         P[:, sl] = P[:, sl] @ F.T
         P[sl, sl] += Q
         self.state.P = 0.5 * (P + P.T)
-        R_new, p_new = compose(x.R, x.p, dR, dp)
-        self.state.set_value(IMU, Pose(R_new, p_new))
-        self._R_ref, self._p_ref = np.array(R_odom, float), np.array(p_odom, float)
-        self.t_ns = int(t_ns)
 
     def _record(self) -> None:
         x = self.state.value(IMU)
@@ -385,7 +475,7 @@ class OdometryEstimator:
                 if t[i] - self.t_ns > gap_ns:
                     self.stats.gaps += 1
                     self.stats.max_gap_s = max(self.stats.max_gap_s, (t[i] - self.t_ns) * 1e-9)
-                self.advance(int(t[i]), Rs[i], ps[i])
+                self.advance(int(t[i]), Rs[i], ps[i], covs[i])
                 self.stats.messages += 1
                 self._record()
                 i += 1
@@ -448,7 +538,9 @@ __all__ = [
     "clean_odometry",
     "compose",
     "compose_jacobians",
+    "bounded_step",
     "increment_noise",
+    "resolve_error_model",
     "relative",
     "se3_exp",
     "se3_interpolate",

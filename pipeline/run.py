@@ -95,6 +95,32 @@ class Pipeline:
             start, end, self.config.run.init_window_s, self.config.run.refine_window_s, str(self.recording)
         )
 
+    def resolve_auto(self) -> None:
+        """Recording-aware defaults, resolved before the config is written (so config.toml states them).
+
+        - ``uwb.init_method = "auto"``: ri-robust on real recordings, ri on simulated ones;
+        - windows, when not given and the poses come from an odometry with a *bounded* error (a SLAM output in
+          the world frame, calibration ``odometry.error_model = "bounded"``, e.g. NTU-VIRAL SLICT): the thirds
+          of the paper exist so that a drifting VIO is calibrated before it drifts; a bounded pose source does
+          not drift, and the anchors need most of the flight to be observed (NTU-VIRAL: the first third leaves
+          them 0.2-0.8 m off, the first two thirds within ~0.2 m). Default: init over the first 2/3, refine over
+          the rest, no localisation segment.
+        """
+        from .odometry_filter import resolve_error_model
+        from .uwb_filter import auto_init_method
+
+        uwb = self.config.uwb
+        if uwb.init_method == "auto":
+            uwb.init_method = auto_init_method(self.reader.source.get("dataset"))  # type: ignore[assignment]
+        run = self.config.run
+        if run.init_window_s is None and run.refine_window_s is None and self.pose_source() == "odometry":
+            model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
+            if model == "bounded":
+                win = self.windows()
+                span = (win.end_ns - win.start_ns) * 1e-9
+                run.init_window_s = round(span * 2.0 / 3.0, 3)
+                run.refine_window_s = round(span - run.init_window_s + 1.0, 3)
+
     def pose_source(self) -> str:
         choice = self.config.run.pose_source
         if choice != "auto":
@@ -107,6 +133,7 @@ class Pipeline:
     def run(self, stages: list[str] | None = None, progress=print) -> list[StageResult]:
         stages = stages or list(self.config.run.stages)
         self._stages = list(stages)
+        self.resolve_auto()
         self.dir.path.mkdir(parents=True, exist_ok=True)
         rd.write_text(self.dir.file(rd.CONFIG), self.config.to_toml())
         results = []
@@ -238,9 +265,11 @@ class Pipeline:
                 r,
                 sigma_range=sigma,
                 gamma_prior=cfg.gamma_prior(cal),
-                beta_sigma=cfg.beta_sigma,
+                beta_sigma=cfg.beta_prior(cal)[1],
+                beta_prior=cfg.init_beta_prior(cal),
             )
-        updater = UwbUpdater.from_config(cfg, cal)
+        inflation = {a: float(getattr(r, "noise_inflation", 1.0)) for a, r in results.items() if r.ok}
+        updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
         with self.runlog("refine") as log:
             log.stage("refine", win.init_end_ns)
             est.run(self._features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log)
@@ -257,7 +286,14 @@ class Pipeline:
         self.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
         self._write_odometry("refine.mcap", {k: v[seg] for k, v in hist.items()})
         names = [n for n in est.state.names if n.startswith("anchor/")]
-        states = {n.split("/", 1)[1]: {"x": est.state.value(n).x, "P": est.state.cov(n)} for n in names}
+        states = {
+            n.split("/", 1)[1]: {
+                "x": est.state.value(n).x,
+                "P": est.state.cov(n),
+                "noise_inflation": inflation.get(_anchor_key(n.split("/", 1)[1]), 1.0),
+            }
+            for n in names
+        }
         self.dir.save_json("anchor_states.json", states)
         label = f"{cfg.init_method}+{cfg.refine_method}"
         self._write_anchors(
@@ -279,11 +315,10 @@ class Pipeline:
             return "no data left after refinement; skipped", []
         est = self.dir.load_pickle("checkpoint_refine.pkl", "localize")
         states = self.dir.load_json("anchor_states.json")
-        anchors = {
-            int(a) if str(a).lstrip("-").isdigit() else a: np.asarray(s["x"]) for a, s in states.items()
-        }
+        anchors = {_anchor_key(a): np.asarray(s["x"]) for a, s in states.items()}
+        inflation = {_anchor_key(a): float(s.get("noise_inflation", 1.0)) for a, s in states.items()}
         updater = UwbUpdater.from_config(
-            self.config.uwb, self.reader.calibration, mode="frozen", anchors=anchors
+            self.config.uwb, self.reader.calibration, mode="frozen", anchors=anchors, inflation=inflation
         )
         with self.runlog("localize") as log:
             log.stage("localize", win.refine_end_ns)
@@ -446,6 +481,11 @@ class Pipeline:
 INIT_METHODS = ("lsi", "ri", "ri-robust")
 
 
+def _anchor_key(a):
+    """Anchor ids are ints in the recording and strings in JSON."""
+    return int(a) if str(a).lstrip("-").isdigit() else a
+
+
 def _init_summary(r) -> dict:
     out = {
         "status": r.status,
@@ -454,6 +494,7 @@ def _init_summary(r) -> dict:
         "iterations": r.iterations,
         "n_used": r.n_used,
         "n_rejected": r.n_rejected,
+        "noise_inflation": getattr(r, "noise_inflation", 1.0),
         "residual_rms": r.residual_rms,
         "warnings": r.warnings,
         "costs": r.costs,

@@ -271,6 +271,8 @@ def ekf_update(
     *,
     schmidt: Iterable[str] = (),
     chi2_gate: float | None = None,
+    robust: tuple[str, float] | None = None,
+    robust_R: float | None = None,
 ) -> UpdateResult:
     """The one EKF update: ``r = sum_v H[v] dx_v + n``, n ~ N(0, R).
 
@@ -278,7 +280,12 @@ def ekf_update(
     gain rows are zero, so their estimates and their own covariance block stay unchanged, while the
     cross-covariances with the estimated variables are updated. The covariance update is the Joseph form,
     which is exact for any gain, so the zeroed gain needs no special formula. ``chi2_gate`` is a quantile
-    (e.g. 0.95): the update is rejected when the NIS exceeds it.
+    (e.g. 0.95): the update is rejected when the NIS exceeds it. ``robust = (loss, c)`` with loss ``huber`` or
+    ``cauchy`` (one-row updates): instead of a hard gate the innovation covariance is inflated to S / w with the
+    IRLS weight w of the whitened innovation e = r / sqrt(S) (scale ``c`` in sigmas), i.e. R grows by
+    (1/w - 1) S: a large residual still informs, with a bounded (Huber) or vanishing (Cauchy) influence.
+    ``robust_R`` replaces R in the variance that whitens e (e.g. the per-sample noise when R is inflated for
+    time-correlated errors, so that the loss keeps its scale in metres).
     """
     r = np.asarray(r, float).reshape(-1)
     m = r.shape[0]
@@ -304,6 +311,21 @@ def ekf_update(
     gate = _chi2_gate(chi2_gate, m) if chi2_gate is not None else None
     if gate is not None and nis > gate:
         return UpdateResult(False, nis, m, gate)
+    if robust is not None and m == 1:
+        kind, c = robust
+        e = float(np.sqrt(nis))
+        if robust_R is not None:
+            s_w = float(S[0, 0]) - float(R[0, 0]) + float(robust_R)
+            e = abs(float(r[0])) / np.sqrt(max(s_w, 1e-300))
+        if kind == "huber":
+            wt = 1.0 if e <= c else c / e
+        elif kind == "cauchy":
+            wt = 1.0 / (1.0 + (e / c) ** 2)
+        else:
+            raise ValueError(f"unknown robust update loss {kind!r} (huber or cauchy)")
+        if wt < 1.0:
+            S = S / wt
+            cho = cho / np.sqrt(wt)
     # K = P H^T S^-1
     K = np.linalg.solve(cho.T, np.linalg.solve(cho, PHt.T)).T
     schmidt = list(schmidt)

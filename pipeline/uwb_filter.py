@@ -49,7 +49,10 @@ def anchor_var(anchor: Any) -> str:
 class UwbConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    init_method: Literal["lsi", "ri", "ri-robust"] = "ri"
+    init_method: Literal["auto", "lsi", "ri", "ri-robust"] = Field(
+        "auto",
+        description="auto: ri-robust on real recordings (NLOS is the rule there), ri (the paper's) on simulated",
+    )
     refine_method: Literal["ekf", "skf", "none"] = "skf"
     sigma_range: float | None = Field(
         None, gt=0, description="range noise sigma [m]; default calibration or 0.1"
@@ -59,11 +62,24 @@ class UwbConfig(BaseModel):
     )
     init_window_s: float | None = Field(None, gt=0, description="see run.init_window_s (that one wins)")
     refine_window_s: float | None = Field(None, gt=0, description="see run.refine_window_s (that one wins)")
-    chi2_quantile: float | None = Field(0.95, gt=0, lt=1, description="NIS gate of range updates; None: off")
+    chi2_quantile: float | None = Field(
+        0.95, gt=0, lt=1, description="NIS gate of range updates (update_loss gate); None: off"
+    )
+    update_loss: Literal["auto", "gate", "huber", "cauchy"] = Field(
+        "auto",
+        description="range updates: gate (reject NIS > chi2_quantile), or a robust loss on the innovation (R "
+        "inflated by the IRLS weight, scale robust_scale, no hard gate); auto: cauchy with ri-robust, else gate",
+    )
     robust_loss: Literal["huber", "cauchy"] = "cauchy"
     robust_scale: float = Field(0.5, gt=0, description="robust loss scale [m] at the nominal sigma")
     force: bool = Field(False, description="initialise even on a degenerate (rank-deficient) geometry")
-    beta_sigma: float = Field(0.05, gt=0, description="prior sigma of beta (fixed to 1 at init)")
+    beta_sigma: float | None = Field(
+        None, gt=0, description="prior sigma of beta; default calibration uwb.beta_prior.sigma, else 0.05"
+    )
+    estimate_beta: bool = Field(
+        True,
+        description="estimate beta at init under its prior (else fixed to the prior mean, 1 without a prior)",
+    )
     min_ranges: int = Field(20, ge=5, description="fewer ranges in the init window: anchor skipped")
     n_perturbed_starts: int = Field(4, ge=0)
     gamma_prior_mean: float | None = Field(
@@ -74,6 +90,13 @@ class UwbConfig(BaseModel):
     residual_factor: float = Field(
         3.0, gt=1, description="post-fit residual spread > factor x sigma: warning"
     )
+    correlation_block_s: float | None = Field(
+        10.0,
+        gt=0,
+        description="block length [s] of the check for time-correlated range errors at init (batch means); "
+        "its variance factor kappa scales the anchor covariance and the range noise of refine/localize. "
+        "None: off (kappa = 1)",
+    )
 
     def sigma(self, calibration: Mapping | None = None) -> float:
         """The nominal range sigma: config, else calibration uwb.sigma_range, else 0.1 m."""
@@ -81,6 +104,18 @@ class UwbConfig(BaseModel):
             return float(self.sigma_range)
         uwb = (calibration or {}).get("uwb", {}) or {}
         return float(uwb.get("sigma_range") or 0.1)
+
+    def beta_prior(self, calibration: Mapping | None = None) -> tuple[float, float]:
+        """(mean, sigma) of beta: config beta_sigma, else calibration uwb.beta_prior, else (1, 0.05)."""
+        uwb = (calibration or {}).get("uwb", {}) or {}
+        bp = uwb.get("beta_prior") or {}
+        mean = float(bp.get("mean", 1.0))
+        sigma = self.beta_sigma if self.beta_sigma is not None else bp.get("sigma")
+        return mean, float(sigma if sigma else 0.05)
+
+    def init_beta_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
+        """The beta prior the initialiser estimates beta under, or None (beta fixed to 1)."""
+        return self.beta_prior(calibration) if self.estimate_beta else None
 
     def gamma_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
         uwb = (calibration or {}).get("uwb", {}) or {}
@@ -170,13 +205,24 @@ def windows_from_trajectory(
     return out
 
 
+def auto_init_method(dataset: str | None) -> str:
+    """The initialiser ``init_method = "auto"`` stands for: ri-robust on real data (NLOS ranges are the rule:
+    eee_01 anchor 100 throws plain RI off by metres), the paper's ri on simulated recordings."""
+    return "ri" if str(dataset or "simulation").lower() == "simulation" else "ri-robust"
+
+
+def _method(m: str) -> str:
+    return auto_init_method(None) if m == "auto" else m
+
+
 def initialize_anchors(
     windows: Mapping[Any, InitWindow],
     config: UwbConfig,
     calibration: Mapping | None = None,
     method: str | None = None,
 ) -> dict[Any, InitResult]:
-    """Run the configured initialiser on every anchor window."""
+    """Run the configured initialiser on every anchor window (``auto``: see `auto_init_method`; the pipeline
+    resolves it from the recording's source, here it means ri)."""
     sigma = config.sigma(calibration) * config.sigma_scale
     out = {}
     for a, w in windows.items():
@@ -185,17 +231,19 @@ def initialize_anchors(
             w.P_pose[:, 3:6, 3:6] += np.eye(3) * config.pose_sigma_floor_m**2
         out[a] = initialize_anchor(
             w,
-            method or config.init_method,
+            _method(method or config.init_method),
             anchor=str(a),
             sigma_range=sigma,
             gamma_prior=config.gamma_prior(calibration),
-            beta_sigma=config.beta_sigma,
+            beta_sigma=config.beta_prior(calibration)[1],
+            beta_prior=config.init_beta_prior(calibration),
             robust_loss=config.robust_loss,
             robust_scale=config.robust_scale,
             min_ranges=config.min_ranges,
             n_perturbed=config.n_perturbed_starts,
             force=config.force,
             residual_factor=config.residual_factor,
+            correlation_block_s=config.correlation_block_s,
         )
     return out
 
@@ -215,6 +263,7 @@ def anchor_init_covariance(
     sigma_range: float,
     gamma_prior: tuple[float, float] | None,
     beta_sigma: float,
+    beta_prior: tuple[float, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(J, Q) such that x~_U = J e_now + v, v ~ N(0, Q) independent of the filter state.
 
@@ -223,7 +272,9 @@ def anchor_init_covariance(
     x~_(p_a,gamma) = -G^-1 [sum_k H_Bk^T w_k (H_Ak X~_k + h_beta,k beta~ + n_k) + e_gamma eps / s^2],
     G = sum H_Bk^T w_k H_Bk + prior. For the GLS weights this is exactly the invertible block of the paper's QR split
     (x~_U = H_B1^-1 (r_1 - H_A1 X~ - n_1)); written this way it also holds for LSI's unit weights, RI's weights,
-    robust weights, beta fixed at 1 (beta~ ~ N(0, beta_sigma^2), independent) and the gamma prior.
+    robust weights, beta fixed at 1 (beta~ ~ N(0, beta_sigma^2), independent) and the gamma prior. When the
+    initialiser estimated beta (``result.params`` has index 3) the same holds with (p_a, beta, gamma) and the
+    beta prior (``beta_prior``, whose mean error enters like the gamma prior's).
 
     Past poses: the window's poses are no longer in the filter state; only their marginal covariances P_k are
     known. Approximation: in the world frame ([R dtheta, dp]) the pose errors are a random walk up to now,
@@ -238,7 +289,9 @@ def anchor_init_covariance(
     assert w is not None
     n = len(w)
     J = jacobians(w.R, w.p, w.p_T, x)
-    ag = [0, 1, 2, 4]
+    ag = list(getattr(result, "params", (0, 1, 2, 4)))
+    est_beta = 3 in ag
+    na = len(ag)
     HB = J.H_U[:, ag]
     if result.method == "lsi":
         s2 = np.full(n, sigma_range**2)
@@ -246,12 +299,17 @@ def anchor_init_covariance(
         s2, _ = range_variance(w.R, w.p, w.p_T, x, w.P_pose, sigma_range**2)
     wk = (result.weights if result.weights is not None else np.ones(n)) / s2
     G = (HB * wk[:, None]).T @ HB
+    priors = []  # (column in theta, sigma)
     if gamma_prior is not None:
-        G[3, 3] += 1.0 / gamma_prior[1] ** 2
+        priors.append((na - 1, float(gamma_prior[1])))
+    if est_beta:
+        priors.append((3, float(beta_prior[1] if beta_prior is not None else beta_sigma)))
+    for i, sd in priors:
+        G[i, i] += 1.0 / sd**2
     Ginv = np.linalg.inv(G)
-    L = np.zeros((5, 4))
-    L[ag, range(4)] = 1.0
-    a = (Ginv @ (HB * wk[:, None]).T).T  # (n,4) a_k = G^-1 H_Bk^T w_k
+    L = np.zeros((5, na))
+    L[ag, range(na)] = 1.0
+    a = (Ginv @ (HB * wk[:, None]).T).T  # (n,na) a_k = G^-1 H_Bk^T w_k
     La = a @ L.T  # (n,5)
     # world-frame pose Jacobians and covariances
     HW = J.H_I.copy()
@@ -273,13 +331,15 @@ def anchor_init_covariance(
     P_now = 0.5 * (P_now + P_now.T)
     Jn = np.linalg.solve(P_now.T, C.T).T if np.all(np.isfinite(P_now)) else np.zeros((5, 6))
     cov = cov_pose - Jn @ P_now @ Jn.T
-    cov += sigma_range**2 * (La.T @ La)  # range noise (robust weights are inside a_k)
-    g_beta = np.zeros(5)
-    g_beta[3] = 1.0
-    g_beta -= L @ (a.T @ J.rho)
-    cov += np.outer(g_beta, g_beta) * beta_sigma**2
-    if gamma_prior is not None:
-        gp = L @ Ginv[:, 3] / gamma_prior[1]
+    # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
+    cov += getattr(result, "noise_inflation", 1.0) * sigma_range**2 * (La.T @ La)
+    if not est_beta:
+        g_beta = np.zeros(5)
+        g_beta[3] = 1.0
+        g_beta -= L @ (a.T @ J.rho)
+        cov += np.outer(g_beta, g_beta) * beta_sigma**2
+    for i, sd in priors:  # the error of each prior mean, N(0, sd^2), enters through G^-1 e_i / sd^2
+        gp = L @ Ginv[:, i] / sd
         cov += np.outer(gp, gp)
     return Jn, _psd(cov)
 
@@ -292,6 +352,7 @@ def add_anchor_to_state(
     sigma_range: float,
     gamma_prior: tuple[float, float] | None,
     beta_sigma: float = 0.05,
+    beta_prior: tuple[float, float] | None = None,
     pose_var: str = "imu",
 ) -> None:
     """Add ``anchor/<id>`` = result.x with covariance and cross-covariances (see `anchor_init_covariance`)."""
@@ -307,6 +368,7 @@ def add_anchor_to_state(
         sigma_range=sigma_range,
         gamma_prior=gamma_prior,
         beta_sigma=beta_sigma,
+        beta_prior=beta_prior,
     )
     Jfull = np.zeros((5, state.dim(pose_var)))
     Jfull[:, 0:6] = Jn
@@ -353,6 +415,8 @@ class UwbUpdater:
         chi2_quantile: float | None = 0.95,
         anchors: Mapping[Any, np.ndarray] | None = None,
         pose_var: str = "imu",
+        inflation: Mapping[Any, float] | None = None,
+        robust: tuple[str, float] | None = None,
     ) -> None:
         if mode not in ("ekf", "skf", "none", "frozen"):
             raise ValueError(f"unknown UWB update mode {mode!r}")
@@ -362,6 +426,10 @@ class UwbUpdater:
         self.chi2_quantile = chi2_quantile
         self.frozen = {k: np.asarray(v, float) for k, v in (anchors or {}).items()}
         self.pose_var = pose_var
+        # per-anchor variance factor kappa of time-correlated range errors (from init; 1 when absent)
+        self.inflation = {k: float(v) for k, v in (inflation or {}).items()}
+        # robust update (loss, scale [m]) instead of the chi2 gate
+        self.robust = robust
         self.records: dict[Any, AnchorRecord] = {}
         self.counts = {"accepted": 0, "rejected": 0, "skipped": 0, "recorded": 0}
 
@@ -372,13 +440,20 @@ class UwbUpdater:
         calibration: Mapping,
         mode: str | None = None,
         anchors: Mapping[Any, np.ndarray] | None = None,
+        inflation: Mapping[Any, float] | None = None,
     ) -> UwbUpdater:
+        loss = config.update_loss
+        if loss == "auto":
+            loss = "cauchy" if config.init_method == "ri-robust" else "gate"
+        robust = None if loss == "gate" else (loss, config.robust_scale)
         return cls(
             mode or config.refine_method,  # type: ignore[arg-type]
             lever_arms(calibration),
             sigma_range=config.sigma(calibration) * config.sigma_scale,
-            chi2_quantile=config.chi2_quantile,
+            chi2_quantile=config.chi2_quantile if robust is None else None,
             anchors=anchors,
+            inflation=inflation,
+            robust=robust,
         )
 
     def __call__(self, estimator: Any, meas: RangeMeasurement) -> UpdateResult | None:
@@ -400,7 +475,11 @@ class UwbUpdater:
         J = jacobians(pose.R, pose.p, p_T, x_lin)
         h = jacobians(pose.R, pose.p, p_T, x_cur).h[0]
         r = float(meas.distance - h)
-        R = (self.sigma * x_cur[3]) ** 2
+        R0 = (self.sigma * x_cur[3]) ** 2
+        R = self.inflation.get(meas.anchor, 1.0) * R0
+        robust = None
+        if self.robust is not None:  # scale in sigmas of the per-sample noise, as at init
+            robust = (self.robust[0], self.robust[1] / (self.sigma * x_cur[3]))
         H_imu = np.zeros((1, state.dim(self.pose_var)))
         H_imu[:, 0:6] = J.H_I
         res: UpdateResult | None = None
@@ -422,7 +501,16 @@ class UwbUpdater:
                 schmidt = (
                     [n for n in state.names if not n.startswith("anchor/")] if self.mode == "skf" else []
                 )
-            res = ekf_update(state, H, np.array([r]), R, schmidt=schmidt, chi2_gate=self.chi2_quantile)
+            res = ekf_update(
+                state,
+                H,
+                np.array([r]),
+                R,
+                schmidt=schmidt,
+                chi2_gate=self.chi2_quantile,
+                robust=robust,
+                robust_R=R0,
+            )
             self.counts["accepted" if res.accepted else "rejected"] += 1
         rec = self.records.setdefault(meas.anchor, AnchorRecord())
         rec.t_ns.append(int(meas.t_ns))

@@ -1,13 +1,15 @@
 """Anchor initialisation over the first window (paper stage 1): closed-form start, LSI, RI, RI-robust.
 
-All methods estimate theta = (p_a, gamma) with beta fixed to 1 (paper Sec. III):
+All methods estimate theta = (p_a, gamma) with beta fixed to 1 (paper Sec. III), or theta = (p_a, beta, gamma)
+when a prior on beta is given (``beta_prior``): beta is then estimated under that prior, so that a scale error
+that the window can observe is not forced into p_a and gamma, and the prior keeps it bounded where it cannot.
 
 - ``lsi``: plain least squares, sum_k (d_k - h_k)^2 (the baseline used by VIRO);
 - ``ri``: the paper's robust initialisation, sum_k (d_k - h_k)^2 / Sigma_k with Sigma_k = Q_d + H_Ik P_k H_Ik^T
   re-evaluated at every iterate (iteratively re-weighted Gauss-Newton with Levenberg damping);
 - ``ri-robust``: RI with a Huber or Cauchy loss on the whitened residual (IRLS) against NLOS outliers.
 
-Priors on gamma (and beta, used by the filter only) enter as residuals. Local minima are guarded against by a
+Priors on gamma and beta enter as residuals. Local minima are guarded against by a
 multi-start: the closed-form multilateration, its mirror across the best-fit plane of the trajectory (the classic
 ambiguity of a near-planar flight), the same with gamma fixed to its prior, and a few perturbed starts; the lowest
 final cost wins.
@@ -26,6 +28,7 @@ from .uwb_model import jacobians, range_variance, tag_positions
 
 METHODS_INIT = ("lsi", "ri", "ri-robust")
 _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
+_ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)
 OUTLIER_SIGMAS = 3.0
 
 
@@ -67,12 +70,13 @@ class InitResult:
     anchor: str
     method: str
     status: str  # "ok" | "warning" | "refused" | "skipped"
-    x: np.ndarray  # (5,) [p_a, beta=1, gamma]
-    cov: np.ndarray  # (5,5) inverse information (beta: its prior variance, uncorrelated)
+    x: np.ndarray  # (5,) [p_a, beta, gamma] (beta = 1 unless estimated)
+    cov: np.ndarray  # (5,5) inverse information (beta fixed: its prior variance, uncorrelated)
     costs: list[float] = field(default_factory=list)  # cost per iteration of the winning start
     iterations: int = 0
     n_used: int = 0
     n_rejected: int = 0
+    noise_inflation: float = 1.0  # kappa: variance factor of time-correlated range errors
     residual_rms: float = float("nan")
     residual_robust_sigma: float = float("nan")
     fim: FimReport | None = None
@@ -80,6 +84,7 @@ class InitResult:
     starts: list[dict] = field(default_factory=list)  # label, start, final estimate, final cost
     weights: np.ndarray | None = None  # (N,) robust weights of the window's ranges (1 when not robust)
     window: InitWindow | None = None  # the (cleaned) window the estimate was computed from
+    params: tuple[int, ...] = tuple(_AG)  # indices of x_U that were estimated (beta fixed: _AG)
 
     @property
     def ok(self) -> bool:
@@ -155,15 +160,31 @@ class _Fit:
     r: np.ndarray  # raw residuals
     sigma2: np.ndarray
     weights: np.ndarray
-    info: np.ndarray  # 4x4 Gauss-Newton information incl. priors
+    info: np.ndarray  # Gauss-Newton information incl. priors (4x4, or 5x5 with beta)
 
 
-def _x_u(theta: np.ndarray) -> np.ndarray:
-    return np.array([theta[0], theta[1], theta[2], 1.0, theta[3]])
+def _x_u(theta: np.ndarray, beta: float = 1.0) -> np.ndarray:
+    """x_U from theta = (p_a, gamma) (beta fixed to ``beta``) or (p_a, beta, gamma)."""
+    theta = np.asarray(theta, float)
+    if theta.shape[0] == 5:
+        return theta.copy()
+    return np.array([theta[0], theta[1], theta[2], beta, theta[3]])
 
 
-def _evaluate(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c):
-    x = _x_u(theta)
+def _priors(n: int, gamma_prior, beta_prior) -> list[tuple[int, float, float]]:
+    """(index in theta, mean, sigma) of the priors; beta only when it is estimated (n == 5)."""
+    out = []
+    if gamma_prior is not None:
+        out.append((n - 1, float(gamma_prior[0]), float(gamma_prior[1])))
+    if n == 5 and beta_prior is not None:
+        out.append((3, float(beta_prior[0]), float(beta_prior[1])))
+    return out
+
+
+def _evaluate(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c, beta_prior=None):
+    bfix = float(beta_prior[0]) if beta_prior is not None else 1.0
+    x = _x_u(theta, bfix)
+    idx = _ABG if len(theta) == 5 else _AG
     J = jacobians(w.R, w.p, w.p_T, x)
     r = w.d - J.h
     if weighted:
@@ -173,9 +194,9 @@ def _evaluate(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c):
     e = r / np.sqrt(s2)
     rho, wt = _loss(e, robust, c)
     cost = float(np.sum(rho))
-    if gamma_prior is not None:
-        cost += ((theta[3] - gamma_prior[0]) / gamma_prior[1]) ** 2
-    return cost, J.H_U[:, _AG], r, e, s2, wt
+    for i, m, sd in _priors(len(theta), gamma_prior, beta_prior):
+        cost += ((theta[i] - m) / sd) ** 2
+    return cost, J.H_U[:, idx], r, e, s2, wt
 
 
 def solve_from(
@@ -189,8 +210,10 @@ def solve_from(
     robust_scale: float = 0.5,
     max_iter: int = 50,
     tol: float = 1e-7,
+    beta_prior: tuple[float, float] | None = None,
 ) -> _Fit:
-    """Levenberg-damped iteratively re-weighted Gauss-Newton from ``theta0`` = (p_a, gamma).
+    """Levenberg-damped iteratively re-weighted Gauss-Newton from ``theta0`` = (p_a, gamma), or (p_a, beta, gamma)
+    (then ``beta_prior`` is its prior; with 4 parameters beta is fixed to the prior mean, else 1).
 
     The weights 1/Sigma_k (RI) and the robust weights are re-evaluated at every iterate and held fixed within a
     step; a step is accepted when it lowers the cost. ``robust_scale`` is in metres of range residual at the
@@ -200,7 +223,8 @@ def solve_from(
     c = robust_scale / sigma_range
     theta = np.asarray(theta0, float).copy()
     lam = 1e-4
-    cost, Hu, r, e, s2, wt = _evaluate(w, theta, weighted, s2d, gamma_prior, robust, c)
+    priors = _priors(len(theta), gamma_prior, beta_prior)
+    cost, Hu, r, e, s2, wt = _evaluate(w, theta, weighted, s2d, gamma_prior, robust, c, beta_prior)
     costs = [cost]
     iterations = 0
     for it in range(1, max_iter + 1):
@@ -208,9 +232,9 @@ def solve_from(
         W = wt / s2
         A = (Hu * W[:, None]).T @ Hu
         g = (Hu * W[:, None]).T @ r
-        if gamma_prior is not None:
-            A[3, 3] += 1.0 / gamma_prior[1] ** 2
-            g[3] += (gamma_prior[0] - theta[3]) / gamma_prior[1] ** 2
+        for i, m, sd in priors:
+            A[i, i] += 1.0 / sd**2
+            g[i] += (m - theta[i]) / sd**2
         improved = False
         while lam < 1e12:
             D = np.diag(np.maximum(np.diag(A), 1e-12))
@@ -220,7 +244,7 @@ def solve_from(
                 lam *= 10
                 continue
             cand = theta + step
-            res = _evaluate(w, cand, weighted, s2d, gamma_prior, robust, c)
+            res = _evaluate(w, cand, weighted, s2d, gamma_prior, robust, c, beta_prior)
             if np.isfinite(res[0]) and res[0] <= cost:
                 theta = cand
                 cost, Hu, r, e, s2, wt = res
@@ -233,12 +257,55 @@ def solve_from(
             break
     W = wt / s2
     info = (Hu * W[:, None]).T @ Hu
-    if gamma_prior is not None:
-        info[3, 3] += 1.0 / gamma_prior[1] ** 2
+    for i, _, sd in priors:
+        info[i, i] += 1.0 / sd**2
     return _Fit(theta, cost, costs, iterations, e, r, s2, wt, info)
 
 
 # ---------------------------------------------------------------------------------------------------------------
+def noise_inflation(
+    t_ns: np.ndarray | None,
+    e: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    block_s: float = 10.0,
+    min_blocks: int = 4,
+    quantile: float = 0.99,
+) -> float:
+    """Variance inflation kappa >= 1 for time-correlated range errors, from the post-fit whitened residuals.
+
+    The estimator treats the ranges as independent. Real UWB errors are not: multipath and the antenna pattern
+    make them vary slowly with the geometry (NTU-VIRAL: per-anchor residuals keep correlating over tens of
+    seconds), so N ranges carry far less than N independent ranges' information and the inverse information
+    is over-confident by a factor kappa (anchors 0.3-0.8 m off with a predicted sigma of 3-5 cm). Batch means:
+    with blocks of ``block_s`` seconds holding n_b inlier residuals, kappa = mean(n_b mean_b^2) / mean(e^2),
+    which is chi2(B)/B-distributed around 1 for white errors; it is used only when it exceeds that
+    distribution's ``quantile`` (white noise, as in the simulator, keeps kappa = 1).
+    """
+    e = np.asarray(e, float)
+    if t_ns is None or len(e) < 2 * min_blocks:
+        return 1.0
+    ok = np.isfinite(e)
+    if weights is not None:
+        ok &= np.asarray(weights, float) > 0.5
+    e = e[ok]
+    t = (np.asarray(t_ns, np.int64)[ok] - int(np.min(t_ns))) * 1e-9
+    if len(e) < 2 * min_blocks:
+        return 1.0
+    e = e - e.mean()
+    b = np.floor(t / block_s).astype(np.int64)
+    cnt = np.bincount(b)
+    tot = np.bincount(b, e)
+    m = cnt >= 3
+    nb = int(m.sum())
+    if nb < min_blocks:
+        return 1.0
+    from scipy.stats import chi2
+
+    kappa = float(np.sum(tot[m] ** 2 / cnt[m]) / nb / np.mean(e**2))
+    return kappa if kappa > chi2.ppf(quantile, nb) / nb else 1.0
+
+
 def _clean(w: InitWindow, label: str) -> tuple[InitWindow, list[str]]:
     ok = (
         np.isfinite(w.d)
@@ -264,6 +331,7 @@ def initialize_anchor(
     sigma_range: float = 0.1,
     gamma_prior: tuple[float, float] | None = None,
     beta_sigma: float = 0.05,
+    beta_prior: tuple[float, float] | None = None,
     robust_loss: str = "cauchy",
     robust_scale: float = 0.5,
     min_ranges: int = 20,
@@ -271,12 +339,15 @@ def initialize_anchor(
     force: bool = False,
     seed: int = 0,
     residual_factor: float = 3.0,
+    correlation_block_s: float | None = 10.0,
 ) -> InitResult:
-    """Estimate (p_a, gamma) (beta = 1) of one anchor with ``method`` in lsi | ri | ri-robust.
+    """Estimate (p_a, gamma) (beta = 1, prior sigma ``beta_sigma``) of one anchor with ``method`` in
+    lsi | ri | ri-robust; with ``beta_prior`` (mean, sigma), (p_a, beta, gamma) under that prior.
 
     Returns status "skipped" (too few usable ranges), "refused" (rank-deficient Fisher information and not
     ``force``), "warning" (static/planar window, suspicious post-fit residuals, gamma far from its prior,
-    many outliers) or "ok".
+    many outliers) or "ok". ``correlation_block_s``: block length of the time-correlation check of the residuals
+    (`noise_inflation`; None: off), whose kappa scales the range part of the covariance.
     """
     if method not in METHODS_INIT:
         raise ValueError(f"unknown init method {method!r}; one of {', '.join(METHODS_INIT)}")
@@ -294,7 +365,15 @@ def initialize_anchor(
         gamma_prior=gamma_prior,
         robust=robust,
         robust_scale=robust_scale,
+        beta_prior=beta_prior,
     )
+    est_beta = beta_prior is not None
+    b0 = float(beta_prior[0]) if est_beta else 1.0
+
+    def full(th: np.ndarray) -> np.ndarray:
+        """(p_a, gamma) start -> the solver's theta (with beta at its prior mean when it is estimated)."""
+        return np.r_[th[:3], b0, th[3]] if est_beta else th
+
     xyz = w.tag_xyz
     starts: list[tuple[str, np.ndarray]] = []
     for lbl, cands in (
@@ -303,26 +382,37 @@ def initialize_anchor(
     ):
         for i, th in enumerate(cands):
             if np.all(np.isfinite(th)):
-                starts.append((lbl + ("" if i == 0 else "-mirror"), th))
+                starts.append((lbl + ("" if i == 0 else "-mirror"), full(th)))
     if not starts:
-        starts.append(("centroid", np.r_[xyz.mean(axis=0) + [0, 0, 1.0], 0.0]))
+        starts.append(("centroid", full(np.r_[xyz.mean(axis=0) + [0, 0, 1.0], 0.0])))
     fits = [(lbl, th0, solve_from(w, th0, **kw)) for lbl, th0 in starts]
     rng = np.random.default_rng(seed)
     best = min(fits, key=lambda f: f[2].cost)[2]
     spread = float(np.max(np.ptp(xyz, axis=0)))
     for i in range(n_perturbed):
-        th0 = best.theta + np.r_[rng.normal(0.0, 0.3 * spread + 1.0, 3), 0.0]
+        th0 = best.theta.copy()
+        th0[:3] += rng.normal(0.0, 0.3 * spread + 1.0, 3)
         fits.append((f"perturbed-{i}", th0, solve_from(w, th0, **kw)))
     lbl_best, _, best = min(fits, key=lambda f: f[2].cost)
 
-    x = _x_u(best.theta)
+    x = _x_u(best.theta, b0)
+    idx = _ABG if est_beta else _AG
+    kappa = (
+        noise_inflation(w.t_ns, best.e, best.weights if robust else None, block_s=correlation_block_s)
+        if correlation_block_s
+        else 1.0
+    )
+    prior_info = np.zeros(len(idx))
+    for i, _, sd in _priors(len(idx), gamma_prior, beta_prior):
+        prior_info[i] += 1.0 / sd**2
     cov = np.zeros((5, 5))
-    try:
-        cov_ag = np.linalg.inv(best.info)
+    try:  # the ranges' information shrinks by kappa, the priors' does not
+        cov_est = np.linalg.inv((best.info - np.diag(prior_info)) / kappa + np.diag(prior_info))
     except np.linalg.LinAlgError:
-        cov_ag = np.full((4, 4), np.inf)
-    cov[np.ix_(_AG, _AG)] = cov_ag
-    cov[3, 3] = beta_sigma**2
+        cov_est = np.full((len(idx), len(idx)), np.inf)
+    cov[np.ix_(idx, idx)] = cov_est
+    if not est_beta:
+        cov[3, 3] = beta_sigma**2
 
     outlier = np.abs(best.e) > OUTLIER_SIGMAS
     n_rej = int(outlier.sum())
@@ -345,6 +435,8 @@ def initialize_anchor(
         ],
         weights=best.weights if robust else np.ones(len(w)),
         window=w,
+        params=tuple(idx),
+        noise_inflation=kappa,
     )
     fim = assess_observability(
         w.R,

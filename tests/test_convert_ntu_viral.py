@@ -57,7 +57,7 @@ def test_eee01_folder_every_row_accounted(data_dir, tmp_path):
     assert len(odom.t_ns) == 3976
     assert odom.t_ns[0] == 1609059014168936729
     np.testing.assert_allclose(odom.p[0], [0.010072, -0.003225, 0.001989])
-    np.testing.assert_allclose(np.diag(odom.cov[0]), [0.05**2] * 3 + [np.deg2rad(1.0) ** 2] * 3)
+    np.testing.assert_allclose(np.diag(odom.cov[0]), [0.03**2] * 3 + [np.deg2rad(0.5) ** 2] * 3)
     gt = rec.read_positions()
     assert len(gt.t_ns) == 6616 and gt.t_ns[0] == 1609059060109753943
 
