@@ -49,6 +49,9 @@ TOPIC_IMU = "/imu"
 TOPIC_FEATURES = "/cam0/features"
 TOPIC_RANGE = "/uwb/range"
 TOPIC_GT_POSE = "/groundtruth/pose"
+TOPIC_GT_IMU_BIAS = (
+    "/groundtruth/imu_bias"  # gyro bias as angular velocity, accelerometer bias as acceleration
+)
 
 
 class VioConfig(BaseModel):
@@ -318,7 +321,9 @@ def _truth_biases(truth: dict | None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def groundtruth_state(reader: RecordingReader, t0_ns: int) -> ImuState:
-    """IMU state at ``t0_ns`` from /groundtruth/pose (velocity by central differences) and uwbcal.truth biases."""
+    """IMU state at ``t0_ns`` from /groundtruth/pose (velocity: local quadratic fit) and the biases of
+    /groundtruth/imu_bias (real data, e.g. EuRoC's estimate; interpolated at t0) or of uwbcal.truth (simulation);
+    zero when neither is there."""
     topics = reader.topics()
     if TOPIC_GT_POSE not in topics:
         raise InputError(
@@ -343,6 +348,14 @@ def groundtruth_state(reader: RecordingReader, t0_ns: int) -> ImuState:
     lever = np.asarray(reader.calibration.get("groundtruth", {}).get("lever_arm", [0, 0, 0]), float)
     p = p - R @ lever
     bg, ba = _truth_biases(reader.truth)
+    if TOPIC_GT_IMU_BIAS in topics:
+        b = reader.read_imu(TOPIC_GT_IMU_BIAS)
+        if len(b.t_ns):
+            j = int(np.clip(np.searchsorted(b.t_ns, t0_ns) - 1, 0, max(len(b.t_ns) - 2, 0)))
+            k = min(j + 1, len(b.t_ns) - 1)
+            s = float(np.clip((t0_ns - b.t_ns[j]) / max(b.t_ns[k] - b.t_ns[j], 1), 0.0, 1.0))
+            bg = (1 - s) * b.gyro[j] + s * b.gyro[k]
+            ba = (1 - s) * b.acc[j] + s * b.acc[k]
     return ImuState(R, p, np.asarray(v, float), bg, ba)
 
 
@@ -350,9 +363,15 @@ class MsckfEstimator:
     """The MSCKF pose source (Estimator protocol)."""
 
     def __init__(
-        self, config: VioConfig, camera: Camera, noise: ImuNoise, initial: ImuState | None = None
+        self,
+        config: VioConfig,
+        camera: Camera,
+        noise: ImuNoise,
+        initial: ImuState | None = None,
+        initial_cov: np.ndarray | None = None,
     ) -> None:
         self.config = config
+        self.initial_cov = None if initial_cov is None else np.asarray(initial_cov, float).reshape(15, 15)
         self.camera = camera
         self.noise = noise
         self.state = State(use_fej=config.fej)
@@ -371,14 +390,20 @@ class MsckfEstimator:
     # -- construction ------------------------------------------------------------------------------------------
     @classmethod
     def from_recording(
-        cls, reader: RecordingReader, config: VioConfig | None = None, initial: ImuState | None = None
+        cls,
+        reader: RecordingReader,
+        config: VioConfig | None = None,
+        initial: ImuState | None = None,
+        initial_cov: np.ndarray | None = None,
     ) -> MsckfEstimator:
+        """``initial`` (and its 15x15 covariance ``initial_cov``, e.g. from the static initialiser) replaces
+        the ground-truth initial state; without ``initial_cov`` the vio.sigma_*0 settings are used."""
         config = config or VioConfig()
         src = str(getattr(reader, "path", "recording"))
         calib = reader.calibration
         cam = Camera.from_calibration(calib, "cam0", src)
         noise = ImuNoise.from_calibration(calib, src, config.imu_noise_inflation)
-        est = cls(config, cam, noise, initial)
+        est = cls(config, cam, noise, initial, initial_cov)
         est.source = src
         if initial is None and not config.init_from_groundtruth:
             raise InputError(
@@ -391,7 +416,10 @@ class MsckfEstimator:
         x0 = self.initial if self.initial is not None else groundtruth_state(reader, t0_ns)
         c = self.config
         sig = np.repeat([c.sigma_theta0, c.sigma_p0, c.sigma_v0, c.sigma_bg0, c.sigma_ba0], 3)
-        self.state.add("imu", x0, np.diag(sig**2))
+        P0 = (
+            self.initial_cov if self.initial is not None and self.initial_cov is not None else np.diag(sig**2)
+        )
+        self.state.add("imu", x0, P0)
         self.t_ns = int(t0_ns)
         self.initialized = True
 
@@ -454,15 +482,30 @@ class MsckfEstimator:
     def _detect_static(
         self, t_ns: int, ids: np.ndarray, uv: np.ndarray, imu_t: np.ndarray, gyro: np.ndarray, acc: np.ndarray
     ) -> bool:
-        """Zero velocity over (t_state, t_ns]: small estimated speed, the IMU samples and the estimated velocity
-        pass chi-squared tests of the at-rest model (with the state covariance), and the feature disparity
-        w.r.t. the reference frame is pixel noise (chi-squared on the tracks seen in both; skipped when there
-        are too few tracks). The reference is the last frame that went through the MSCKF (static frames do
-        not replace it), so that a slow drift accumulates disparity instead of hiding below the noise."""
+        """Zero velocity over (t_state, t_ns]?
+
+        Always: the estimated speed is small and v = 0 passes a chi-squared test with the state covariance (a
+        slow constant velocity looks like rest to the IMU). Then, with at least ``zupt_min_features`` tracks in
+        common with the reference frame: their disparity is pixel noise (chi-squared). The reference is the last
+        frame that went through the MSCKF (static frames do not replace it), so that a slow drift accumulates
+        disparity instead of hiding below the noise. With fewer tracks: the IMU samples pass a chi-squared test
+        of the at-rest model. (The IMU test is not required when the images decide: rotor vibration on a MAV
+        standing on the ground, |acc| std ~0.3 m/s^2, is far above the white-noise model.)
+        """
         cfg = self.config
         x = self.state.value("imu")
         if float(np.linalg.norm(x.v)) > cfg.zupt_max_velocity:
             return False
+        im = self.state.slice("imu")
+        v_cov = self.state.P[im, im][6:9, 6:9] + cfg.zupt_sigma_v**2 * np.eye(3)
+        if float(x.v @ np.linalg.solve(v_cov, x.v)) > chi2.ppf(cfg.zupt_chi2_quantile, 3):
+            return False
+        if self._last_frame is not None and len(ids):
+            ids0, uv0 = self._last_frame
+            common, i0, i1 = np.intersect1d(ids0, ids, assume_unique=False, return_indices=True)
+            if len(common) >= cfg.zupt_min_features:
+                d2 = float(((uv[i1] - uv0[i0]) ** 2).sum()) / (2.0 * cfg.pixel_sigma**2)
+                return d2 < chi2.ppf(cfg.zupt_chi2_quantile, 2 * len(common))
         sl = self._imu_samples(self.t_ns, t_ns, imu_t)
         n = sl.stop - sl.start
         if n < 2:
@@ -470,24 +513,10 @@ class MsckfEstimator:
         r, H, var = self._zupt_model(gyro[sl], acc[sl])
         # stacked test without the 6n x 6n matrix: the sample mean carries the state uncertainty, the
         # deviations from it are white: chi2 = sum |r_i - r_mean|^2_R + r_mean^T (H P H^T + R / n)^-1 r_mean
-        im = self.state.slice("imu")
         rm = r.mean(axis=0)
         S = H @ self.state.P[im, im] @ H.T + np.diag(var / n)
         stat = float((((r - rm) ** 2) / var).sum() + rm @ np.linalg.solve(S, rm))
-        if stat > chi2.ppf(cfg.zupt_chi2_quantile, 6 * n):
-            return False
-        # and the hypothesis v = 0 itself (a slow constant velocity looks like rest to the IMU)
-        v_cov = self.state.P[im, im][6:9, 6:9] + cfg.zupt_sigma_v**2 * np.eye(3)
-        if float(x.v @ np.linalg.solve(v_cov, x.v)) > chi2.ppf(cfg.zupt_chi2_quantile, 3):
-            return False
-        if self._last_frame is None or len(ids) == 0:
-            return True
-        ids0, uv0 = self._last_frame
-        common, i0, i1 = np.intersect1d(ids0, ids, assume_unique=False, return_indices=True)
-        if len(common) < cfg.zupt_min_features:
-            return True
-        d2 = float(((uv[i1] - uv0[i0]) ** 2).sum()) / (2.0 * cfg.pixel_sigma**2)
-        return d2 < chi2.ppf(cfg.zupt_chi2_quantile, 2 * len(common))
+        return stat <= chi2.ppf(cfg.zupt_chi2_quantile, 6 * n)
 
     def _zupt(self, t0: int, t1: int, imu_t: np.ndarray, gyro: np.ndarray, acc: np.ndarray) -> None:
         """The zero-velocity update of (t0, t1] through `ekf_update`: the mean of the at-rest residuals (same
