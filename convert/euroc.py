@@ -1,7 +1,9 @@
 """EuRoC MAV -> recording: ASL folder (``mav0/...``) or ROS1 bag (DESIGN §3, §8).
 
 Folder: ``imu0/data.csv`` -> /imu, ``cam{0,1}/data.csv`` + PNGs -> /cam{0,1}/image_raw (pixels as in the PNG),
-``state_groundtruth_estimate0/data.csv`` (or ``--groundtruth`` EuRoC CSV / TUM) -> /groundtruth/pose, and the
+``state_groundtruth_estimate0/data.csv`` (or ``--groundtruth`` EuRoC CSV / TUM) -> /groundtruth/pose (and, from a
+EuRoC CSV, its IMU bias columns b_w, b_a -> /groundtruth/imu_bias, sensor_msgs/Imu with the gyro bias as angular
+velocity and the accelerometer bias as linear acceleration), and the
 ``sensor.yaml`` files -> ``uwbcal.calibration``. Bag: /imu0, /cam{0,1}/image_raw pass through as CDR (topic renamed,
 header stamp as log time), /leica/position -> /groundtruth/position, /vicon/firefly_sbx/firefly_sbx -> body pose.
 """
@@ -21,6 +23,7 @@ from .recording import (
     META_SOURCE,
     TOPIC_CAM0,
     TOPIC_CAM1,
+    TOPIC_GT_IMU_BIAS,
     TOPIC_GT_POSE,
     TOPIC_GT_POSITION,
     TOPIC_IMU,
@@ -204,6 +207,26 @@ def read_groundtruth(path: Path) -> PoseTable:
     return PoseTable(t, v[:, :3], v[:, [4, 5, 6, 3]])
 
 
+def read_groundtruth_biases(path: Path) -> ImuTable | None:
+    """The IMU bias columns (b_w, b_a: columns 11-16) of a EuRoC ground-truth CSV, or None (TUM, fewer columns).
+
+    Returned as an ImuTable: ``gyro`` = gyro bias [rad/s], ``acc`` = accelerometer bias [m/s^2]."""
+    path = Path(path)
+    with open(path) as f:
+        first = next((ln for ln in f if ln.strip() and not ln.startswith("#")), "")
+    if first.count(",") < 16:
+        return None
+    df = read_csv_strings(path, 17, what="EuRoC ground truth CSV with bias columns (b_w, b_a)")
+    cols = df.columns
+    t = to_int(path, df, cols[0])
+    b = np.column_stack([to_float(path, df, c) for c in cols[11:17]])
+    ok = np.isfinite(b).all(axis=1)
+    o = np.argsort(t[ok], kind="stable")
+    t, b = t[ok][o], b[ok][o]
+    keep = np.r_[True, np.diff(t) > 0]
+    return ImuTable(t[keep], b[keep, :3], b[keep, 3:])
+
+
 def read_image(path: Path) -> tuple[np.ndarray | None, bytes]:
     """A PNG as stored (mono8 stays bit-identical); returns (image or None when undecodable, file bytes)."""
     import cv2
@@ -283,6 +306,7 @@ def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = No
         o = order_and_dedup(gt.t_ns, None, TOPIC_GT_POSE, drops)
         gt = PoseTable(gt.t_ns[o], gt.p[o], gt.q_xyzw[o])
         files.append(gt_file)
+    gt_bias = read_groundtruth_biases(gt_file) if gt_file is not None else None
 
     hasher = Hasher(files)
     # one time-ordered event list (kind, row); images are read one at a time when their turn comes
@@ -323,6 +347,8 @@ def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = No
             }
             for c, h in digests.items()
         ]
+        if gt_bias is not None:
+            w.write_imu_batch(gt_bias.t_ns, gt_bias.gyro, gt_bias.acc, topic=TOPIC_GT_IMU_BIAS)
         w.set_metadata(META_CALIBRATION, calibration)
         w.set_metadata(META_SOURCE, source_metadata("euroc", sequence, file_hashes, drops, format="asl"))
         counts = dict(w.counts)
@@ -454,11 +480,14 @@ def convert_bag(path: Path, output: str | Path, groundtruth: Path | None = None)
         routes.pop(BAG_VICON)
         routes.pop(BAG_LEICA)
         files.append(Path(groundtruth))
+    gt_bias = read_groundtruth_biases(Path(groundtruth)) if groundtruth is not None else None
     hasher = Hasher(files)
     with RecordingWriter(output) as w:
         stream_bag(path, w, routes, drops, f"EuRoC {path.name}")
         if gt is not None:
             w.write_pose_batch(gt.t_ns, gt.p, gt.q_xyzw, topic=TOPIC_GT_POSE)
+        if gt_bias is not None:
+            w.write_imu_batch(gt_bias.t_ns, gt_bias.gyro, gt_bias.acc, topic=TOPIC_GT_IMU_BIAS)
         check.report(drops)
         counts = dict(w.counts)
         if TOPIC_GT_POSITION in counts:

@@ -201,6 +201,35 @@ def propagate(
     return Propagation(x1, Phi, Q)
 
 
+def propagate_static(x: ImuState, T: float, noise: ImuNoise, x_fej: ImuState | None = None) -> Propagation:
+    """Propagate ``x`` over ``T`` seconds with the zero-motion model (used while a zero-velocity update holds).
+
+    The IMU measurements of the interval are *not* integrated: they are the zero-velocity update's measurement,
+    and using them twice (propagation and update) would correlate the two. The model is R, v, biases constant,
+    p += v T; the unknown residual motion is white angular rate / acceleration with the IMU's noise densities
+    (continuous-time integration over T). As in `propagate`, the orientation columns of Phi are written in the
+    FEJ form (``R_0, v_0, p_0`` the first estimates at the interval start, ``R_1, v_1, p_1`` the new estimates),
+    so that Phi maps the 4-DoF unobservable subspace exactly; with ``x_fej = x`` they reduce to the true
+    Jacobian (identity / zero).
+    """
+    x0 = x_fej if x_fej is not None else x
+    x1 = ImuState(x.R, x.p + x.v * T, x.v, x.bg, x.ba)
+    Phi = np.eye(15)
+    Phi[0:3, 0:3] = x1.R.T @ x0.R
+    Phi[6:9, 0:3] = -skew(x1.v - x0.v) @ x0.R
+    Phi[3:6, 0:3] = -skew(x1.p - x0.p - x0.v * T) @ x0.R
+    Phi[3:6, 6:9] = T * np.eye(3)
+    Q = np.zeros((15, 15))
+    qa = noise.sigma_a**2
+    Q[0:3, 0:3] = noise.sigma_g**2 * T * np.eye(3)
+    Q[3:6, 3:6] = qa * T**3 / 3.0 * np.eye(3)
+    Q[3:6, 6:9] = Q[6:9, 3:6] = qa * T**2 / 2.0 * np.eye(3)
+    Q[6:9, 6:9] = qa * T * np.eye(3)
+    Q[9:12, 9:12] = noise.sigma_bg**2 * T * np.eye(3)
+    Q[12:15, 12:15] = noise.sigma_ba**2 * T * np.eye(3)
+    return Propagation(x1, Phi, Q)
+
+
 def error_between(x: ImuState, y: ImuState) -> np.ndarray:
     """Error ``dx`` with ``y = x boxplus dx`` (right perturbation on R)."""
     from .lie import log_so3

@@ -34,7 +34,7 @@ from convert.errors import InputError
 
 from .camera import Camera
 from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
-from .imu import ImuNoise, imu_intervals, propagate
+from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
 from .lie import quat_slerp, quat_to_rot, skew
 from .state import ImuState, Pose, State, ekf_update
 
@@ -49,13 +49,16 @@ TOPIC_IMU = "/imu"
 TOPIC_FEATURES = "/cam0/features"
 TOPIC_RANGE = "/uwb/range"
 TOPIC_GT_POSE = "/groundtruth/pose"
+TOPIC_GT_IMU_BIAS = (
+    "/groundtruth/imu_bias"  # gyro bias as angular velocity, accelerometer bias as acceleration
+)
 
 
 class VioConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     fej: bool = Field(True, description="first-estimate Jacobians (keeps the 4-DoF unobservable subspace)")
-    max_clones: int = Field(11, ge=2, description="sliding-window length (clones)")
+    max_clones: int = Field(15, ge=2, description="sliding-window length (clones)")
     pixel_sigma: float = Field(1.0, gt=0, description="feature measurement noise [px]")
     chi2_quantile: float = Field(0.95, gt=0, lt=1, description="per-feature chi-squared gate")
     min_track_length: int = Field(3, ge=2)
@@ -73,7 +76,22 @@ class VioConfig(BaseModel):
     min_depth: float = Field(0.2, gt=0)
     max_depth: float = Field(80.0, gt=0)
     triangulation_iterations: int = Field(5, ge=0)
-    min_parallax_deg: float = Field(0.0, ge=0, description="RMS bearing spread a track needs to be used")
+    min_parallax_deg: float = Field(
+        0.2, ge=0, description="RMS bearing spread a track needs to be used (below: depth is pixel noise)"
+    )
+    zupt: bool = Field(
+        True, description="zero-velocity update when the IMU and the feature disparity say static"
+    )
+    zupt_imu: bool = Field(
+        False,
+        description="ZUPT also uses the IMU-at-rest residuals (w_m - b_g = 0, a_m - b_a + R^T g = 0) and holds "
+        "the pose still instead of integrating the IMU (OpenVINS); off: IMU propagation and v = 0 only",
+    )
+    zupt_chi2_quantile: float = Field(0.99, gt=0, lt=1, description="IMU-at-rest and disparity tests")
+    zupt_noise_inflation: float = Field(3.0, ge=1, description="factor on the IMU noise sigmas in the ZUPT")
+    zupt_sigma_v: float = Field(0.01, gt=0, description="zero-velocity pseudo-measurement sigma [m/s]")
+    zupt_max_velocity: float = Field(0.1, gt=0, description="no ZUPT while the estimated speed exceeds this")
+    zupt_min_features: int = Field(10, ge=1, description="tracks needed for the disparity test")
 
 
 @dataclass
@@ -87,6 +105,8 @@ class VioStats:
     features_used: int = 0
     features_rejected_chi2: int = 0
     features_failed_triangulation: int = 0
+    zupt_updates: int = 0
+    zupt_time_s: float = 0.0
 
     def warnings(self) -> list[str]:
         out = []
@@ -301,7 +321,9 @@ def _truth_biases(truth: dict | None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def groundtruth_state(reader: RecordingReader, t0_ns: int) -> ImuState:
-    """IMU state at ``t0_ns`` from /groundtruth/pose (velocity by central differences) and uwbcal.truth biases."""
+    """IMU state at ``t0_ns`` from /groundtruth/pose (velocity: local quadratic fit) and the biases of
+    /groundtruth/imu_bias (real data, e.g. EuRoC's estimate; interpolated at t0) or of uwbcal.truth (simulation);
+    zero when neither is there."""
     topics = reader.topics()
     if TOPIC_GT_POSE not in topics:
         raise InputError(
@@ -326,6 +348,14 @@ def groundtruth_state(reader: RecordingReader, t0_ns: int) -> ImuState:
     lever = np.asarray(reader.calibration.get("groundtruth", {}).get("lever_arm", [0, 0, 0]), float)
     p = p - R @ lever
     bg, ba = _truth_biases(reader.truth)
+    if TOPIC_GT_IMU_BIAS in topics:
+        b = reader.read_imu(TOPIC_GT_IMU_BIAS)
+        if len(b.t_ns):
+            j = int(np.clip(np.searchsorted(b.t_ns, t0_ns) - 1, 0, max(len(b.t_ns) - 2, 0)))
+            k = min(j + 1, len(b.t_ns) - 1)
+            s = float(np.clip((t0_ns - b.t_ns[j]) / max(b.t_ns[k] - b.t_ns[j], 1), 0.0, 1.0))
+            bg = (1 - s) * b.gyro[j] + s * b.gyro[k]
+            ba = (1 - s) * b.acc[j] + s * b.acc[k]
     return ImuState(R, p, np.asarray(v, float), bg, ba)
 
 
@@ -333,9 +363,15 @@ class MsckfEstimator:
     """The MSCKF pose source (Estimator protocol)."""
 
     def __init__(
-        self, config: VioConfig, camera: Camera, noise: ImuNoise, initial: ImuState | None = None
+        self,
+        config: VioConfig,
+        camera: Camera,
+        noise: ImuNoise,
+        initial: ImuState | None = None,
+        initial_cov: np.ndarray | None = None,
     ) -> None:
         self.config = config
+        self.initial_cov = None if initial_cov is None else np.asarray(initial_cov, float).reshape(15, 15)
         self.camera = camera
         self.noise = noise
         self.state = State(use_fej=config.fej)
@@ -347,19 +383,27 @@ class MsckfEstimator:
         self.stats = VioStats()
         self._history = TrajectoryRecord()
         self._chi2 = chi2.ppf(config.chi2_quantile, np.maximum(np.arange(2 * config.max_clones + 8), 1))
+        self._static: tuple[int, int] | None = None  # (t0, t1): propagate with the zero-motion model in it
+        self._last_frame: tuple[np.ndarray, np.ndarray] | None = None  # ids, pixels: disparity reference
         self.source = "recording"
 
     # -- construction ------------------------------------------------------------------------------------------
     @classmethod
     def from_recording(
-        cls, reader: RecordingReader, config: VioConfig | None = None, initial: ImuState | None = None
+        cls,
+        reader: RecordingReader,
+        config: VioConfig | None = None,
+        initial: ImuState | None = None,
+        initial_cov: np.ndarray | None = None,
     ) -> MsckfEstimator:
+        """``initial`` (and its 15x15 covariance ``initial_cov``, e.g. from the static initialiser) replaces
+        the ground-truth initial state; without ``initial_cov`` the vio.sigma_*0 settings are used."""
         config = config or VioConfig()
         src = str(getattr(reader, "path", "recording"))
         calib = reader.calibration
         cam = Camera.from_calibration(calib, "cam0", src)
         noise = ImuNoise.from_calibration(calib, src, config.imu_noise_inflation)
-        est = cls(config, cam, noise, initial)
+        est = cls(config, cam, noise, initial, initial_cov)
         est.source = src
         if initial is None and not config.init_from_groundtruth:
             raise InputError(
@@ -372,7 +416,10 @@ class MsckfEstimator:
         x0 = self.initial if self.initial is not None else groundtruth_state(reader, t0_ns)
         c = self.config
         sig = np.repeat([c.sigma_theta0, c.sigma_p0, c.sigma_v0, c.sigma_bg0, c.sigma_ba0], 3)
-        self.state.add("imu", x0, np.diag(sig**2))
+        P0 = (
+            self.initial_cov if self.initial is not None and self.initial_cov is not None else np.diag(sig**2)
+        )
+        self.state.add("imu", x0, P0)
         self.t_ns = int(t0_ns)
         self.initialized = True
 
@@ -390,9 +437,12 @@ class MsckfEstimator:
         step = int(self.config.max_propagation_s * 1e9)
         while self.t_ns < t_ns:
             t1 = min(t_ns, self.t_ns + step)
-            dt, w, a = imu_intervals(imu_t, gyro, acc, self.t_ns, t1)
             x = self.state.value("imu")
-            prop = propagate(x, dt, w, a, self.noise, self.state.fej("imu"))
+            if self._static is not None and self._static[0] <= self.t_ns and t1 <= self._static[1]:
+                prop = propagate_static(x, (t1 - self.t_ns) * 1e-9, self.noise, self.state.fej("imu"))
+            else:
+                dt, w, a = imu_intervals(imu_t, gyro, acc, self.t_ns, t1)
+                prop = propagate(x, dt, w, a, self.noise, self.state.fej("imu"))
             sl = self.state.slice("imu")
             P = self.state.P
             P[sl, :] = prop.Phi @ P[sl, :]
@@ -407,6 +457,89 @@ class MsckfEstimator:
         sl = self.state.slice("imu")
         P6 = self.state.P[sl.start : sl.start + 6, sl.start : sl.start + 6]
         self._history.append(self.t_ns, x.R, x.p, P6)
+
+    # -- zero-velocity update ----------------------------------------------------------------------------------
+    def _zupt_model(self, gyro: np.ndarray, acc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-sample residuals (n, 6) of the IMU at rest, their Jacobian (6, 15) and noise variances (6,).
+
+        At rest ``w_m = b_g + n_g`` and ``a_m = b_a - R^T g + n_a``; with ``R = R_hat Exp(dtheta)`` the
+        residual ``[w_m - b_g_hat, a_m - b_a_hat + R_hat^T g]`` is ``[dbg, dba - [R^T g]x dtheta] + n``. The
+        orientation column is taken at the first estimate (FEJ): it has no component along the global yaw.
+        """
+        x = self.state.value("imu")
+        r = np.concatenate([gyro - x.bg, acc - x.ba + x.R.T @ GRAVITY], axis=1)
+        H = np.zeros((6, 15))
+        H[0:3, 9:12] = np.eye(3)
+        H[3:6, 0:3] = -skew(self.state.fej("imu").R.T @ GRAVITY)
+        H[3:6, 12:15] = np.eye(3)
+        k = self.config.zupt_noise_inflation**2 * self.noise.rate_hz  # sigma^2 / dt per sample, inflated
+        var = np.repeat([k * self.noise.sigma_g**2, k * self.noise.sigma_a**2], 3)
+        return r, H, var
+
+    def _imu_samples(self, t0: int, t1: int, imu_t: np.ndarray) -> slice:
+        return slice(int(np.searchsorted(imu_t, t0, "right")), int(np.searchsorted(imu_t, t1, "right")))
+
+    def _detect_static(
+        self, t_ns: int, ids: np.ndarray, uv: np.ndarray, imu_t: np.ndarray, gyro: np.ndarray, acc: np.ndarray
+    ) -> bool:
+        """Zero velocity over (t_state, t_ns]? All of:
+
+        - the estimated speed is small and v = 0 passes a chi-squared test with the state covariance (a slow
+          constant velocity looks like rest to the IMU);
+        - the IMU samples pass a chi-squared test of the at-rest model (with the state covariance);
+        - with at least ``zupt_min_features`` tracks in common with the reference frame, their disparity is
+          pixel noise (chi-squared). The reference is the last frame that went through the MSCKF (static frames
+          do not replace it), so that a slow drift accumulates disparity instead of hiding below the noise.
+
+        The disparity test alone is not enough: with 1 px noise and tracks ~10 m away, slow flight (a few cm/s)
+        passes it (simulated MH_01: false ZUPTs and position ANEES 9.7). The IMU test rejects rotor vibration of
+        a MAV standing on the ground (|acc| std ~0.3 m/s^2, far above the white-noise model), so there the ZUPT
+        only fires in the quieter intervals.
+        """
+        cfg = self.config
+        x = self.state.value("imu")
+        if float(np.linalg.norm(x.v)) > cfg.zupt_max_velocity:
+            return False
+        im = self.state.slice("imu")
+        v_cov = self.state.P[im, im][6:9, 6:9] + cfg.zupt_sigma_v**2 * np.eye(3)
+        if float(x.v @ np.linalg.solve(v_cov, x.v)) > chi2.ppf(cfg.zupt_chi2_quantile, 3):
+            return False
+        sl = self._imu_samples(self.t_ns, t_ns, imu_t)
+        n = sl.stop - sl.start
+        if n < 2:
+            return False
+        r, H, var = self._zupt_model(gyro[sl], acc[sl])
+        # stacked test without the 6n x 6n matrix: the sample mean carries the state uncertainty, the
+        # deviations from it are white: chi2 = sum |r_i - r_mean|^2_R + r_mean^T (H P H^T + R / n)^-1 r_mean
+        rm = r.mean(axis=0)
+        S = H @ self.state.P[im, im] @ H.T + np.diag(var / n)
+        stat = float((((r - rm) ** 2) / var).sum() + rm @ np.linalg.solve(S, rm))
+        if stat > chi2.ppf(cfg.zupt_chi2_quantile, 6 * n):
+            return False
+        if self._last_frame is not None and len(ids):
+            ids0, uv0 = self._last_frame
+            common, i0, i1 = np.intersect1d(ids0, ids, assume_unique=False, return_indices=True)
+            if len(common) >= cfg.zupt_min_features:
+                d2 = float(((uv[i1] - uv0[i0]) ** 2).sum()) / (2.0 * cfg.pixel_sigma**2)
+                return d2 < chi2.ppf(cfg.zupt_chi2_quantile, 2 * len(common))
+        return True
+
+    def _zupt(self, t0: int, t1: int, imu_t: np.ndarray, gyro: np.ndarray, acc: np.ndarray) -> None:
+        """The zero-velocity update of (t0, t1] through `ekf_update`: the mean of the at-rest residuals (same
+        Jacobian for every sample, so the mean carries all their information) and v = 0."""
+        Hz = np.zeros((3, 15))
+        Hz[:, 6:9] = np.eye(3)
+        rz = -self.state.value("imu").v
+        Rz = np.full(3, self.config.zupt_sigma_v**2)
+        if self.config.zupt_imu:
+            sl = self._imu_samples(t0, t1, imu_t)
+            r, H, var = self._zupt_model(gyro[sl], acc[sl])
+            Hz = np.vstack([H, Hz])
+            rz = np.concatenate([r.mean(axis=0), rz])
+            Rz = np.concatenate([var / len(r), Rz])
+        ekf_update(self.state, {"imu": Hz}, rz, np.diag(Rz))
+        self.stats.zupt_updates += 1
+        self.stats.zupt_time_s += (t1 - t0) * 1e-9
 
     # -- camera update -----------------------------------------------------------------------------------------
     def _camera_frame(self, t_ns: int, ids: np.ndarray, uv: np.ndarray, trace: dict | None) -> None:
@@ -565,7 +698,7 @@ class MsckfEstimator:
         f_start = start_ns if first_run else start
         frames = reader.iter_features(TOPIC_FEATURES, f_start, end) if TOPIC_FEATURES in topics else iter(())
         first_record = len(self._history)
-        trace = {k: [] for k in ("t", "used", "rejected", "nis", "points")} if log else None
+        trace = {k: [] for k in ("t", "used", "rejected", "nis", "points", "zupt")} if log else None
         ri = 0
         nr = len(ranges) if ranges is not None else 0
         args = (imu.t_ns, imu.gyro, imu.acc)
@@ -595,11 +728,33 @@ class MsckfEstimator:
                 if t_ns < first_imu:
                     self.stats.frames_before_imu += 1
                 continue
+            t_prev = self.t_ns
+            static = self.config.zupt and self._detect_static(t_ns, ids, uv, *args)
+            self._static = (t_prev, t_ns) if static and self.config.zupt_imu else None
             ranges_until(t_ns - 1)
             self._propagate_to(t_ns, *args)
-            self._camera_frame(t_ns, ids, uv, trace)
+            if static:  # no clone: a static frame adds no parallax, only degenerate feature updates
+                self.stats.frames += 1
+                if not np.isfinite(uv).all(axis=1).any():
+                    self.stats.frames_without_features += 1
+                self._zupt(t_prev, t_ns, *args)
+                if trace is not None:
+                    trace["zupt"].append(t_ns)
+            else:
+                self._camera_frame(t_ns, ids, uv, trace)
+            self._static = None
+            if not static or self._last_frame is None:
+                ok = np.isfinite(uv).all(axis=1) if len(uv) else np.zeros(0, bool)
+                self._last_frame = (ids[ok], uv[ok])
             self._record()
         ranges_until(end - 1)
+        if self.stats.zupt_updates:
+            _log.info(
+                "%s: %d zero-velocity update(s) over %.1f s",
+                src,
+                self.stats.zupt_updates,
+                self.stats.zupt_time_s,
+            )
         if self.stats.frames_before_imu:
             _log.warning(
                 "%s: %d camera frame(s) before the IMU start skipped", src, self.stats.frames_before_imu
@@ -657,6 +812,9 @@ class MsckfEstimator:
             cols = np.column_stack([trace["used"], trace["rejected"]]).astype(float)
             _call(log, "scalars", f"{rl.FILTER}/vio/features", tt, cols, ["used", "rejected_chi2"])
             _call(log, "scalars", f"{rl.FILTER}/vio/nis_sum", tt, np.asarray(trace["nis"], float))
+        if trace["zupt"]:
+            tz = np.asarray(trace["zupt"], np.int64)
+            _call(log, "scalars", f"{rl.FILTER}/vio/zupt", tz, np.ones(len(tz)))
         if trace["points"]:
             _call(
                 log,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -33,6 +34,8 @@ from . import rundir as rd
 from . import runlog as rl
 from .config import STAGES, PipelineConfig, load_config
 from .windows import Windows, split_windows
+
+_log = logging.getLogger(__name__)
 
 STAGE_ORDER = {name: i + 1 for i, name in enumerate(STAGES)}
 
@@ -464,7 +467,14 @@ class Pipeline:
         if self.pose_source() == "msckf":
             from .msckf import MsckfEstimator
 
-            return MsckfEstimator.from_recording(self._features_reader(), self.config.vio)
+            initial = cov = None
+            if not self.config.vio.init_from_groundtruth:  # real data without usable ground truth
+                from .static_init import static_init_from_recording
+
+                res = static_init_from_recording(self.reader, start_ns=self.windows().start_ns)
+                _log.info("vio: static initialisation: %s", res)
+                initial, cov = res.state, res.P
+            return MsckfEstimator.from_recording(self._features_reader(), self.config.vio, initial, cov)
         from .odometry_filter import OdometryEstimator
 
         return OdometryEstimator.from_recording(self.reader, self.config.odometry)
