@@ -265,12 +265,12 @@ EXPERIMENTS = {"ri-vs-lsi": _ri_vs_lsi, "table1": _table1, "ntu-viral": _ntu}
 
 def _experiment_params(name: str, raw: dict[str, str]) -> dict:
     """``--param KEY=VALUE`` pairs, checked against the experiment's keyword arguments and converted to their
-    default's type."""
+    default's type; returns every keyword argument (defaults resolved, so config.json states them all)."""
     import inspect
 
     sig = inspect.signature(EXPERIMENTS[name])
     known = {k: v.default for k, v in sig.parameters.items() if v.default is not inspect.Parameter.empty}
-    out = {}
+    out = dict(known)
     for k, v in raw.items():
         if k not in known:
             raise InputError(

@@ -54,11 +54,8 @@ def test_table1_cells_on_a_short_simulation(tmp_path):
 def test_experiment_params_are_checked_and_typed(tmp_path):
     from evaluate.experiments import _experiment_params
 
-    assert _experiment_params("table1", {"prior": "tuned", "duration": "20", "prior_sigma": "0.2"}) == {
-        "prior": "tuned",
-        "duration": 20.0,
-        "prior_sigma": 0.2,
-    }
+    got = _experiment_params("table1", {"prior": "tuned", "duration": "20", "prior_sigma": "0.2"})
+    assert got == {"trajectory": "MH_01_easy", "prior": "tuned", "duration": 20.0, "prior_sigma": 0.2}
     res = runner.invoke(app, ["experiment", "table1", "-o", str(tmp_path / "x"), "--param", "sigma=3"])
     assert res.exit_code == 2 and "unknown parameter 'sigma'" in res.output
     assert not (tmp_path / "x").exists()
