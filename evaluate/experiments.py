@@ -123,12 +123,12 @@ def table1_job(p: dict) -> dict:
         blob = pipe.dir.file("checkpoint_init.pkl").read_bytes()
         offsets = {a: rng.normal(size=3) for a in truth}  # one draw per seed, scaled by σ_I per cell
         for sigma_i, sigma_u in p["cells"]:
+            s0 = sigma_i if p["prior"] == "tuned" else p["prior_sigma"]
+            P0 = np.diag([s0**2] * 3 + [0.1**2, 0.5**2])
             for method in ("ekf", "skf"):
                 est = pickle.loads(blob)
                 for a, t in truth.items():
                     x0 = np.r_[np.asarray(t["position"]) + sigma_i * offsets[a], 1.0, 0.0]
-                    s0 = sigma_i if p.get("prior", "fixed") == "tuned" else p.get("prior_sigma", 0.1)
-                    P0 = np.diag([s0**2] * 3 + [0.1**2, 0.5**2])
                     est.state.add(anchor_var(int(a)), Vec(x0), P0)
                 ucfg = cfg.uwb.model_copy(update={"sigma_scale": sigma_u, "refine_method": method})
                 upd = UwbUpdater.from_config(ucfg, cal)

@@ -122,6 +122,7 @@ class Pipeline:
                 win = self.windows()
                 span = (win.end_ns - win.start_ns) * 1e-9
                 run.init_window_s = round(span * 2.0 / 3.0, 3)
+                # refine to the end: the 1 s margin absorbs the rounding (split_windows clamps at the end)
                 run.refine_window_s = round(span - run.init_window_s + 1.0, 3)
 
     def pose_source(self) -> str:
@@ -271,7 +272,7 @@ class Pipeline:
                 beta_sigma=cfg.beta_prior(cal)[1],
                 beta_prior=cfg.init_beta_prior(cal),
             )
-        inflation = {a: float(getattr(r, "noise_inflation", 1.0)) for a, r in results.items() if r.ok}
+        inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
         updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
         with self.runlog("refine") as log:
             log.stage("refine", win.init_end_ns)
@@ -504,7 +505,7 @@ def _init_summary(r) -> dict:
         "iterations": r.iterations,
         "n_used": r.n_used,
         "n_rejected": r.n_rejected,
-        "noise_inflation": getattr(r, "noise_inflation", 1.0),
+        "noise_inflation": r.noise_inflation,
         "residual_rms": r.residual_rms,
         "warnings": r.warnings,
         "costs": r.costs,

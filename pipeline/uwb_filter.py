@@ -289,7 +289,7 @@ def anchor_init_covariance(
     assert w is not None
     n = len(w)
     J = jacobians(w.R, w.p, w.p_T, x)
-    ag = list(getattr(result, "params", (0, 1, 2, 4)))
+    ag = list(result.params)
     est_beta = 3 in ag
     na = len(ag)
     HB = J.H_U[:, ag]
@@ -332,7 +332,7 @@ def anchor_init_covariance(
     Jn = np.linalg.solve(P_now.T, C.T).T if np.all(np.isfinite(P_now)) else np.zeros((5, 6))
     cov = cov_pose - Jn @ P_now @ Jn.T
     # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
-    cov += getattr(result, "noise_inflation", 1.0) * sigma_range**2 * (La.T @ La)
+    cov += result.noise_inflation * sigma_range**2 * (La.T @ La)
     if not est_beta:
         g_beta = np.zeros(5)
         g_beta[3] = 1.0
