@@ -80,6 +80,7 @@ class Experiment(str, Enum):
     ri_vs_lsi = "ri-vs-lsi"
     table1 = "table1"
     ntu_viral = "ntu-viral"
+    anchor_nees = "anchor-nees"
 
 
 Output = Annotated[Path, typer.Option("-o", "--output", help="Output path.")]
@@ -109,6 +110,17 @@ def simulate(
     nlos_rate: Annotated[float, typer.Option(help="Fraction of ranges with a positive NLOS bias.")] = 0.0,
     dropout_rate: Annotated[float, typer.Option(help="Fraction of ranges dropped.")] = 0.0,
     max_range: Annotated[float | None, typer.Option(help="Maximum UWB range [m].")] = None,
+    odometry_rate: Annotated[
+        float | None,
+        typer.Option(
+            help="Also write /odometry at this rate [Hz], drifting as the odometry filter models it."
+        ),
+    ] = None,
+    odometry_noise_scale: Annotated[
+        float,
+        typer.Option(min=0.0, help="Factor on the odometry drift sigmas (declared in the calibration)."),
+    ] = 1.0,
+    camera: Annotated[bool, typer.Option(help="Simulate camera feature tracks.")] = True,
 ) -> None:
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
     from convert.simulator import SimConfig, simulate_to_file
@@ -121,6 +133,9 @@ def simulate(
         nlos_rate=nlos_rate,
         dropout_rate=dropout_rate,
         max_range=max_range,
+        odometry_rate=odometry_rate,
+        odometry_noise_scale=odometry_noise_scale,
+        camera=camera,
     )
     summary = simulate_to_file(cfg, output)
     typer.echo(summary)
@@ -244,7 +259,8 @@ def experiment(
     param: Annotated[
         list[str] | None,
         typer.Option(
-            help="Experiment parameter KEY=VALUE (repeatable), e.g. table1: prior=tuned, duration=60."
+            help="Experiment parameter KEY=VALUE (repeatable), e.g. table1: prior=tuned, duration=60; "
+            "anchor-nees: pose_sources=groundtruth,odometry odometry_noise_scale=0.1."
         ),
     ] = None,
 ) -> None:

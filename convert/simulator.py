@@ -71,6 +71,10 @@ class SimConfig:
     tag_id: int = 1
     tag_lever_arm: Sequence[float] = (0.05, 0.0, 0.1)  # p_T in the IMU frame
     knot_dt: float = 0.1  # B-spline knot spacing when fitting a ground-truth file
+    # external odometry (/odometry) drifting exactly as the odometry filter's drift model says (its default
+    # sigmas times odometry_noise_scale): a pose source whose noise the filter models correctly. None: none
+    odometry_rate: float | None = None
+    odometry_noise_scale: float = 1.0
 
     def __post_init__(self) -> None:
         def bad(name: str, value, what: str) -> InputError:
@@ -95,6 +99,12 @@ class SimConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise bad(name, v, "must be >= 0")
+        if self.odometry_rate is not None and not (
+            np.isfinite(self.odometry_rate) and self.odometry_rate > 0
+        ):
+            raise bad("odometry_rate", self.odometry_rate, "must be positive (or None for no odometry)")
+        if not (np.isfinite(self.odometry_noise_scale) and self.odometry_noise_scale >= 0):
+            raise bad("odometry_noise_scale", self.odometry_noise_scale, "must be >= 0")
         for name in ("nlos_rate", "dropout_rate"):
             v = getattr(self, name)
             if not (0.0 <= v <= 1.0):
@@ -180,6 +190,13 @@ class GroundTruthSim:
 
 
 @dataclass
+class OdometrySim:
+    t_ns: np.ndarray
+    p: np.ndarray  # [N,3] odometry (drifting) position
+    q_xyzw: np.ndarray  # [N,4]
+
+
+@dataclass
 class SimData:
     config: SimConfig
     trajectory: SplineTrajectory
@@ -191,6 +208,7 @@ class SimData:
     beta: np.ndarray  # [n]
     gamma: np.ndarray  # [n]
     landmarks: np.ndarray  # [L,3]
+    odometry: OdometrySim | None = None
     metadata: dict[str, dict] = field(default_factory=dict)  # name -> JSON record
 
 
@@ -362,6 +380,42 @@ def default_anchors(lo: np.ndarray, hi: np.ndarray, n: int) -> np.ndarray:
     return np.stack([c[0] + half[0] * np.cos(ang), c[1] + half[1] * np.sin(ang), height], axis=1)
 
 
+def odometry_noise_config(scale: float = 1.0):
+    """The odometry filter's default drift model with every sigma times ``scale`` (what the simulated
+    odometry follows; the filter itself keeps its configured sigmas)."""
+    from pipeline.odometry_filter import OdometryFilterConfig
+
+    c = OdometryFilterConfig()
+    sig = {k: v * scale for k, v in c.model_dump().items() if k.startswith(("sigma_", "initial_sigma"))}
+    return c.model_copy(update=sig)
+
+
+def simulate_odometry(
+    traj: SplineTrajectory, t_ns: np.ndarray, scale: float, rng: np.random.Generator
+) -> OdometrySim:
+    """Odometry that drifts as the odometry filter's drift model assumes: the first pose is off by a draw of its
+    initial covariance, every increment T_k-1^-1 T_k by a draw of `increment_noise` (dR = dR_hat Exp(n_theta),
+    dp = dp_hat + n_p), composed like dead reckoning."""
+    from pipeline.lie import exp_so3
+    from pipeline.odometry_filter import compose, increment_noise, relative
+
+    c = odometry_noise_config(scale)
+    s = traj.evaluate(rel_seconds(traj, t_ns))
+    n = len(t_ns)
+    R_hat = np.empty((n, 3, 3))
+    p_hat = np.empty((n, 3))
+    th0, p0 = np.radians(c.initial_sigma_theta_deg), c.initial_sigma_p
+    R_hat[0] = s.R[0] @ exp_so3(-th0 * rng.standard_normal(3))
+    p_hat[0] = s.p[0] - p0 * rng.standard_normal(3)
+    z = rng.standard_normal((n, 6))
+    for k in range(1, n):
+        dR, dp = relative(s.R[k - 1], s.p[k - 1], s.R[k], s.p[k])
+        sd = np.sqrt(np.diag(increment_noise(c, dR, dp, (t_ns[k] - t_ns[k - 1]) * 1e-9)))
+        nk = sd * z[k]
+        R_hat[k], p_hat[k] = compose(R_hat[k - 1], p_hat[k - 1], dR @ exp_so3(-nk[0:3]), dp - nk[3:6])
+    return OdometrySim(t_ns=t_ns, p=p_hat, q_xyzw=rot_to_quat(R_hat))
+
+
 def simulate_ranges(
     traj: SplineTrajectory,
     t0_ns: int,
@@ -446,8 +500,14 @@ def simulate(cfg: SimConfig, *, advance=None) -> SimData:
     beta, gamma = cfg.per_anchor("beta"), cfg.per_anchor("gamma")
     ranges = simulate_ranges(traj, t0, duration, anchors, beta, gamma, cfg, stream(cfg.seed, "uwb"))
 
+    odometry = None
+    if cfg.odometry_rate is not None:
+        t_odo = sample_times(t0, duration, cfg.odometry_rate)
+        odometry = simulate_odometry(traj, t_odo, cfg.odometry_noise_scale, stream(cfg.seed, "odometry"))
+
     data = SimData(
         config=cfg,
+        odometry=odometry,
         trajectory=traj,
         imu=imu,
         features=features,
@@ -483,6 +543,12 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
         },
         "groundtruth": {"lever_arm": [0.0, 0.0, 0.0], "frame": "body"},
     }
+    if data.odometry is not None:
+        odo = odometry_noise_config(cfg.odometry_noise_scale).model_dump()
+        calibration["odometry"] = {
+            "error_model": "drift",
+            "noise": {k: v for k, v in odo.items() if k.startswith(("sigma_", "initial_sigma"))},
+        }
     if data.features is not None:
         calibration["cameras"] = {"cam0": cam}
     truth = {
@@ -528,7 +594,7 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
 # file output
 # ---------------------------------------------------------------------------------------------------------------
 def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str, int]:
-    from .recording import TOPIC_GT_POSE, RecordingWriter
+    from .recording import TOPIC_GT_POSE, TOPIC_ODOM, RecordingWriter
 
     with RecordingWriter(output) as w:
         w.write_imu_batch(data.imu.t_ns, data.imu.gyro, data.imu.acc)
@@ -543,6 +609,9 @@ def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str
         w.write_range_batch(r.t_ns, data.config.tag_id, 0, r.anchor, r.distance)
         gt = data.groundtruth
         w.write_pose_batch(gt.t_ns, gt.p, gt.q_xyzw, topic=TOPIC_GT_POSE)
+        if data.odometry is not None:
+            o = data.odometry
+            w.write_odometry_batch(o.t_ns, o.p, o.q_xyzw, topic=TOPIC_ODOM)
         for name, record in data.metadata.items():
             w.set_metadata(name, record)
         counts = dict(w.counts)

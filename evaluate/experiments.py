@@ -25,7 +25,7 @@ from .tables import PAPER_TABLE1, PAPER_TABLE2, render, side_by_side, write_tabl
 
 RI_VS_LSI_SIGMAS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.8)
 TABLE1_CELLS = ((0.1, 1.0), (0.3, 1.0), (0.3, 0.9), (0.5, 0.9))
-DEFAULT_RUNS = {"ri-vs-lsi": 100, "table1": 50, "ntu-viral": 1}
+DEFAULT_RUNS = {"ri-vs-lsi": 100, "table1": 50, "ntu-viral": 1, "anchor-nees": 25}
 
 
 # -- ri-vs-lsi ----------------------------------------------------------------------------------------------------
@@ -197,6 +197,229 @@ def _table1(
     return table, {"per_run": per_run, "summary": summary}
 
 
+# -- anchor-nees --------------------------------------------------------------------------------------------------
+# groundtruth: the odometry source with (almost) no noise; the pose covariance must stay invertible
+POSE_SOURCES = {"groundtruth": 1e-3, "odometry": None, "msckf": None, "msckf-as-odometry": None}
+
+
+def vio_as_odometry(recording: Path, workdir: Path) -> Path:
+    """The MSCKF's trajectory over the whole recording as ``/odometry`` of a new recording (ranges, ground truth
+    and metadata copied, camera calibration dropped), with the drift model fitted to the MSCKF's own covariance
+    growth: per-axis position variance and world-yaw variance per metre travelled at the end of the run. The
+    UWB stages then see the same pose errors as with ``msckf``, with a random-walk error model instead of the
+    MSCKF's joint covariance (a loosely coupled calibration on top of the VIO output)."""
+    from convert.recording import (
+        META_CALIBRATION,
+        META_SOURCE,
+        META_TRUTH,
+        TOPIC_GT_POSE,
+        TOPIC_ODOM,
+        RecordingReader,
+        RecordingWriter,
+    )
+    from pipeline.config import load_config
+    from pipeline.lie import quat_to_rot
+    from pipeline.run import Pipeline
+
+    cfg = load_config(None, {"run": {"recording": str(recording), "log": False, "vio_extent": "full"}})
+    pipe = Pipeline(cfg, workdir / "vio")
+    pipe.run(["vio"], progress=lambda *_: None)
+    vio = pipe.dir.load_npz("vio.npz", "vio")
+    length = float(np.linalg.norm(np.diff(vio["p"], axis=0), axis=1).sum())
+    cov = vio["cov"]
+    var_p = (np.trace(cov[:, 3:6, 3:6], axis1=1, axis2=2) / 3.0).clip(min=1e-12)
+    R_end = quat_to_rot(vio["q_xyzw"][-1])
+    var_yaw = float((R_end @ cov[-1, 0:3, 0:3] @ R_end.T)[2, 2])
+    var_th0 = float(np.trace(cov[0, 0:3, 0:3]) / 3.0)
+    noise = {
+        "sigma_p_per_sqrt_m": float(np.sqrt(max(var_p[-1] - var_p[0], 0.0) / max(length, 1e-9))),
+        "sigma_theta_per_sqrt_rad": 0.0,
+        "sigma_theta_per_sqrt_m": float(np.sqrt(max(var_yaw - var_th0, 0.0) / max(length, 1e-9))),
+        "sigma_p_per_sqrt_s": 0.0,
+        "sigma_theta_per_sqrt_s": 0.0,
+        "initial_sigma_p": float(np.sqrt(var_p[0])),
+        "initial_sigma_theta_deg": float(np.degrees(np.sqrt(max(var_th0, 1e-12)))),
+    }
+    src = RecordingReader(recording)
+    cal = {k: v for k, v in src.calibration.items() if k != "cameras"}
+    cal["odometry"] = {"error_model": "drift", "noise": noise}
+    out = workdir / "vio_odometry.mcap"
+    with RecordingWriter(out) as w:
+        r = src.read_ranges()
+        w.write_range_batch(r.t_ns, r.tag, r.antenna, r.anchor, r.distance)
+        g = src.read_poses()
+        w.write_pose_batch(g.t_ns, g.p, g.q_xyzw, topic=TOPIC_GT_POSE)
+        w.write_odometry_batch(vio["t_ns"], vio["p"], vio["q_xyzw"], topic=TOPIC_ODOM)
+        w.set_metadata(META_CALIBRATION, cal)
+        w.set_metadata(META_TRUTH, src.truth or {})
+        w.set_metadata(META_SOURCE, src.source)
+    return out
+
+
+def anchor_nees_job(p: dict) -> dict:
+    """One seed: simulate, run vio + init once, then refine with each method from the same checkpoint.
+
+    Rows per anchor: the NEES of (p_a, beta, gamma) right after the anchor joins the filter (``init``: the
+    covariance and cross-covariances of `add_anchor_to_state`) and after each refinement. Pose sources:
+    ``msckf`` (our VIO on simulated camera + IMU, anchors in its state: the paper's tightly coupled filter),
+    ``msckf-as-odometry`` (the same VIO trajectory through the odometry filter, see `vio_as_odometry`),
+    ``odometry`` (simulated odometry that drifts exactly as the odometry filter's drift model says, sigmas x
+    ``odometry_noise_scale``: the pose noise is modelled correctly) and ``groundtruth`` (the same with a 1e-3
+    scale)."""
+    import shutil
+
+    from convert.simulator import SimConfig, simulate_to_file
+    from pipeline.config import load_config, merge_dicts
+    from pipeline.run import Pipeline
+    from pipeline.uwb_filter import add_initialised_anchors, anchor_var
+
+    from .consistency import anchor_nees
+
+    src = p["pose_source"]
+    scale = POSE_SOURCES[src] or p["odometry_noise_scale"]
+    vio = src.startswith("msckf")
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="uwbcal-nees-") as tmp:
+        rec = Path(tmp) / "sim.mcap"
+        sim = SimConfig(
+            trajectory=p["trajectory"] or None,
+            seed=p["seed"],
+            duration=p["duration"],
+            camera=vio,
+            odometry_rate=None if vio else 20.0,
+            odometry_noise_scale=scale,
+        )
+        simulate_to_file(sim, rec)
+        if src == "msckf-as-odometry":
+            rec = vio_as_odometry(rec, Path(tmp))
+        run = {"recording": str(rec), "log": False, "pose_source": "msckf" if src == "msckf" else "odometry"}
+        over = p.get("overrides") or {}
+        base = Path(tmp) / "base"
+        pipe = Pipeline(load_config(None, merge_dicts(over, {"run": run})), base)
+        pipe.run(["vio", "init"], progress=lambda *_: None)
+        cfg, cal = pipe.config, pipe.reader.calibration
+        truth = {
+            int(a): np.r_[t["position"], t["beta"], t["gamma"]]
+            for a, t in pipe.reader.truth["anchors"].items()
+        }
+        results = pipe.dir.load_pickle("init.pkl", "init")[cfg.uwb.init_method]
+        est = pipe.dir.load_pickle("checkpoint_init.pkl", "init")
+        add_initialised_anchors(est.state, results, cfg.uwb, cal)
+        for a, r in results.items():
+            if r.ok:
+                x, P = r.x, est.state.cov(anchor_var(a))
+                rows.append(_nees_row(p, "init", a, anchor_nees(x, P, truth[int(a)]), x, truth[int(a)]))
+        for method in p["methods"]:
+            d = Path(tmp) / method
+            shutil.copytree(base, d)
+            mcfg = load_config(None, merge_dicts(over, {"run": run, "uwb": {"refine_method": method}}))
+            Pipeline(mcfg, d).run(["refine"], progress=lambda *_: None)
+            states = json.loads((d / "anchor_states.json").read_text())
+            for a, s in states.items():
+                x, P = np.asarray(s["x"]), np.asarray(s["P"])
+                rows.append(_nees_row(p, method, a, anchor_nees(x, P, truth[int(a)]), x, truth[int(a)]))
+    return {"rows": rows}
+
+
+def parse_overrides(text: str) -> dict:
+    """``"vio.max_clones=30;uwb.chi2_quantile=0.99"`` -> nested config overrides (values parsed as JSON when
+    they are JSON: numbers, true/false, null; else kept as strings)."""
+    out: dict = {}
+    for item in (t.strip() for t in text.split(";")):
+        if not item:
+            continue
+        key, sep, value = item.partition("=")
+        parts = [k.strip() for k in key.split(".")]
+        if not sep or len(parts) < 2 or not all(parts):
+            raise InputError(f"overrides: {item!r}: expected SECTION.KEY=VALUE (e.g. vio.max_clones=30)")
+        try:
+            v = json.loads(value)
+        except json.JSONDecodeError:
+            v = value.strip()
+        node = out
+        for k in parts[:-1]:
+            node = node.setdefault(k, {})
+        node[parts[-1]] = v
+    return out
+
+
+def _nees_row(p: dict, method: str, anchor, nees: float, x: np.ndarray, truth: np.ndarray) -> dict:
+    return {
+        "seed": p["seed"],
+        "pose_source": p["pose_source"],
+        "method": method,
+        "anchor": str(anchor),
+        "nees": float(nees),
+        "error_m": float(np.linalg.norm(x[:3] - truth[:3])),
+    }
+
+
+def _anchor_nees(
+    out: Path,
+    runs: int,
+    jobs: int,
+    scheduler: str | None,
+    seed: int,
+    pose_sources: str = "groundtruth,odometry,msckf",
+    duration: float = 60.0,
+    odometry_noise_scale: float = 0.1,
+    trajectory: str = "",
+    overrides: str = "",
+) -> tuple[pl.DataFrame, dict]:
+    """Anchor NEES (5 DoF) over ``runs`` seeds x anchors against the two-sided 95 % chi-square bounds of the
+    ANEES, per pose source and stage (init = at augmentation, ekf/skf = after refinement)."""
+    from .consistency import chi2_bounds
+
+    sources = [s.strip() for s in pose_sources.split(",") if s.strip()]
+    bad = [s for s in sources if s not in POSE_SOURCES]
+    if bad or not sources:
+        raise InputError(
+            f"anchor-nees: pose_sources {bad or pose_sources!r}; known: {', '.join(POSE_SOURCES)}"
+        )
+    params = [
+        {
+            "seed": s,
+            "pose_source": src,
+            "duration": float(duration),
+            "odometry_noise_scale": float(odometry_noise_scale),
+            "trajectory": trajectory,
+            "methods": ("ekf", "skf"),
+            "overrides": parse_overrides(overrides),
+        }
+        for src in sources
+        for s in run_seeds(seed, runs)
+    ]
+    results = run_jobs(anchor_nees_job, params, jobs=jobs, scheduler=scheduler, description="anchor-nees")
+    per_run = pl.DataFrame([r for res in results for r in res["rows"]])
+    rows = []
+    for (src, method), g in per_run.group_by("pose_source", "method", maintain_order=True):
+        v = g["nees"].to_numpy()
+        v = v[np.isfinite(v)]
+        lo, hi = chi2_bounds(len(v), 5) if len(v) else (float("nan"), float("nan"))
+        one = chi2_bounds(1, 5)
+        rows.append(
+            {
+                "pose_source": src,
+                "method": method,
+                "values": len(v),
+                "anees": float(v.mean()) if len(v) else float("nan"),
+                "lo": lo,
+                "hi": hi,
+                "inside": bool(lo <= v.mean() <= hi) if len(v) else False,
+                "median": float(np.median(v)) if len(v) else float("nan"),
+                "share_single_inside": float(np.mean((v >= one[0]) & (v <= one[1]))) if len(v) else 0.0,
+                "anchor_error_m": float(g["error_m"].mean()),
+            }
+        )
+    table = pl.DataFrame(rows)
+    summary: dict = {}
+    for r in rows:  # `uwbcal diff` checks an ANEES against its sibling bounds
+        key = f"{r['pose_source']}.{r['method']}"
+        summary.update({f"{key}.anees": r["anees"], f"{key}.bounds": [r["lo"], r["hi"]]})
+        summary[f"{key}.anchor_error_m"] = r["anchor_error_m"]
+    return table, {"per_run": per_run, "summary": summary}
+
+
 # -- ntu-viral ----------------------------------------------------------------------------------------------------
 NTU_METHODS = {"viro": ("lsi", "ekf"), "ri+ekf": ("ri", "ekf"), "ri+skf": ("ri", "skf")}
 
@@ -260,7 +483,7 @@ def _ntu(out: Path, runs: int, jobs: int, scheduler: str | None, seed: int) -> t
     return table, {"per_run": per_anchor, "summary": summary}
 
 
-EXPERIMENTS = {"ri-vs-lsi": _ri_vs_lsi, "table1": _table1, "ntu-viral": _ntu}
+EXPERIMENTS = {"ri-vs-lsi": _ri_vs_lsi, "table1": _table1, "ntu-viral": _ntu, "anchor-nees": _anchor_nees}
 
 
 def _experiment_params(name: str, raw: dict[str, str]) -> dict:

@@ -68,10 +68,11 @@ def _drop_none(d: Any) -> Any:
     return d
 
 
-def _merge(base: dict, over: dict) -> dict:
+def merge_dicts(base: dict, over: dict) -> dict:
+    """``base`` with ``over`` merged in, recursively for nested dicts (``over`` wins)."""
     out = dict(base)
     for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        out[k] = merge_dicts(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
 
 
@@ -87,7 +88,7 @@ def load_config(path: Path | None = None, overrides: dict | None = None) -> Pipe
         except tomllib.TOMLDecodeError as exc:
             raise InputError(f"{path}: not valid TOML ({exc})") from None
     if overrides:
-        data = _merge(data, overrides)
+        data = merge_dicts(data, overrides)
     try:
         return PipelineConfig.model_validate(data)
     except ValidationError as exc:

@@ -292,6 +292,34 @@ def resolve_error_model(config: OdometryFilterConfig, calibration: dict | None) 
     return model, tau
 
 
+NOISE_KEYS = (
+    "sigma_p_per_sqrt_m",
+    "sigma_theta_per_sqrt_rad",
+    "sigma_theta_per_sqrt_m",
+    "sigma_p_per_sqrt_s",
+    "sigma_theta_per_sqrt_s",
+    "initial_sigma_p",
+    "initial_sigma_theta_deg",
+)
+
+
+def apply_calibration_noise(config: OdometryFilterConfig, calibration: dict | None) -> list[str]:
+    """Take the drift sigmas the recording declares (calibration ``odometry.noise``, e.g. the simulator's) for
+    every sigma the user did not set; returns the keys taken. Unknown keys are an error naming them."""
+    noise = (
+        (((calibration or {}).get("odometry") or {}).get("noise") or {})
+        if isinstance(calibration, dict)
+        else {}
+    )
+    bad = sorted(set(noise) - set(NOISE_KEYS))
+    if bad:
+        raise InputError(f"calibration: odometry.noise: unknown key(s) {bad}; known: {', '.join(NOISE_KEYS)}")
+    taken = [k for k in NOISE_KEYS if k in noise and k not in config.model_fields_set]
+    for k in taken:
+        setattr(config, k, float(noise[k]))
+    return taken
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # the estimator
 # ---------------------------------------------------------------------------------------------------------------

@@ -102,6 +102,8 @@ class Pipeline:
         """Recording-aware defaults, resolved before the config is written (so config.toml states them).
 
         - ``uwb.init_method = "auto"``: ri-robust on real recordings, ri on simulated ones;
+        - odometry pose source: drift sigmas the recording declares (calibration ``odometry.noise``, e.g. the
+          simulator's odometry) for those the config does not set;
         - windows, when not given and the poses come from an odometry with a *bounded* error (a SLAM output in
           the world frame, calibration ``odometry.error_model = "bounded"``, e.g. NTU-VIRAL SLICT): the thirds
           of the paper exist so that a drifting VIO is calibrated before it drifts; a bounded pose source does
@@ -109,13 +111,15 @@ class Pipeline:
           them 0.2-0.8 m off, the first two thirds within ~0.2 m). Default: init over the first 2/3, refine over
           the rest, no localisation segment.
         """
-        from .odometry_filter import resolve_error_model
+        from .odometry_filter import apply_calibration_noise, resolve_error_model
         from .uwb_filter import auto_init_method
 
         uwb = self.config.uwb
         if uwb.init_method == "auto":
             uwb.init_method = auto_init_method(self.reader.source.get("dataset"))  # type: ignore[assignment]
         run = self.config.run
+        if self.pose_source() == "odometry":
+            apply_calibration_noise(self.config.odometry, self.reader.calibration)
         if run.init_window_s is None and run.refine_window_s is None and self.pose_source() == "odometry":
             model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
             if model == "bounded":
@@ -250,28 +254,14 @@ class Pipeline:
 
     # -- paper stage 2: refinement ----------------------------------------------------------------------------------
     def stage_refine(self) -> tuple[str, list[str]]:
-        from .uwb_filter import UwbUpdater, add_anchor_to_state
+        from .uwb_filter import UwbUpdater, add_initialised_anchors
 
         win = self.windows()
         est = self.dir.load_pickle("checkpoint_init.pkl", "refine")
         results = self.dir.load_pickle("init.pkl", "refine")[self.config.uwb.init_method]
         cal = self.reader.calibration
         cfg = self.config.uwb
-        sigma = cfg.sigma(cal) * cfg.sigma_scale
-        warns: list[str] = []
-        for a, r in results.items():
-            if not r.ok:
-                warns.append(f"refine: anchor {a} not initialised ({r.status}); left out")
-                continue
-            add_anchor_to_state(
-                est.state,
-                a,
-                r,
-                sigma_range=sigma,
-                gamma_prior=cfg.gamma_prior(cal),
-                beta_sigma=cfg.beta_prior(cal)[1],
-                beta_prior=cfg.init_beta_prior(cal),
-            )
+        warns = add_initialised_anchors(est.state, results, cfg, cal)
         inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
         updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
         with self.runlog("refine") as log:

@@ -24,7 +24,7 @@ from .fim import DegenerateGeometryError
 from .lie import quat_slerp, quat_to_rot
 from .state import State, UpdateResult, Vec, ekf_update
 from .uwb_init import InitResult, InitWindow, initialize_anchor
-from .uwb_model import jacobians, range_variance
+from .uwb_model import jacobians, predict, range_variance
 
 if TYPE_CHECKING:
     from .estimator import RangeMeasurement
@@ -262,8 +262,7 @@ def anchor_init_covariance(
     *,
     sigma_range: float,
     gamma_prior: tuple[float, float] | None,
-    beta_sigma: float,
-    beta_prior: tuple[float, float] | None = None,
+    beta_prior: tuple[float, float],
 ) -> tuple[np.ndarray, np.ndarray]:
     """(J, Q) such that x~_U = J e_now + v, v ~ N(0, Q) independent of the filter state.
 
@@ -272,9 +271,9 @@ def anchor_init_covariance(
     x~_(p_a,gamma) = -G^-1 [sum_k H_Bk^T w_k (H_Ak X~_k + h_beta,k beta~ + n_k) + e_gamma eps / s^2],
     G = sum H_Bk^T w_k H_Bk + prior. For the GLS weights this is exactly the invertible block of the paper's QR split
     (x~_U = H_B1^-1 (r_1 - H_A1 X~ - n_1)); written this way it also holds for LSI's unit weights, RI's weights,
-    robust weights, beta fixed at 1 (beta~ ~ N(0, beta_sigma^2), independent) and the gamma prior. When the
-    initialiser estimated beta (``result.params`` has index 3) the same holds with (p_a, beta, gamma) and the
-    beta prior (``beta_prior``, whose mean error enters like the gamma prior's).
+    robust weights, beta fixed at its prior mean (beta~ ~ N(0, sigma^2) of ``beta_prior = (mean, sigma)``,
+    independent) and the gamma prior. When the initialiser estimated beta (``result.params`` has index 3) the same
+    holds with (p_a, beta, gamma) and the beta prior, whose mean error enters like the gamma prior's.
 
     Past poses: the window's poses are no longer in the filter state; only their marginal covariances P_k are
     known. Approximation: in the world frame ([R dtheta, dp]) the pose errors are a random walk up to now,
@@ -288,6 +287,7 @@ def anchor_init_covariance(
     x = result.x
     assert w is not None
     n = len(w)
+    beta_sigma = float(beta_prior[1])
     J = jacobians(w.R, w.p, w.p_T, x)
     ag = list(result.params)
     est_beta = 3 in ag
@@ -303,7 +303,7 @@ def anchor_init_covariance(
     if gamma_prior is not None:
         priors.append((na - 1, float(gamma_prior[1])))
     if est_beta:
-        priors.append((3, float(beta_prior[1] if beta_prior is not None else beta_sigma)))
+        priors.append((3, beta_sigma))
     for i, sd in priors:
         G[i, i] += 1.0 / sd**2
     Ginv = np.linalg.inv(G)
@@ -351,8 +351,7 @@ def add_anchor_to_state(
     *,
     sigma_range: float,
     gamma_prior: tuple[float, float] | None,
-    beta_sigma: float = 0.05,
-    beta_prior: tuple[float, float] | None = None,
+    beta_prior: tuple[float, float] = (1.0, 0.05),
     pose_var: str = "imu",
 ) -> None:
     """Add ``anchor/<id>`` = result.x with covariance and cross-covariances (see `anchor_init_covariance`)."""
@@ -367,12 +366,32 @@ def add_anchor_to_state(
         P_now,
         sigma_range=sigma_range,
         gamma_prior=gamma_prior,
-        beta_sigma=beta_sigma,
         beta_prior=beta_prior,
     )
     Jfull = np.zeros((5, state.dim(pose_var)))
     Jfull[:, 0:6] = Jn
     state.augment(anchor_var(anchor), Vec(result.x), {pose_var: Jfull}, Q=Q)
+
+
+def add_initialised_anchors(
+    state: State, results: Mapping[Any, InitResult], config: UwbConfig, calibration: Mapping | None
+) -> list[str]:
+    """Every initialised anchor of ``results`` into ``state`` (`add_anchor_to_state`) with the configured range
+    noise and the recording's priors; warnings name the anchors left out."""
+    warns = []
+    for a, r in results.items():
+        if not r.ok:
+            warns.append(f"refine: anchor {a} not initialised ({r.status}); left out")
+            continue
+        add_anchor_to_state(
+            state,
+            a,
+            r,
+            sigma_range=config.sigma(calibration) * config.sigma_scale,
+            gamma_prior=config.gamma_prior(calibration),
+            beta_prior=config.beta_prior(calibration),
+        )
+    return warns
 
 
 # -----------------------------------------------------------------------------------------------------------------
@@ -473,7 +492,11 @@ class UwbUpdater:
         pose = state.value(self.pose_var)
         p_T = _lever_arm(self.arms, meas.tag, meas.antenna)
         J = jacobians(pose.R, pose.p, p_T, x_lin)
-        h = jacobians(pose.R, pose.p, p_T, x_cur).h[0]
+        h = (
+            J.h[0]
+            if x_lin is x_cur or np.array_equal(x_lin, x_cur)
+            else predict(pose.R, pose.p, p_T, x_cur)[0]
+        )
         r = float(meas.distance - h)
         R0 = (self.sigma * x_cur[3]) ** 2
         R = self.inflation.get(meas.anchor, 1.0) * R0

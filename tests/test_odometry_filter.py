@@ -291,3 +291,61 @@ def test_fast_so3_helpers_match_lie(angle):
     assert np.allclose(_left_jacobian(w), jr_so3(-w), atol=1e-9)
     if angle < 3.0:
         assert np.allclose(_left_jacobian(w, inverse=True), jr_inv_so3(-w), atol=1e-9)
+
+
+# -- simulated odometry: drifts as the filter's drift model says -------------------------------------------------
+def _simulated_odometry(tmp_path, seed, scale=1.0, duration=30.0):
+    from convert.simulator import SimConfig, simulate_to_file
+
+    path = tmp_path / f"odo{seed}.mcap"
+    simulate_to_file(
+        SimConfig(seed=seed, duration=duration, camera=False, odometry_rate=20.0, odometry_noise_scale=scale),
+        path,
+    )
+    return RecordingReader(path)
+
+
+def test_simulated_odometry_is_consistent_with_the_drift_model(tmp_path):
+    """The simulator draws the odometry's increments from `increment_noise` (sigmas declared in the recording's
+    calibration); the filter that reads those sigmas is consistent: 6-DoF pose ANEES over 8 runs x 30 s inside
+    the chi-square bounds of the run average (time-correlated samples: the bounds of 8 runs, not of all samples)."""
+    from evaluate.consistency import chi2_bounds
+    from pipeline.odometry_filter import apply_calibration_noise
+
+    per_run = []
+    for seed in range(8):
+        rd = _simulated_odometry(tmp_path, seed)
+        cfg = OdometryFilterConfig()
+        assert apply_calibration_noise(cfg, rd.calibration) == list(rd.calibration["odometry"]["noise"])
+        est = OdometryEstimator.from_recording(rd, cfg)
+        est.run(rd, None, None)
+        h = est.history().arrays()
+        gt = rd.read_poses()
+        i = np.searchsorted(gt.t_ns, h["t_ns"])
+        assert np.array_equal(gt.t_ns[i], h["t_ns"])  # odometry stamps are IMU stamps of the simulation
+        R_est, R_gt = quat_to_rot(h["q_xyzw"]), quat_to_rot(gt.q_xyzw[i])
+        e = np.concatenate([log_so3(np.swapaxes(R_est, 1, 2) @ R_gt), gt.p[i] - h["p"]], axis=1)
+        nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(h["cov"]), e)
+        per_run.append(nees[1:].mean())
+    lo, hi = chi2_bounds(8, 6)
+    assert lo < np.mean(per_run) < hi, per_run
+
+
+def test_simulated_odometry_without_noise_is_the_truth(tmp_path):
+    rd = _simulated_odometry(tmp_path, 0, scale=0.0, duration=5.0)
+    od, gt = rd.read_odometry(), rd.read_poses()
+    i = np.searchsorted(gt.t_ns, od.t_ns)
+    assert np.abs(od.p - gt.p[i]).max() < 1e-9
+    assert rd.calibration["odometry"]["error_model"] == "drift"
+
+
+def test_calibration_noise_fills_only_unset_sigmas():
+    from pipeline.odometry_filter import apply_calibration_noise
+
+    cal = {"odometry": {"noise": {"sigma_p_per_sqrt_m": 0.005, "initial_sigma_p": 0.002}}}
+    cfg = OdometryFilterConfig(initial_sigma_p=0.05)
+    assert apply_calibration_noise(cfg, cal) == ["sigma_p_per_sqrt_m"]
+    assert cfg.sigma_p_per_sqrt_m == 0.005 and cfg.initial_sigma_p == 0.05
+    assert apply_calibration_noise(OdometryFilterConfig(), {}) == []
+    with pytest.raises(InputError, match="odometry.noise: unknown key"):
+        apply_calibration_noise(OdometryFilterConfig(), {"odometry": {"noise": {"sigma_x": 1.0}}})

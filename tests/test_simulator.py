@@ -340,6 +340,8 @@ def test_csv_time_going_backwards(tmp_path):
         dict(anchors=[[0, 0]]),
         dict(beta=[0.9, 1.0]),
         dict(max_range=0.0),
+        dict(odometry_rate=0.0),
+        dict(odometry_noise_scale=-1.0),
     ],
 )
 def test_bad_config_raises_input_error(kwargs):

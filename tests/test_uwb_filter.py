@@ -87,7 +87,7 @@ def _simulate_run(
             for a, r in res.items():
                 assert r.ok, r.warnings
                 add_anchor_to_state(
-                    state, a, r, sigma_range=0.1, gamma_prior=(0.5, 0.3), beta_sigma=beta_sigma
+                    state, a, r, sigma_range=0.1, gamma_prior=(0.5, 0.3), beta_prior=(1.0, beta_sigma)
                 )
                 e = truth[a] - state.value(anchor_var(a)).x
                 nees_init[a] = float(e @ np.linalg.solve(state.cov(anchor_var(a)), e))
