@@ -490,13 +490,15 @@ class UwbUpdater:
             self.counts["skipped"] += 1
             return None
         pose = state.value(self.pose_var)
+        # Jacobians at the first estimates of pose and anchor (FEJ: a range at a camera stamp comes after that
+        # frame's update, when the pose estimate already differs from its propagated first estimate)
+        pose_lin = state.fej(self.pose_var)
         p_T = _lever_arm(self.arms, meas.tag, meas.antenna)
-        J = jacobians(pose.R, pose.p, p_T, x_lin)
-        h = (
-            J.h[0]
-            if x_lin is x_cur or np.array_equal(x_lin, x_cur)
-            else predict(pose.R, pose.p, p_T, x_cur)[0]
-        )
+        J = jacobians(pose_lin.R, pose_lin.p, p_T, x_lin)
+        same = (
+            pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
+        ) and (x_lin is x_cur or np.array_equal(x_lin, x_cur))
+        h = J.h[0] if same else predict(pose.R, pose.p, p_T, x_cur)[0]
         r = float(meas.distance - h)
         R0 = (self.sigma * x_cur[3]) ** 2
         R = self.inflation.get(meas.anchor, 1.0) * R0
