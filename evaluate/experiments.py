@@ -199,61 +199,7 @@ def _table1(
 
 # -- anchor-nees --------------------------------------------------------------------------------------------------
 # groundtruth: the odometry source with (almost) no noise; the pose covariance must stay invertible
-POSE_SOURCES = {"groundtruth": 1e-3, "odometry": None, "msckf": None, "msckf-as-odometry": None}
-
-
-def vio_as_odometry(recording: Path, workdir: Path) -> Path:
-    """The MSCKF's trajectory over the whole recording as ``/odometry`` of a new recording (ranges, ground truth
-    and metadata copied, camera calibration dropped), with the drift model fitted to the MSCKF's own covariance
-    growth: per-axis position variance and world-yaw variance per metre travelled at the end of the run. The
-    UWB stages then see the same pose errors as with ``msckf``, with a random-walk error model instead of the
-    MSCKF's joint covariance (a loosely coupled calibration on top of the VIO output)."""
-    from convert.recording import (
-        META_CALIBRATION,
-        META_SOURCE,
-        META_TRUTH,
-        TOPIC_GT_POSE,
-        TOPIC_ODOM,
-        RecordingReader,
-        RecordingWriter,
-    )
-    from pipeline.config import load_config
-    from pipeline.lie import quat_to_rot
-    from pipeline.run import Pipeline
-
-    cfg = load_config(None, {"run": {"recording": str(recording), "log": False, "vio_extent": "full"}})
-    pipe = Pipeline(cfg, workdir / "vio")
-    pipe.run(["vio"], progress=lambda *_: None)
-    vio = pipe.dir.load_npz("vio.npz", "vio")
-    length = float(np.linalg.norm(np.diff(vio["p"], axis=0), axis=1).sum())
-    cov = vio["cov"]
-    var_p = (np.trace(cov[:, 3:6, 3:6], axis1=1, axis2=2) / 3.0).clip(min=1e-12)
-    R_end = quat_to_rot(vio["q_xyzw"][-1])
-    var_yaw = float((R_end @ cov[-1, 0:3, 0:3] @ R_end.T)[2, 2])
-    var_th0 = float(np.trace(cov[0, 0:3, 0:3]) / 3.0)
-    noise = {
-        "sigma_p_per_sqrt_m": float(np.sqrt(max(var_p[-1] - var_p[0], 0.0) / max(length, 1e-9))),
-        "sigma_theta_per_sqrt_rad": 0.0,
-        "sigma_theta_per_sqrt_m": float(np.sqrt(max(var_yaw - var_th0, 0.0) / max(length, 1e-9))),
-        "sigma_p_per_sqrt_s": 0.0,
-        "sigma_theta_per_sqrt_s": 0.0,
-        "initial_sigma_p": float(np.sqrt(var_p[0])),
-        "initial_sigma_theta_deg": float(np.degrees(np.sqrt(max(var_th0, 1e-12)))),
-    }
-    src = RecordingReader(recording)
-    cal = {k: v for k, v in src.calibration.items() if k != "cameras"}
-    cal["odometry"] = {"error_model": "drift", "noise": noise}
-    out = workdir / "vio_odometry.mcap"
-    with RecordingWriter(out) as w:
-        r = src.read_ranges()
-        w.write_range_batch(r.t_ns, r.tag, r.antenna, r.anchor, r.distance)
-        g = src.read_poses()
-        w.write_pose_batch(g.t_ns, g.p, g.q_xyzw, topic=TOPIC_GT_POSE)
-        w.write_odometry_batch(vio["t_ns"], vio["p"], vio["q_xyzw"], topic=TOPIC_ODOM)
-        w.set_metadata(META_CALIBRATION, cal)
-        w.set_metadata(META_TRUTH, src.truth or {})
-        w.set_metadata(META_SOURCE, src.source)
-    return out
+POSE_SOURCES = {"groundtruth": 1e-3, "odometry": None, "msckf": None, "msckf-loose": None}
 
 
 def anchor_nees_job(p: dict) -> dict:
@@ -262,7 +208,7 @@ def anchor_nees_job(p: dict) -> dict:
     Rows per anchor: the NEES of (p_a, beta, gamma) right after the anchor joins the filter (``init``: the
     covariance and cross-covariances of `add_anchor_to_state`) and after each refinement. Pose sources:
     ``msckf`` (our VIO on simulated camera + IMU, anchors in its state: the paper's tightly coupled filter),
-    ``msckf-as-odometry`` (the same VIO trajectory through the odometry filter, see `vio_as_odometry`),
+    ``msckf-loose`` (``run.coupling = "loose"``: the UWB stages on the same VIO's output),
     ``odometry`` (simulated odometry that drifts exactly as the odometry filter's drift model says, sigmas x
     ``odometry_noise_scale``: the pose noise is modelled correctly) and ``groundtruth`` (the same with a 1e-3
     scale)."""
@@ -290,9 +236,12 @@ def anchor_nees_job(p: dict) -> dict:
             odometry_noise_scale=scale,
         )
         simulate_to_file(sim, rec)
-        if src == "msckf-as-odometry":
-            rec = vio_as_odometry(rec, Path(tmp))
-        run = {"recording": str(rec), "log": False, "pose_source": "msckf" if src == "msckf" else "odometry"}
+        run = {
+            "recording": str(rec),
+            "log": False,
+            "pose_source": "msckf" if vio else "odometry",
+            "coupling": "loose" if src == "msckf-loose" else "tight",
+        }
         over = p.get("overrides") or {}
         base = Path(tmp) / "base"
         pipe = Pipeline(load_config(None, merge_dicts(over, {"run": run})), base)
@@ -360,7 +309,7 @@ def _anchor_nees(
     jobs: int,
     scheduler: str | None,
     seed: int,
-    pose_sources: str = "groundtruth,odometry,msckf",
+    pose_sources: str = "groundtruth,odometry,msckf-loose,msckf",
     duration: float = 60.0,
     odometry_noise_scale: float = 0.1,
     trajectory: str = "",

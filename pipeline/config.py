@@ -38,6 +38,13 @@ class RunSection(BaseModel):
         "(a VIO-only baseline beside the UWB-aided estimate, ~1.6x the VIO cost); init: always stop there",
     )
 
+    coupling: Literal["tight", "loose"] = Field(
+        "tight",
+        description="MSCKF pose source: tight = the anchors join the MSCKF state (the paper's filter); loose = "
+        "the UWB stages run on the VIO output (the MSCKF over all data, its trajectory as odometry with a drift "
+        "model fitted to its covariance growth; the anchors never join the MSCKF state)",
+    )
+
     @field_validator("stages")
     @classmethod
     def _known_stages(cls, v: list[str]) -> list[str]:

@@ -320,6 +320,34 @@ def apply_calibration_noise(config: OdometryFilterConfig, calibration: dict | No
     return taken
 
 
+def fit_drift_noise(traj: dict[str, np.ndarray]) -> dict[str, float]:
+    """Drift sigmas (`NOISE_KEYS`) of a random walk per metre travelled that reaches, at the end of ``traj``
+    (``t_ns, p, q_xyzw, cov`` with 6x6 ``[dtheta, dp]`` covariances, e.g. an MSCKF history), the same per-axis
+    position variance and world-yaw variance; the initial sigmas are those of the first pose. Rotation noise is
+    isotropic in the body frame (the drift model has one sigma), position noise isotropic."""
+    from .lie import quat_to_rot
+
+    p = np.asarray(traj["p"], float)
+    cov = np.asarray(traj["cov"], float)
+    if len(p) < 2:
+        raise InputError("fit_drift_noise: need at least two poses")
+    length = max(float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()), 1e-9)
+    var_p0 = float(np.trace(cov[0, 3:6, 3:6])) / 3.0
+    var_p1 = float(np.trace(cov[-1, 3:6, 3:6])) / 3.0
+    var_th0 = float(np.trace(cov[0, 0:3, 0:3])) / 3.0
+    R1 = quat_to_rot(np.asarray(traj["q_xyzw"][-1], float))
+    var_yaw1 = float((R1 @ cov[-1, 0:3, 0:3] @ R1.T)[2, 2])
+    return {
+        "sigma_p_per_sqrt_m": math.sqrt(max(var_p1 - var_p0, 0.0) / length),
+        "sigma_theta_per_sqrt_rad": 0.0,
+        "sigma_theta_per_sqrt_m": math.sqrt(max(var_yaw1 - var_th0, 0.0) / length),
+        "sigma_p_per_sqrt_s": 0.0,
+        "sigma_theta_per_sqrt_s": 0.0,
+        "initial_sigma_p": math.sqrt(max(var_p0, 1e-12)),
+        "initial_sigma_theta_deg": math.degrees(math.sqrt(max(var_th0, 1e-12))),
+    }
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # the estimator
 # ---------------------------------------------------------------------------------------------------------------

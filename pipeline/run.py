@@ -182,7 +182,13 @@ class Pipeline:
             log.close()
         return str(stats), []
 
+    def loose(self) -> bool:
+        """UWB stages on the VIO output instead of inside the MSCKF (``run.coupling = "loose"``)."""
+        return self.config.run.coupling == "loose" and self.pose_source() == "msckf"
+
     def stage_vio(self) -> tuple[str, list[str]]:
+        if self.loose():
+            return self._stage_vio_loose()
         win = self.windows()
         est = self._make_estimator()
         self.dir.save_json("windows.json", win.as_dict())
@@ -204,6 +210,37 @@ class Pipeline:
         return (
             f"{self.pose_source()}: {len(hist['t_ns'])} poses over {(t_end - win.start_ns) * 1e-9:.1f} s",
             warns,
+        )
+
+    def _stage_vio_loose(self) -> tuple[str, list[str]]:
+        """The MSCKF over all data -> vio.mcap (its trajectory on /vio/odometry) -> the odometry filter with a drift
+        model fitted to the MSCKF's covariance growth (vio_drift.json) up to the end of the init window."""
+        from .odometry_filter import OdometryEstimator, fit_drift_noise
+
+        win = self.windows()
+        self.dir.save_json("windows.json", win.as_dict())
+        msckf = self._make_estimator()
+        with self.runlog("vio") as log:
+            log.stage("vio", win.start_ns)
+            self._log_groundtruth(log)
+            msckf.run(self._features_reader(), win.start_ns, win.end_ns, log=log)
+        full = msckf.history().arrays()
+        self._write_odometry("vio.mcap", full)
+        noise = fit_drift_noise(full)
+        self.dir.save_json("vio_drift.json", noise)
+        cfg = self.config.odometry.model_copy(update={"topic": TOPIC_VIO, "error_model": "drift", **noise})
+        reader = self._features_reader()
+        est = OdometryEstimator.from_recording(reader, cfg)
+        est.run(reader, win.start_ns, win.init_end_ns)
+        self.dir.save_pickle("checkpoint_init.pkl", est)
+        hist = est.history().arrays()
+        self.dir.save_npz("vio.npz", **hist)
+        self._assemble_trajectory()
+        drift = ", ".join(f"{k} {v:.3g}" for k, v in noise.items() if v)
+        return (
+            f"msckf (loose): {len(full['t_ns'])} poses over {(win.end_ns - win.start_ns) * 1e-9:.1f} s; "
+            f"UWB stages on its output, drift model {drift}",
+            list(getattr(msckf, "warnings", [])),
         )
 
     # -- paper stage 1: initialisation ----------------------------------------------------------------------------
@@ -449,9 +486,13 @@ class Pipeline:
         )
 
     def _features_reader(self) -> RecordingReader:
-        """The reader the estimator consumes: the recording, or the frontend's output merged into it."""
-        if self.dir.exists("frontend.mcap"):
-            return MergedReader(self.reader, RecordingReader(self.dir.file("frontend.mcap")))
+        """The reader the estimator consumes: the recording, with the frontend's tracks and (loose coupling) the
+        VIO output merged into it."""
+        extra = [
+            n for n in ("frontend.mcap",) + (("vio.mcap",) if self.loose() else ()) if self.dir.exists(n)
+        ]
+        if extra:
+            return MergedReader(self.reader, *(RecordingReader(self.dir.file(n)) for n in extra))
         return self.reader
 
     def _make_estimator(self):

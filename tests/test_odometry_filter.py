@@ -349,3 +349,23 @@ def test_calibration_noise_fills_only_unset_sigmas():
     assert apply_calibration_noise(OdometryFilterConfig(), {}) == []
     with pytest.raises(InputError, match="odometry.noise: unknown key"):
         apply_calibration_noise(OdometryFilterConfig(), {"odometry": {"noise": {"sigma_x": 1.0}}})
+
+
+def test_fit_drift_noise_recovers_a_random_walk_per_metre():
+    """A trajectory whose position variance grows by s^2 per metre and yaw variance by k^2 per metre gives back
+    s and k (the loose coupling's drift model of the MSCKF output)."""
+    from pipeline.odometry_filter import fit_drift_noise
+
+    n = 101
+    p = np.column_stack([np.linspace(0, 50, n), np.zeros(n), np.zeros(n)])  # 50 m straight
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    L = np.linspace(0, 50, n)
+    cov = np.zeros((n, 6, 6))
+    cov[:, 3:6, 3:6] = (1e-4 + 0.01**2 * L)[:, None, None] * np.eye(3)
+    cov[:, 0:3, 0:3] = (1e-6 + 0.002**2 * L)[:, None, None] * np.eye(3)
+    got = fit_drift_noise({"t_ns": np.arange(n), "p": p, "q_xyzw": q, "cov": cov})
+    assert got["sigma_p_per_sqrt_m"] == pytest.approx(0.01, rel=1e-6)
+    assert got["sigma_theta_per_sqrt_m"] == pytest.approx(0.002, rel=1e-6)
+    assert got["initial_sigma_p"] == pytest.approx(0.01, rel=1e-6)
+    with pytest.raises(InputError, match="two poses"):
+        fit_drift_noise({"t_ns": np.arange(1), "p": p[:1], "q_xyzw": q[:1], "cov": cov[:1]})

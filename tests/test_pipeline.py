@@ -117,6 +117,34 @@ def test_stage_rerun_alone_keeps_other_artefacts(run_dir, sim):
     assert "anchor_error_m" in m
 
 
+def test_loose_coupling_runs_the_uwb_stages_on_the_vio_output(sim, tmp_path):
+    """run.coupling = loose: the MSCKF once over all data, its trajectory in vio.mcap, the odometry filter with a
+    drift model fitted to the MSCKF's covariance drives init/refine/localize; refine re-runs alone identically."""
+    import numpy as np
+
+    from convert.recording import TOPIC_VIO, RecordingReader
+
+    cfg = tmp_path / "loose.toml"
+    cfg.write_text('[run]\ncoupling = "loose"\nlog = false\n')
+    out = tmp_path / "loose"
+    res = runner.invoke(app, ["run", str(sim), "-o", str(out), "--config", str(cfg)])
+    assert res.exit_code == 0, res.output
+    assert "msckf (loose)" in res.output
+    drift = json.loads((out / "vio_drift.json").read_text())
+    assert 0 < drift["sigma_p_per_sqrt_m"] < 0.05 and drift["initial_sigma_p"] > 0
+    win = json.loads((out / "windows.json").read_text())
+    vio = RecordingReader(out / "vio.mcap").topics()[TOPIC_VIO]
+    assert vio.end_ns * 1e-9 > win["refine_end_s"]  # the VIO output spans the whole recording
+    with np.load(out / "vio.npz") as z:  # the odometry filter's history over the init window
+        assert z["t_ns"][-1] * 1e-9 <= win["init_end_s"] + 1e-6
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["anchor_error_m"] < 0.3 and m["prmse_m"]["all"] < 0.2
+    before = (out / "anchor_states.json").read_text()
+    res = runner.invoke(app, ["run", str(sim), "-o", str(out), "--config", str(cfg), "--stages", "refine"])
+    assert res.exit_code == 0, res.output
+    assert (out / "anchor_states.json").read_text() == before
+
+
 def test_missing_artefact_names_the_stage(sim, tmp_path):
     res = runner.invoke(app, ["run", str(sim), "-o", str(tmp_path / "r"), "--stages", "refine"])
     assert res.exit_code == 2
