@@ -115,6 +115,17 @@ class InfoReport:
         for k in ("sigma_range", "gamma_prior", "beta_prior"):
             if uwb.get(k) is not None:
                 lines.append(f"  uwb {k}: {uwb[k]}")
+        odo = cal.get("odometry") or {}
+        if odo:
+            extra = {k: v for k, v in odo.items() if k not in ("error_model", "noise")}
+            lines.append(
+                f"  odometry error model: {odo.get('error_model', 'drift')}"
+                + "".join(f", {k}={v}" for k, v in extra.items())
+            )
+            if odo.get("noise"):
+                lines.append(
+                    "  odometry noise: " + ", ".join(f"{k}={v:.4g}" for k, v in odo["noise"].items())
+                )
         if "groundtruth" in cal:
             lines.append(f"  groundtruth: {cal['groundtruth']}")
         return lines

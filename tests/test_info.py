@@ -95,3 +95,20 @@ def test_info_on_garbage_exits_2_with_one_line(tmp_path):
     out = CliRunner().invoke(app, ["info", str(bad)])
     assert out.exit_code == 2
     assert "bad.mcap" in out.output and len(out.output.strip().splitlines()) == 1
+
+
+def test_info_prints_the_odometry_error_model(tmp_path):
+    t = T0 + np.arange(10, dtype=np.int64) * 5_000_000
+    with RecordingWriter(tmp_path / "o.mcap") as w:
+        w.write_imu_batch(t, np.zeros((10, 3)), np.zeros((10, 3)))
+        cal = {
+            "odometry": {
+                "error_model": "bounded",
+                "correlation_time_s": 5.0,
+                "noise": {"initial_sigma_p": 0.03},
+            }
+        }
+        w.set_metadata(META_CALIBRATION, cal)
+    text = recording_info(tmp_path / "o.mcap").render()
+    assert "odometry error model: bounded, correlation_time_s=5.0" in text
+    assert "odometry noise: initial_sigma_p=0.03" in text
