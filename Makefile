@@ -29,5 +29,5 @@ bench: setup
 regression: setup
 	$(UV) run uwbcal experiment ri-vs-lsi --runs 8 --seed 0 -o recordings/ci/ri-vs-lsi
 	$(UV) run uwbcal diff recordings/reference/ri-vs-lsi/summary.json recordings/ci/ri-vs-lsi/summary.json --rtol 0.05
-	$(UV) run uwbcal experiment anchor-nees --runs 4 --seed 0 --param pose_sources=groundtruth,odometry -o recordings/ci/anchor-nees
+	$(UV) run uwbcal experiment anchor-nees --runs 8 --seed 0 --param pose_sources=groundtruth,odometry,msckf --jobs 2 -o recordings/ci/anchor-nees
 	$(UV) run uwbcal diff recordings/reference/anchor-nees/summary.json recordings/ci/anchor-nees/summary.json --rtol 0.05

@@ -97,7 +97,7 @@ def table1_job(p: dict) -> dict:
     from convert.simulator import SimConfig, simulate_to_file
     from pipeline.config import load_config
     from pipeline.run import Pipeline
-    from pipeline.state import Vec
+    from pipeline.state import Vec, remove_probes
     from pipeline.uwb_filter import UwbUpdater, anchor_var
 
     from .export import compare, load_ground_truth
@@ -127,6 +127,9 @@ def table1_job(p: dict) -> dict:
             P0 = np.diag([s0**2] * 3 + [0.1**2, 0.5**2])
             for method in ("ekf", "skf"):
                 est = pickle.loads(blob)
+                remove_probes(
+                    est.state
+                )  # the anchors are placed by hand here, not initialised from the window
                 for a, t in truth.items():
                     x0 = np.r_[np.asarray(t["position"]) + sigma_i * offsets[a], 1.0, 0.0]
                     est.state.add(anchor_var(int(a)), Vec(x0), P0)

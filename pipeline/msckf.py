@@ -36,7 +36,7 @@ from .camera import Camera
 from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
 from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
 from .lie import quat_slerp, quat_to_rot, skew
-from .state import ImuState, Pose, State, ekf_update
+from .state import ImuState, Pose, State, add_probe, ekf_update, remove_probes
 
 if TYPE_CHECKING:
     from convert.recording import RecordingReader
@@ -386,6 +386,8 @@ class MsckfEstimator:
         self._static: tuple[int, int] | None = None  # (t0, t1): propagate with the zero-motion model in it
         self._last_frame: tuple[np.ndarray, np.ndarray] | None = None  # ids, pixels: disparity reference
         self.source = "recording"
+        self._probe_period_ns: int | None = None  # pose probes for the UWB initialisation (start_probes)
+        self._last_probe_ns: int | None = None
 
     # -- construction ------------------------------------------------------------------------------------------
     @classmethod
@@ -429,6 +431,31 @@ class MsckfEstimator:
 
     def history(self) -> TrajectoryRecord:
         return self._history
+
+    # -- pose probes (UWB initialisation window) ----------------------------------------------------------------
+    def start_probes(self, period_s: float) -> None:
+        """From now on keep the pose every ``period_s`` (at camera frames) as a considered variable
+        (`state.add_probe`), so that the anchors initialised over this stretch get exact cross-covariances."""
+        self._probe_period_ns = int(period_s * 1e9)
+        self._last_probe_ns = None
+        if self.initialized:
+            self.add_probe()
+
+    def add_probe(self) -> None:
+        add_probe(self.state, self.t_ns)
+        self._last_probe_ns = self.t_ns
+
+    def stop_probes(self, remove: bool = True) -> None:
+        """No more probes; ``remove``: also drop those in the state (False: they stay for the initialisation)."""
+        self._probe_period_ns = None
+        if remove:
+            remove_probes(self.state)
+
+    def _maybe_probe(self) -> None:
+        if self._probe_period_ns is not None and (
+            self._last_probe_ns is None or self.t_ns - self._last_probe_ns >= self._probe_period_ns
+        ):
+            self.add_probe()
 
     # -- propagation -------------------------------------------------------------------------------------------
     def _propagate_to(self, t_ns: int, imu_t: np.ndarray, gyro: np.ndarray, acc: np.ndarray) -> None:
@@ -747,6 +774,7 @@ class MsckfEstimator:
                 ok = np.isfinite(uv).all(axis=1) if len(uv) else np.zeros(0, bool)
                 self._last_frame = (ids[ok], uv[ok])
             self._record()
+            self._maybe_probe()
         ranges_until(end - 1)
         if self.stats.zupt_updates:
             _log.info(

@@ -192,11 +192,21 @@ class Pipeline:
         win = self.windows()
         est = self._make_estimator()
         self.dir.save_json("windows.json", win.as_dict())
+        # the window's poses, kept for the anchors' covariance initialisation (uwb_filter.anchor_init_covariance)
+        period = self.config.uwb.init_probe_period_s
+        probing = period is not None and hasattr(est, "start_probes")
+        if probing:
+            est.start_probes(period)
         with self.runlog("vio") as log:
             log.stage("vio", win.start_ns)
             self._log_groundtruth(log)
             est.run(self._features_reader(), win.start_ns, win.init_end_ns, log=log)
+            if probing:  # the checkpoint keeps the window's probes; the anchors' initialisation removes them
+                est.add_probe()
+                est.stop_probes(remove=False)
             self.dir.save_pickle("checkpoint_init.pkl", est)
+            if probing:
+                est.stop_probes()
             extent = self.config.run.vio_extent
             vio_only_to_end = extent == "full" or (extent == "auto" and "refine" not in self._stages)
             if vio_only_to_end:

@@ -4,7 +4,8 @@ The state is an ordered list of named variables; each knows its block in the cov
 added either independent (`add`), as functions of existing ones (`augment`, stochastic clones) or from
 measurements (`initialize`, the OpenVINS "state variable initialisation" with a QR split). `ekf_update` is
 the only place that changes estimates and covariance from a measurement; Schmidt behaviour is a per-update
-choice of variables whose gain is zeroed.
+choice of variables whose gain is zeroed, plus the state's own *considered* variables (``State.considered``, e.g.
+past poses kept so that a later initialisation knows their cross-covariances), which no update ever changes.
 """
 
 from __future__ import annotations
@@ -106,6 +107,8 @@ class State:
         self._values: dict[str, Value] = {}
         self._fej: dict[str, Value] = {}
         self._slices: dict[str, slice] = {}
+        # Schmidt (considered) variables: zero gain in every update, cross-covariances tracked
+        self.considered: set[str] = set()
 
     # -- bookkeeping -------------------------------------------------------------------------------------
     @property
@@ -175,9 +178,16 @@ class State:
         self._reindex()
 
     def augment(
-        self, name: str, value: Value, J: Mapping[str, np.ndarray], Q: np.ndarray | None = None
+        self,
+        name: str,
+        value: Value,
+        J: Mapping[str, np.ndarray],
+        Q: np.ndarray | None = None,
+        *,
+        considered: bool = False,
     ) -> None:
-        """Add ``name`` = f(existing) (+ noise Q) with Jacobians ``J[var]``: P_new = J P J^T + Q, cross = J P."""
+        """Add ``name`` = f(existing) (+ noise Q) with Jacobians ``J[var]``: P_new = J P J^T + Q, cross = J P.
+        ``considered``: a Schmidt variable of the state (see ``State.considered``)."""
         JP = np.zeros((value.dim, self.size))
         for var, Jb in J.items():
             JP += Jb @ self.P[self._slices[var], :]
@@ -187,6 +197,8 @@ class State:
         if Q is not None:
             P_new = P_new + Q
         self._append(name, value, P_new, JP)
+        if considered:
+            self.considered.add(name)
 
     def initialize(
         self,
@@ -246,6 +258,7 @@ class State:
         sl = self._slices[name]
         keep = np.r_[0 : sl.start, sl.stop : self.size]
         self.P = self.P[np.ix_(keep, keep)]
+        self.considered.discard(name)
         self._names.remove(name)
         del self._values[name]
         del self._fej[name]
@@ -256,6 +269,32 @@ class State:
             sl = self._slices[n]
             if dx[sl].any():  # Schmidt (considered) variables get exactly zero corrections
                 self._values[n] = self._values[n].boxplus(dx[sl])
+
+
+PROBE_PREFIX = "probe/"
+
+
+def add_probe(state: State, t_ns: int, pose_var: str = "imu") -> str:
+    """Keep the pose of ``pose_var`` at ``t_ns`` as a considered (Schmidt) variable ``probe/<t_ns>``: its value
+    stays the filtered estimate of that time, its cross-covariances with the state stay exact (the paper's window
+    states X_I, for the covariance initialisation of the anchors). Returns the name."""
+    name = f"{PROBE_PREFIX}{int(t_ns)}"
+    if name not in state:
+        x = state.value(pose_var)
+        J = np.zeros((6, state.dim(pose_var)))
+        J[:, :6] = np.eye(6)
+        state.augment(name, Pose(x.R, x.p), {pose_var: J}, considered=True)
+    return name
+
+
+def probes(state: State) -> list[tuple[int, str]]:
+    """(t_ns, name) of the state's pose probes in time order."""
+    return sorted((int(n[len(PROBE_PREFIX) :]), n) for n in state.names if n.startswith(PROBE_PREFIX))
+
+
+def remove_probes(state: State) -> None:
+    for _, n in probes(state):
+        state.remove(n)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -276,7 +315,8 @@ def ekf_update(
 ) -> UpdateResult:
     """The one EKF update: ``r = sum_v H[v] dx_v + n``, n ~ N(0, R).
 
-    ``schmidt`` names variables that are *considered* but not estimated (Schmidt-Kalman filter): their
+    ``schmidt`` names variables that are *considered* but not estimated (Schmidt-Kalman filter; the state's own
+    ``considered`` variables are always among them): their
     gain rows are zero, so their estimates and their own covariance block stay unchanged, while the
     cross-covariances with the estimated variables are updated. The covariance update is the Joseph form,
     which is exact for any gain, so the zeroed gain needs no special formula. ``chi2_gate`` is a quantile
@@ -326,14 +366,31 @@ def ekf_update(
         if wt < 1.0:
             S = S / wt
             cho = cho / np.sqrt(wt)
-    # K = P H^T S^-1
-    K = np.linalg.solve(cho.T, np.linalg.solve(cho, PHt.T)).T
     schmidt = list(schmidt)
-    if schmidt:
-        K[state._index(schmidt), :] = 0.0
+    schmidt += [v for v in getattr(state, "considered", ()) if v not in schmidt]
     # Joseph form: P+ = (I - K H) P (I - K H)^T + K R K^T, written with PHt to avoid forming I - KH.
-    KHP = K @ PHt.T
-    P = state.P - KHP - KHP.T + K @ S @ K.T
-    state.P = 0.5 * (P + P.T)
-    state.boxplus(K @ r)
+    if not schmidt:
+        K = np.linalg.solve(cho.T, np.linalg.solve(cho, PHt.T)).T  # K = P H^T S^-1
+        KHP = K @ PHt.T
+        P = state.P - KHP - KHP.T + K @ S @ K.T
+        state.P = 0.5 * (P + P.T)
+        state.boxplus(K @ r)
+        return UpdateResult(True, nis, m, gate)
+    # Schmidt: only the estimated rows e of K are non-zero, so only rows and columns e of P change
+    # (P_ee - (KHP)_ee - (KHP)_ee^T + K_e S K_e^T, P_ec - (KHP)_ec); the considered block stays as it is.
+    mask = np.ones(n, bool)
+    mask[state._index(schmidt)] = False
+    e = np.flatnonzero(mask)
+    K_e = np.linalg.solve(cho.T, np.linalg.solve(cho, PHt[e].T)).T
+    KHP = K_e @ PHt.T  # (n_e, n)
+    P = state.P
+    P[e, :] -= KHP
+    P[:, e] -= KHP.T
+    P[np.ix_(e, e)] += K_e @ S @ K_e.T
+    Pe = P[e, :]
+    P[e, :] = 0.5 * (Pe + P[:, e].T)
+    P[:, e] = P[e, :].T
+    dx = np.zeros(n)
+    dx[e] = K_e @ r
+    state.boxplus(dx)
     return UpdateResult(True, nis, m, gate)

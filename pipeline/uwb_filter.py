@@ -22,7 +22,7 @@ from convert.errors import InputError
 
 from .fim import DegenerateGeometryError
 from .lie import quat_slerp, quat_to_rot
-from .state import State, UpdateResult, Vec, ekf_update
+from .state import State, UpdateResult, Vec, ekf_update, probes, remove_probes
 from .uwb_init import InitResult, InitWindow, initialize_anchor
 from .uwb_model import jacobians, predict, range_variance
 
@@ -89,6 +89,14 @@ class UwbConfig(BaseModel):
     pose_sigma_floor_m: float = Field(0.0, ge=0, description="added to the pose position sigma at init")
     residual_factor: float = Field(
         3.0, gt=1, description="post-fit residual spread > factor x sigma: warning"
+    )
+    init_probe_period_s: float | None = Field(
+        2.0,
+        gt=0,
+        description="MSCKF: keep the pose every this many seconds of the init window as a considered (Schmidt) "
+        "variable, so that the anchors' cross-covariances with the filter are exact (the paper's window states "
+        "X_I; 1, 2 and 5 s give the same anchor NEES); None: random-walk approximation from the poses' marginal "
+        "covariances",
     )
     correlation_block_s: float | None = Field(
         10.0,
@@ -257,31 +265,35 @@ def _psd(A: np.ndarray) -> np.ndarray:
 
 def anchor_init_covariance(
     result: InitResult,
-    R_now: np.ndarray,
-    P_now: np.ndarray,
+    state: State,
     *,
     sigma_range: float,
     gamma_prior: tuple[float, float] | None,
     beta_prior: tuple[float, float],
-) -> tuple[np.ndarray, np.ndarray]:
-    """(J, Q) such that x~_U = J e_now + v, v ~ N(0, Q) independent of the filter state.
+    pose_var: str = "imu",
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """(J, Q) such that x~_U = sum_v J[v] e_v + n, n ~ N(0, Q) independent of the filter state.
 
     Stacked linearisation over the window (paper eqs. H_A, H_B): r = H_A X~ + H_B x~_U + n. At the optimum of the
     (weighted) least squares the normal equations give the estimator's error map
     x~_(p_a,gamma) = -G^-1 [sum_k H_Bk^T w_k (H_Ak X~_k + h_beta,k beta~ + n_k) + e_gamma eps / s^2],
-    G = sum H_Bk^T w_k H_Bk + prior. For the GLS weights this is exactly the invertible block of the paper's QR split
-    (x~_U = H_B1^-1 (r_1 - H_A1 X~ - n_1)); written this way it also holds for LSI's unit weights, RI's weights,
-    robust weights, beta fixed at its prior mean (beta~ ~ N(0, sigma^2) of ``beta_prior = (mean, sigma)``,
-    independent) and the gamma prior. When the initialiser estimated beta (``result.params`` has index 3) the same
-    holds with (p_a, beta, gamma) and the beta prior, whose mean error enters like the gamma prior's.
+    G = sum H_Bk^T w_k H_Bk + prior, i.e. x~_U = sum_k B_k e_k + (noise, prior and fixed-beta terms). For the GLS
+    weights this is exactly the invertible block of the paper's QR split (x~_U = H_B1^-1 (r_1 - H_A1 X~ - n_1));
+    written this way it also holds for LSI's unit weights, RI's weights, robust weights, beta fixed at its prior
+    mean (beta~ ~ N(0, sigma^2) of ``beta_prior = (mean, sigma)``, independent) and the gamma prior. When the
+    initialiser estimated beta (``result.params`` has index 3) the same holds with (p_a, beta, gamma) and the beta
+    prior, whose mean error enters like the gamma prior's.
 
-    Past poses: the window's poses are no longer in the filter state; only their marginal covariances P_k are
-    known. Approximation: in the world frame ([R dtheta, dp]) the pose errors are a random walk up to now,
-    Cov(e_j, e_k) = P_min(j,k) and Cov(e_k, e_now) = P_k, with increments P_k - P_k-1 clipped to PSD (covariances
-    that shrink are treated as not decorrelating, which is conservative). With a constant P_k the window shares one
-    common error with the current pose (full correlation); with growing P_k the early poses decorrelate. The part
-    correlated with the current pose enters through J (so the cross-covariance with every state variable is
-    J P[imu_pose, :]); the rest is independent noise in Q.
+    The window's pose errors e_k (X_I of the paper):
+    - with pose probes in the state (`state.add_probe`, kept by the MSCKF over the window as considered
+      variables), e_k is interpolated linearly in time between the probes around t_k, so J holds one block per
+      probe and the cross-covariances with everything in the filter are the filter's own (exact up to the
+      interpolation);
+    - without probes only the marginal covariances P_k are known: the pose errors are taken as a random walk in
+      the world frame ([R dtheta, dp]) up to now, Cov(e_j, e_k) = P_min(j,k), Cov(e_k, e_now) = P_k, increments
+      clipped to PSD; the part correlated with the current pose enters J[pose_var], the rest Q. Exact for a
+      pose-only random-walk filter (the odometry filter); for the MSCKF it ignores how its updates decorrelate past
+      from present errors (anchor ANEES 24-28 instead of ~8 with probes, `anchor-nees`).
     """
     w = result.window
     x = result.x
@@ -311,26 +323,16 @@ def anchor_init_covariance(
     L[ag, range(na)] = 1.0
     a = (Ginv @ (HB * wk[:, None]).T).T  # (n,na) a_k = G^-1 H_Bk^T w_k
     La = a @ L.T  # (n,5)
-    # world-frame pose Jacobians and covariances
+    # world-frame pose Jacobians: e_k = [R_k dtheta_k, dp_k]
     HW = J.H_I.copy()
     HW[:, 0:3] = np.einsum("nj,nij->ni", J.H_I[:, 0:3], w.R)  # H_theta R_k^T
-    T = np.zeros((n, 6, 6))
-    T[:, 0:3, 0:3] = w.R
-    T[:, 3:6, 3:6] = np.eye(3)
-    PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
-    order = np.argsort(w.t_ns, kind="stable") if w.t_ns is not None else np.arange(n)
-    B = -La[order, :, None] * HW[order, None, :]  # (n,5,6)
-    dP = np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6)))
-    dP = _psd(dP)
-    S = np.cumsum(B[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
-    cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
-    Pk = np.cumsum(dP, axis=0)  # implied P_k under the random-walk model
-    Tn = np.eye(6)
-    Tn[0:3, 0:3] = R_now
-    C = np.einsum("nij,njk->ik", B, Pk) @ Tn  # Cov(x~_U, e_now (body))
-    P_now = 0.5 * (P_now + P_now.T)
-    Jn = np.linalg.solve(P_now.T, C.T).T if np.all(np.isfinite(P_now)) else np.zeros((5, 6))
-    cov = cov_pose - Jn @ P_now @ Jn.T
+    B = -La[:, :, None] * HW[:, None, :]  # (n,5,6)
+    t_k = w.t_ns if w.t_ns is not None else np.arange(n)
+    pr = probes(state)
+    if pr and w.t_ns is not None:
+        Jd, cov = _probe_map(state, B, np.asarray(t_k, np.int64), pr)
+    else:
+        Jd, cov = _random_walk_map(state, B, w, t_k, pose_var)
     # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
     cov += result.noise_inflation * sigma_range**2 * (La.T @ La)
     if not est_beta:
@@ -341,7 +343,55 @@ def anchor_init_covariance(
     for i, sd in priors:  # the error of each prior mean, N(0, sd^2), enters through G^-1 e_i / sd^2
         gp = L @ Ginv[:, i] / sd
         cov += np.outer(gp, gp)
-    return Jn, _psd(cov)
+    return Jd, _psd(cov)
+
+
+def _probe_map(
+    state: State, B: np.ndarray, t_k: np.ndarray, pr: list[tuple[int, str]]
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """e_k = (1 - s) e_j + s e_j+1 between the probes around t_k (the first / last probe outside them); the probe
+    errors are body-frame [dtheta, dp], so the world-frame B_k is mapped with each probe's rotation."""
+    tp = np.array([t for t, _ in pr], np.int64)
+    j0 = np.clip(np.searchsorted(tp, t_k, side="right") - 1, 0, len(tp) - 1)
+    j1 = np.minimum(j0 + 1, len(tp) - 1)
+    span = (tp[j1] - tp[j0]).astype(float)
+    frac = np.where(span > 0, np.clip((t_k - tp[j0]) / np.where(span > 0, span, 1.0), 0.0, 1.0), 0.0)
+    Bp = np.zeros((len(tp), 5, 6))
+    np.add.at(Bp, j0, (1.0 - frac)[:, None, None] * B)
+    np.add.at(Bp, j1, frac[:, None, None] * B)
+    Jd = {}
+    for j, (_, name) in enumerate(pr):
+        if Bp[j].any():
+            T = np.eye(6)
+            T[0:3, 0:3] = state.value(name).R
+            Jd[name] = Bp[j] @ T
+    return Jd, np.zeros((5, 5))
+
+
+def _random_walk_map(
+    state: State, B: np.ndarray, w: InitWindow, t_k: np.ndarray, pose_var: str
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The random-walk model of `anchor_init_covariance` (no probes): J on the current pose, the rest in Q."""
+    n = len(B)
+    T = np.zeros((n, 6, 6))
+    T[:, 0:3, 0:3] = w.R
+    T[:, 3:6, 3:6] = np.eye(3)
+    PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
+    order = np.argsort(t_k, kind="stable")
+    Bo = B[order]
+    dP = _psd(np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6))))
+    S = np.cumsum(Bo[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
+    cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
+    Pk = np.cumsum(dP, axis=0)  # implied P_k under the random-walk model
+    Tn = np.eye(6)
+    Tn[0:3, 0:3] = state.value(pose_var).R
+    C = np.einsum("nij,njk->ik", Bo, Pk) @ Tn  # Cov(x~_U, e_now (body))
+    P_now = state.cov(pose_var)[0:6, 0:6]
+    P_now = 0.5 * (P_now + P_now.T)
+    Jn = np.linalg.solve(P_now.T, C.T).T
+    Jfull = np.zeros((5, state.dim(pose_var)))
+    Jfull[:, 0:6] = Jn
+    return {pose_var: Jfull}, cov_pose - Jn @ P_now @ Jn.T
 
 
 def add_anchor_to_state(
@@ -360,24 +410,22 @@ def add_anchor_to_state(
     P_now = state.cov(pose_var)[0:6, 0:6]
     if not np.all(np.isfinite(P_now)):
         raise FloatingPointError(f"anchor {anchor}: the filter's pose covariance has NaN/inf")
-    Jn, Q = anchor_init_covariance(
+    J, Q = anchor_init_covariance(
         result,
-        state.value(pose_var).R,
-        P_now,
+        state,
         sigma_range=sigma_range,
         gamma_prior=gamma_prior,
         beta_prior=beta_prior,
+        pose_var=pose_var,
     )
-    Jfull = np.zeros((5, state.dim(pose_var)))
-    Jfull[:, 0:6] = Jn
-    state.augment(anchor_var(anchor), Vec(result.x), {pose_var: Jfull}, Q=Q)
+    state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q)
 
 
 def add_initialised_anchors(
     state: State, results: Mapping[Any, InitResult], config: UwbConfig, calibration: Mapping | None
 ) -> list[str]:
     """Every initialised anchor of ``results`` into ``state`` (`add_anchor_to_state`) with the configured range
-    noise and the recording's priors; warnings name the anchors left out."""
+    noise and the recording's priors, then drop the pose probes; warnings name the anchors left out."""
     warns = []
     for a, r in results.items():
         if not r.ok:
@@ -391,6 +439,7 @@ def add_initialised_anchors(
             gamma_prior=config.gamma_prior(calibration),
             beta_prior=config.beta_prior(calibration),
         )
+    remove_probes(state)  # they only served the anchors' cross-covariances
     return warns
 
 

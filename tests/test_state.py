@@ -118,3 +118,27 @@ def test_fej_switch():
     assert s.fej("a").x[0] == 0
     s.use_fej = False
     assert s.fej("a").x[0] == 1
+
+
+def test_considered_variables_and_pose_probes():
+    """A probe keeps the pose of its time as a considered variable: no update changes it or its own block, its
+    cross-covariances follow the updates exactly (as an explicit Schmidt update would), and it can be dropped."""
+    from pipeline.state import add_probe, probes, remove_probes
+
+    rng = np.random.default_rng(5)
+    s = State()
+    s.add("imu", Pose(exp_so3(rng.normal(size=3)), rng.normal(size=3)), _random_spd(rng, 6) * 1e-2)
+    name = add_probe(s, 1_000)
+    assert probes(s) == [(1_000, name)] and name in s.considered
+    np.testing.assert_allclose(s.cov(name), s.cov("imu"), atol=1e-15)  # a copy of the pose at its time
+    ref = State()
+    ref.P, ref._names, ref._values, ref._fej = s.P.copy(), list(s.names), dict(s._values), dict(s._fej)
+    ref._reindex()
+    H = rng.normal(size=(2, 6))
+    r = rng.normal(size=2)
+    ekf_update(s, {"imu": H}, r, 0.1)
+    ekf_update(ref, {"imu": H}, r, 0.1, schmidt=[name])
+    np.testing.assert_allclose(s.P, ref.P, atol=1e-14)
+    np.testing.assert_array_equal(s.value(name).p, ref.value(name).p)
+    remove_probes(s)
+    assert probes(s) == [] and not s.considered and s.names == ["imu"]
