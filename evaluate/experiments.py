@@ -127,9 +127,8 @@ def table1_job(p: dict) -> dict:
             P0 = np.diag([s0**2] * 3 + [0.1**2, 0.5**2])
             for method in ("ekf", "skf"):
                 est = pickle.loads(blob)
-                remove_probes(
-                    est.state
-                )  # the anchors are placed by hand here, not initialised from the window
+                # the anchors are placed by hand here, not initialised from the window's poses
+                remove_probes(est.state)
                 for a, t in truth.items():
                     x0 = np.r_[np.asarray(t["position"]) + sigma_i * offsets[a], 1.0, 0.0]
                     est.state.add(anchor_var(int(a)), Vec(x0), P0)

@@ -325,8 +325,6 @@ def fit_drift_noise(traj: dict[str, np.ndarray]) -> dict[str, float]:
     (``t_ns, p, q_xyzw, cov`` with 6x6 ``[dtheta, dp]`` covariances, e.g. an MSCKF history), the same per-axis
     position variance and world-yaw variance; the initial sigmas are those of the first pose. Rotation noise is
     isotropic in the body frame (the drift model has one sigma), position noise isotropic."""
-    from .lie import quat_to_rot
-
     p = np.asarray(traj["p"], float)
     cov = np.asarray(traj["cov"], float)
     if len(p) < 2:

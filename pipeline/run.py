@@ -250,7 +250,7 @@ class Pipeline:
         return (
             f"msckf (loose): {len(full['t_ns'])} poses over {(win.end_ns - win.start_ns) * 1e-9:.1f} s; "
             f"UWB stages on its output, drift model {drift}",
-            list(getattr(msckf, "warnings", [])),
+            list(msckf.warnings),
         )
 
     # -- paper stage 1: initialisation ----------------------------------------------------------------------------
