@@ -380,14 +380,13 @@ def default_anchors(lo: np.ndarray, hi: np.ndarray, n: int) -> np.ndarray:
     return np.stack([c[0] + half[0] * np.cos(ang), c[1] + half[1] * np.sin(ang), height], axis=1)
 
 
-def odometry_noise_config(scale: float = 1.0):
-    """The odometry filter's default drift model with every sigma times ``scale`` (what the simulated
-    odometry follows; the filter itself keeps its configured sigmas)."""
-    from pipeline.odometry_filter import OdometryFilterConfig
+def odometry_noise(scale: float = 1.0) -> dict[str, float]:
+    """The odometry filter's default drift sigmas (`NOISE_KEYS`) times ``scale``: what the simulated odometry
+    follows and declares in its calibration (``odometry.noise``)."""
+    from pipeline.odometry_filter import NOISE_KEYS, OdometryFilterConfig
 
     c = OdometryFilterConfig()
-    sig = {k: v * scale for k, v in c.model_dump().items() if k.startswith(("sigma_", "initial_sigma"))}
-    return c.model_copy(update=sig)
+    return {k: float(getattr(c, k)) * scale for k in NOISE_KEYS}
 
 
 def simulate_odometry(
@@ -397,9 +396,9 @@ def simulate_odometry(
     initial covariance, every increment T_k-1^-1 T_k by a draw of `increment_noise` (dR = dR_hat Exp(n_theta),
     dp = dp_hat + n_p), composed like dead reckoning."""
     from pipeline.lie import exp_so3
-    from pipeline.odometry_filter import compose, increment_noise, relative
+    from pipeline.odometry_filter import OdometryFilterConfig, compose, increment_noise, relative
 
-    c = odometry_noise_config(scale)
+    c = OdometryFilterConfig().model_copy(update=odometry_noise(scale))  # unvalidated: scale 0 is the truth
     s = traj.evaluate(rel_seconds(traj, t_ns))
     n = len(t_ns)
     R_hat = np.empty((n, 3, 3))
@@ -544,11 +543,7 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
         "groundtruth": {"lever_arm": [0.0, 0.0, 0.0], "frame": "body"},
     }
     if data.odometry is not None:
-        odo = odometry_noise_config(cfg.odometry_noise_scale).model_dump()
-        calibration["odometry"] = {
-            "error_model": "drift",
-            "noise": {k: v for k, v in odo.items() if k.startswith(("sigma_", "initial_sigma"))},
-        }
+        calibration["odometry"] = {"error_model": "drift", "noise": odometry_noise(cfg.odometry_noise_scale)}
     if data.features is not None:
         calibration["cameras"] = {"cam0": cam}
     truth = {

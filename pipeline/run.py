@@ -118,9 +118,10 @@ class Pipeline:
         if uwb.init_method == "auto":
             uwb.init_method = auto_init_method(self.reader.source.get("dataset"))  # type: ignore[assignment]
         run = self.config.run
-        if self.pose_source() == "odometry":
+        odometry = self.pose_source() == "odometry"
+        if odometry:
             apply_calibration_noise(self.config.odometry, self.reader.calibration)
-        if run.init_window_s is None and run.refine_window_s is None and self.pose_source() == "odometry":
+        if run.init_window_s is None and run.refine_window_s is None and odometry:
             model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
             if model == "bounded":
                 win = self.windows()
