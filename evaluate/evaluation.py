@@ -49,6 +49,7 @@ def final_anchor_estimates(rows: list[dict], init_method: str | None = None) -> 
             "method": r["method"],
         }
         for r in chosen
+        if r["x"] != ""  # "not determined": empty coordinates
     }
 
 
@@ -155,6 +156,13 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
             for aid, r in init["methods"].get(init["chosen"], {}).items():
                 if aid in anchors and "fim" in r:
                     anchors[aid]["fim"] = r["fim"]  # log det, condition number, weakest direction
+                if aid in anchors and r.get("verdict"):
+                    anchors[aid]["verdict"] = r["verdict"]
+                    anchors[aid]["join_s"] = r.get("join_s")
+                if r.get("status") == "not determined":
+                    reason = (r.get("verdict") or {}).get("reason", "")
+                    metrics.setdefault("anchors_not_determined", {})[aid] = reason
+                    metrics["warnings"].append(f"anchor {aid} not determined: {reason}")
         metrics["anchors"] = anchors
         state_path = run_dir / "anchor_states.json"
         if ref_kind == "truth" and state_path.is_file():

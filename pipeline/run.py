@@ -121,6 +121,20 @@ class Pipeline:
         odometry = self.pose_source() == "odometry"
         if odometry:
             apply_calibration_noise(self.config.odometry, self.reader.calibration)
+        if run.schedule == "auto":
+            from .schedule import choose_schedule
+
+            rng = self.reader.read_ranges()
+            run.schedule, why = choose_schedule(  # type: ignore[assignment]
+                rng.t_ns, rng.anchor, self.windows().init_end_ns, min_ranges=max(uwb.min_ranges, 30)
+            )
+            _log.info("run.schedule = %s: %s", run.schedule, why)
+        if run.schedule == "per-anchor" and run.refine_window_s is None:
+            # late anchors are refined from their own join time: refinement runs to the end
+            win = self.windows()
+            run.refine_window_s = round((win.end_ns - win.init_end_ns) * 1e-9 + 1.0, 3)
+            if run.vio_extent == "auto":
+                run.vio_extent = "full"  # the late anchors' init windows need the poses up to their join
         if run.init_window_s is None and run.refine_window_s is None and odometry:
             model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
             if model == "bounded":
@@ -267,16 +281,33 @@ class Pipeline:
                 f"{self.recording}: no UWB ranges in the initialisation window "
                 f"({win.start_ns * 1e-9:.1f}-{win.init_end_ns * 1e-9:.1f} s)"
             )
-        windows = windows_from_trajectory(vio, vars(rng), cal, win.start_ns, win.init_end_ns)
-        results = {m: initialize_anchors(windows, self.config.uwb, cal, method=m) for m in INIT_METHODS}
+        per_anchor = self.config.run.schedule == "per-anchor"
+        if per_anchor:
+            rng = self.reader.read_ranges(start_ns=win.start_ns, end_ns=win.end_ns + 1)
+        end = win.end_ns + 1 if per_anchor else win.init_end_ns
+        windows = windows_from_trajectory(vio, vars(rng), cal, win.start_ns, end)
+        windows, searches, joins = self._schedule(windows, win.init_end_ns, per_anchor)
+        results = {
+            m: initialize_anchors(windows, self.config.uwb, cal, method=m, searches=searches)
+            for m in INIT_METHODS
+        }
+        for res in results.values():
+            for a, r in res.items():
+                j = joins.get(a)
+                r.join_ns = j if (j is not None and j > win.init_end_ns) else None
         self.dir.save_pickle("init.pkl", results)
         chosen = self.config.uwb.init_method
         summary = {m: {str(a): _init_summary(r) for a, r in res.items()} for m, res in results.items()}
         self.dir.save_json("init.json", {"chosen": chosen, "window": win.as_dict(), "methods": summary})
         rows = [_anchor_row(a, m, "init", r.x) for m, res in results.items() for a, r in res.items() if r.ok]
+        rows += [_undetermined_row(a, chosen, "init") for a, r in results[chosen].items() if not r.ok]
         self._write_anchors(rows, replace_stage="init")
         warns = [f"init {chosen} anchor {a}: {w}" for a, r in results[chosen].items() for w in r.warnings]
-        warns += [f"init {chosen} anchor {a}: {r.status}" for a, r in results[chosen].items() if not r.ok]
+        warns += [
+            f"init {chosen} anchor {a}: {r.status}"
+            for a, r in results[chosen].items()
+            if r.status != "not determined" and not r.ok
+        ]
         with self.runlog("init") as log:
             log.stage("init", win.start_ns)
             self._log_truth_anchors(log)
@@ -298,7 +329,38 @@ class Pipeline:
                 log.text(w, "WARN", win.init_end_ns)
         ok = sum(r.ok for r in results[chosen].values())
         errs = self._anchor_errors({a: r.x for a, r in results[chosen].items() if r.ok})
-        return f"{chosen}: {ok}/{len(results[chosen])} anchors initialised{errs}", warns
+        late = sum(r.join_ns is not None for r in results[chosen].values() if r.ok)
+        weak = sum(not r.verdict.get("height_observable", True) for r in results[chosen].values() if r.ok)
+        nd = [str(a) for a, r in results[chosen].items() if not r.ok]
+        extra = f" ({late} joining later)" if late else ""
+        extra += f"; height unobservable for {weak}" if weak else ""
+        extra += f"; not determined: {', '.join(nd)}" if nd else ""
+        return (
+            f"{chosen} [{self.config.run.schedule}]: {ok}/{len(results[chosen])} anchors initialised{extra}{errs}",
+            warns,
+        )
+
+    def _schedule(self, windows: dict, init_end_ns: int, per_anchor: bool):
+        """Per anchor: the window its initialisation uses, its search result and its join time
+        (`schedule.join_time`)."""
+        from .schedule import join_time
+        from .uwb_filter import search_window
+
+        cfg = self.config.uwb
+        if not cfg.search:
+            return {a: w.subset(w.t_ns < init_end_ns) for a, w in windows.items()}, None, {}
+        sigma = cfg.sigma(self.reader.calibration) * cfg.sigma_scale
+        out_w, searches, joins = {}, {}, {}
+        for a, w in windows.items():
+            j = join_time(
+                w,
+                init_end_ns,
+                lambda sub: search_window(sub, cfg, sigma),
+                per_anchor=per_anchor,
+                min_ranges=max(cfg.min_ranges, 30),
+            )
+            out_w[a], searches[a], joins[a] = j.window, j.search, j.join_ns
+        return out_w, searches, joins
 
     # -- paper stage 2: refinement ----------------------------------------------------------------------------------
     def stage_refine(self) -> tuple[str, list[str]]:
@@ -312,6 +374,15 @@ class Pipeline:
         warns = add_initialised_anchors(est.state, results, cfg, cal)
         inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
         updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
+        updater.link_offsets = {a: r.link_offsets for a, r in results.items() if r.ok and r.link_offsets}
+        updater.schedule(
+            results,
+            {
+                "sigma_range": cfg.sigma(cal) * cfg.sigma_scale,
+                "gamma_prior": cfg.gamma_prior(cal),
+                "beta_prior": cfg.beta_prior(cal),
+            },
+        )
         with self.runlog("refine") as log:
             log.stage("refine", win.init_end_ns)
             est.run(self._features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log)
@@ -333,14 +404,26 @@ class Pipeline:
                 "x": est.state.value(n).x,
                 "P": est.state.cov(n),
                 "noise_inflation": inflation.get(_anchor_key(n.split("/", 1)[1]), 1.0),
+                "link_offsets": {
+                    str(k): v
+                    for k, v in updater.link_offsets.get(_anchor_key(n.split("/", 1)[1]), {}).items()
+                },
             }
             for n in names
         }
+        for a, s in states.items():  # a height the data cannot see stays as uncertain as at init
+            r = results.get(_anchor_key(a))
+            if r is not None and not r.verdict.get("height_observable", True):
+                s["P"] = _keep_height_sigma(s["P"], r.cov)
         self.dir.save_json("anchor_states.json", states)
         label = f"{cfg.init_method}+{cfg.refine_method}"
         self._write_anchors(
-            [_anchor_row(a, label, "refine", s["x"]) for a, s in states.items()], replace_stage="refine"
+            [_anchor_row(a, label, "refine", s["x"]) for a, s in states.items()]
+            + [_undetermined_row(a, label, "refine") for a, r in results.items() if not r.ok],
+            replace_stage="refine",
         )
+        if updater.pending:
+            warns.append(f"refine: anchors {sorted(updater.pending)} never ranged after their join time")
         self._assemble_trajectory()
         c = updater.counts
         if c["rejected"]:
@@ -362,6 +445,10 @@ class Pipeline:
         updater = UwbUpdater.from_config(
             self.config.uwb, self.reader.calibration, mode="frozen", anchors=anchors, inflation=inflation
         )
+        updater.link_offsets = {
+            _anchor_key(a): {int(k): float(v) for k, v in s.get("link_offsets", {}).items()}
+            for a, s in states.items()
+        }
         with self.runlog("localize") as log:
             log.stage("localize", win.refine_end_ns)
             est.run(self._features_reader(), win.refine_end_ns, win.end_ns, on_range=updater, log=log)
@@ -554,7 +641,35 @@ def _init_summary(r) -> dict:
     }
     if r.fim is not None:
         out["fim"] = r.fim.summary()
+    if r.verdict:
+        out["verdict"] = r.verdict
+    if r.link_offsets:
+        out["link_offsets_m"] = {str(k): v for k, v in r.link_offsets.items()}
+    out["join_s"] = None if r.join_ns is None else r.join_ns * 1e-9
     return out
+
+
+def _undetermined_row(anchor, method: str, stage: str) -> dict:
+    """anchors.csv row of an anchor that was not determined: empty coordinates (DESIGN §9)."""
+    return {
+        "anchor": str(anchor),
+        "method": method,
+        "stage": stage,
+        **dict.fromkeys("xyz", ""),
+        "beta": "",
+        "gamma": "",
+    }
+
+
+def _keep_height_sigma(P, P_init) -> list:
+    """The anchor covariance with its z variance at least that of ``P_init`` (correlations scaled)."""
+    P = np.asarray(P, float).copy()
+    vz, v0 = P[2, 2], float(np.asarray(P_init)[2, 2])
+    if np.isfinite(v0) and v0 > vz > 0:
+        f = np.sqrt(v0 / vz)
+        P[2, :] *= f
+        P[:, 2] *= f
+    return P
 
 
 def _anchor_row(anchor, method: str, stage: str, x) -> dict:

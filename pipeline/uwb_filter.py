@@ -20,6 +20,7 @@ from scipy.stats import chi2
 
 from convert.errors import InputError
 
+from .anchor_search import SearchResult, search_anchor
 from .fim import DegenerateGeometryError
 from .lie import quat_slerp, quat_to_rot
 from .state import State, UpdateResult, Vec, ekf_update, probes, remove_probes
@@ -98,6 +99,33 @@ class UwbConfig(BaseModel):
         "X_I; 1, 2 and 5 s give the same anchor NEES); None: random-walk approximation from the poses' marginal "
         "covariances",
     )
+    search: bool = Field(
+        True,
+        description="global search (consensus over closed forms, verified by residuals; anchor_search) as the "
+        "initialiser's start and observability verdict; false: the paper's multi-start (closed form, mirror, "
+        "perturbed)",
+    )
+    bias: Literal["auto", "per-anchor", "per-link"] = Field(
+        "auto",
+        description="range offset model: per-anchor (one gamma) or per-link (gamma + an offset per (tag, antenna) "
+        "link, estimated at init, fixed after); auto: per-link when an anchor is ranged over several links and "
+        "their offsets differ beyond their uncertainty",
+    )
+    anchor_z_prior: dict[str, float] | dict[str, dict[str, float]] | None = Field(
+        None,
+        description="prior on anchor heights: {mean, sigma} for all anchors, or {anchor id: {mean, sigma}}",
+    )
+    max_init_ranges: int = Field(
+        5000, ge=50, description="dense ranging: the init window of an anchor is evenly subsampled to this"
+    )
+    max_sigma_horizontal_m: float = Field(
+        0.5,
+        gt=0,
+        description="an anchor whose horizontal sigma after the search exceeds this is not (yet) determined",
+    )
+    min_duration_s: float = Field(
+        5.0, ge=0, description="an anchor ranged over a shorter time span is not determined"
+    )
     correlation_block_s: float | None = Field(
         10.0,
         gt=0,
@@ -124,6 +152,18 @@ class UwbConfig(BaseModel):
     def init_beta_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
         """The beta prior the initialiser estimates beta under, or None (beta fixed to 1)."""
         return self.beta_prior(calibration) if self.estimate_beta else None
+
+    def z_prior(self, anchor: Any) -> tuple[float, float] | None:
+        """(mean, sigma) of the anchor's height from ``anchor_z_prior``, or None."""
+        zp = self.anchor_z_prior
+        if not zp:
+            return None
+        if "mean" in zp:
+            return float(zp["mean"]), float(zp.get("sigma", 1.0))  # type: ignore[arg-type]
+        one = zp.get(str(anchor))
+        if isinstance(one, dict) and "mean" in one:
+            return float(one["mean"]), float(one.get("sigma", 1.0))
+        return None
 
     def gamma_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
         uwb = (calibration or {}).get("uwb", {}) or {}
@@ -206,11 +246,17 @@ def windows_from_trajectory(
         pT[(tag == key[0]) & (ant == key[1])] = _lever_arm(arms, *key)
     anchors = np.asarray(ranges["anchor"])[idx]
     d = np.asarray(ranges["distance"], float)[idx]
+    link = link_id(tag, ant)
     out = {}
     for a in np.unique(anchors):
         m = anchors == a
-        out[int(a)] = InitWindow(d[m], pT[m], R[m], p[m], cov[m], t[idx][m])
+        out[int(a)] = InitWindow(d[m], pT[m], R[m], p[m], cov[m], t[idx][m], link[m])
     return out
+
+
+def link_id(tag, antenna):
+    """One id per (tag, antenna) pair: tag * 256 + antenna (vectorised)."""
+    return np.asarray(tag, np.int64) * 256 + np.asarray(antenna, np.int64)
 
 
 def auto_init_method(dataset: str | None) -> str:
@@ -228,15 +274,22 @@ def initialize_anchors(
     config: UwbConfig,
     calibration: Mapping | None = None,
     method: str | None = None,
+    searches: dict[Any, SearchResult] | None = None,
 ) -> dict[Any, InitResult]:
     """Run the configured initialiser on every anchor window (``auto``: see `auto_init_method`; the pipeline
     resolves it from the recording's source, here it means ri)."""
     sigma = config.sigma(calibration) * config.sigma_scale
     out = {}
+    searches = searches if searches is not None else {}
     for a, w in windows.items():
         if config.pose_sigma_floor_m > 0:
-            w = InitWindow(w.d, w.p_T, w.R, w.p, w.P_pose.copy(), w.t_ns)
+            w = InitWindow(w.d, w.p_T, w.R, w.p, w.P_pose.copy(), w.t_ns, w.link)
             w.P_pose[:, 3:6, 3:6] += np.eye(3) * config.pose_sigma_floor_m**2
+        sr = None
+        if config.search:
+            sr = searches.get(a)
+            if sr is None:
+                sr = searches[a] = search_window(w, config, sigma)
         out[a] = initialize_anchor(
             w,
             _method(method or config.init_method),
@@ -252,8 +305,43 @@ def initialize_anchors(
             force=config.force,
             residual_factor=config.residual_factor,
             correlation_block_s=config.correlation_block_s,
+            search=sr,
+            per_link=config.bias == "per-link"
+            or (config.bias == "auto" and sr is not None and per_link_supported(sr)),
+            max_ranges=config.max_init_ranges,
+            z_prior=config.z_prior(a),
         )
     return out
+
+
+def search_window(w: InitWindow, config: UwbConfig, sigma: float) -> SearchResult:
+    """`anchor_search.search_anchor` on an init window with the configured thresholds."""
+    if w.t_ns is not None and len(w) and (w.t_ns.max() - w.t_ns.min()) * 1e-9 < config.min_duration_s:
+        from .anchor_search import _not_determined
+
+        span = (w.t_ns.max() - w.t_ns.min()) * 1e-9
+        return _not_determined(
+            f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
+        )
+    return search_anchor(
+        w.tag_xyz,
+        w.d,
+        w.links(),
+        t_ns=w.t_ns,
+        sigma_range=sigma,
+        min_ranges=max(config.min_ranges, 30),
+        max_sigma_horizontal=config.max_sigma_horizontal_m,
+    )
+
+
+def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:
+    """Several links whose offsets differ beyond their uncertainty (the per-link model is then supported)."""
+    if not sr.ok or len(sr.gamma) < 2:
+        return False
+    sd = np.sqrt(np.maximum(np.diag(sr.cov)[3:], 0.0))
+    g = sr.gamma
+    i, j = np.triu_indices(len(g), 1)
+    return bool(np.any(np.abs(g[i] - g[j]) > z * np.hypot(sd[i], sd[j])))
 
 
 # -----------------------------------------------------------------------------------------------------------------
@@ -431,6 +519,8 @@ def add_initialised_anchors(
         if not r.ok:
             warns.append(f"refine: anchor {a} not initialised ({r.status}); left out")
             continue
+        if r.join_ns is not None:  # joins later (UwbUpdater.schedule)
+            continue
         add_anchor_to_state(
             state,
             a,
@@ -500,6 +590,12 @@ class UwbUpdater:
         self.robust = robust
         self.records: dict[Any, AnchorRecord] = {}
         self.counts = {"accepted": 0, "rejected": 0, "skipped": 0, "recorded": 0}
+        # per-link bias: anchor -> {link id: offset relative to the anchor's gamma}, subtracted from the range
+        self.link_offsets: dict[Any, dict[int, float]] = {}
+        # per-anchor schedule: anchors that join the state at their first range at or after result.join_ns
+        self.pending: dict[Any, InitResult] = {}
+        self.join_kw: dict = {}
+        self.joined: dict[Any, int] = {}
 
     @classmethod
     def from_config(
@@ -527,9 +623,23 @@ class UwbUpdater:
     def __call__(self, estimator: Any, meas: RangeMeasurement) -> UpdateResult | None:
         return self.update(estimator.state, meas)
 
+    def schedule(self, results: Mapping[Any, InitResult], join_kw: dict) -> None:
+        """Anchors initialised later than the refinement's start join the state at their ``join_ns``."""
+        self.pending = {a: r for a, r in results.items() if r.ok and r.join_ns is not None}
+        self.join_kw = dict(join_kw)
+
+    def _join(self, state: State, meas: RangeMeasurement) -> bool:
+        r = self.pending.get(meas.anchor)
+        if r is None or r.join_ns is None or meas.t_ns < r.join_ns or self.mode in ("frozen",):
+            return False
+        add_anchor_to_state(state, meas.anchor, r, pose_var=self.pose_var, **self.join_kw)
+        del self.pending[meas.anchor]
+        self.joined[meas.anchor] = int(meas.t_ns)
+        return True
+
     def update(self, state: State, meas: RangeMeasurement) -> UpdateResult | None:
         name = anchor_var(meas.anchor)
-        in_state = name in state
+        in_state = name in state or (bool(self.pending) and self._join(state, meas))
         if self.mode == "frozen" and meas.anchor in self.frozen:
             x_cur = x_lin = self.frozen[meas.anchor]
         elif in_state:
@@ -548,7 +658,10 @@ class UwbUpdater:
             pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
         ) and (x_lin is x_cur or np.array_equal(x_lin, x_cur))
         h = J.h[0] if same else predict(pose.R, pose.p, p_T, x_cur)[0]
-        r = float(meas.distance - h)
+        d = meas.distance
+        if self.link_offsets:
+            d -= self.link_offsets.get(meas.anchor, {}).get(int(meas.tag) * 256 + int(meas.antenna), 0.0)
+        r = float(d - h)
         R0 = (self.sigma * x_cur[3]) ** 2
         R = self.inflation.get(meas.anchor, 1.0) * R0
         robust = None
