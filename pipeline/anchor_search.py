@@ -107,7 +107,7 @@ def closed_form_candidates(
     AtA = np.einsum("hmi,hmj->hij", A, A)
     Atb = np.einsum("hmi,hm->hi", A, rhs)
     u = AtA.shape[1]
-    reg = 1e-9 * np.trace(AtA, axis1=1, axis2=2)[:, None, None] * np.eye(u)
+    reg = 1e-13 * np.trace(AtA, axis1=1, axis2=2)[:, None, None] * np.eye(u)
     try:
         sol = np.linalg.solve(AtA + reg, Atb[..., None])[..., 0]
     except np.linalg.LinAlgError:
@@ -246,12 +246,15 @@ def search_anchor(
     height_sigma_max: float = 0.5,
     static_extent_m: float = 0.3,
     max_sigma_horizontal: float | None = None,
+    max_abs_gamma: float = 2.0,
     seed: int = 0,
 ) -> SearchResult:
     """Global search for the anchor ranged by the tag positions ``xyz`` (N, 3) with ranges ``d`` (N,) over links
     ``link`` (N,) (None: one link). Returns "not determined" with the reason when the data cannot place it:
     too few ranges, static trajectory, no consensus, residuals that do not verify the fit, or a horizontal
-    sigma above ``max_sigma_horizontal``. ``threshold_m``: consensus inlier threshold (default max(1 m,
+    sigma above ``max_sigma_horizontal``, or an implausible range offset (|gamma| > ``max_abs_gamma``: UWB
+    offsets are decimetres; a fit that needs metres has traded the anchor's distance against the offset on a
+    short arc). ``threshold_m``: consensus inlier threshold (default max(1 m,
     5 sigma_range)); ``height_sigma_max``: height sigma above which the height is flagged unobservable.
     """
     xyz = np.asarray(xyz, float).reshape(-1, 3)
@@ -284,10 +287,15 @@ def search_anchor(
     m = min(m, len(dd))
     samples = np.stack([rng.choice(len(dd), m, replace=False) for _ in range(n_hypotheses)])
     B, G = closed_form_candidates(y, dd, samples, planar)
-    good = np.all(np.isfinite(B), axis=1) & np.isfinite(G)
+    good = np.all(np.isfinite(B), axis=1) & np.isfinite(G) & (np.abs(G) <= max_abs_gamma)
     B, G = B[good], G[good]
     if not len(B):
-        return _not_determined("no finite closed-form candidate", n_all, links_all, planar=planar)
+        return _not_determined(
+            f"no closed-form candidate with a plausible range offset (|gamma| <= {max_abs_gamma:g} m)",
+            n_all,
+            links_all,
+            planar=planar,
+        )
     costs = msac_costs(y, dd, B, G, thr)
     order = np.argsort(costs)
     # refine a few distinct best candidates (and their mirrors, which are in B too)
@@ -321,6 +329,9 @@ def search_anchor(
         )
     # mirror basin across the motion plane
     mir = refine_robust(y, dd, li, L, best.b * [1, 1, -1], best.g, scale2)
+    if mir.cost < best.cost:  # the mirror basin is the better one
+        best, mir = mir, best
+        r = best.r
     whit = scale2**2 / max(sig, 1e-3) ** 2  # cost units -> whitened squared residuals
     dcost = (mir.cost - best.cost) * whit
     mirror = bool(dcost < mirror_chi2 and np.linalg.norm(mir.b - best.b) > 1e-3)
@@ -387,7 +398,13 @@ def search_anchor(
         costs={"best": best.cost * whit, "mirror": mir.cost * whit, "inlier_fraction": frac, "kappa": kappa},
     )
     spread_ok = sig <= max_spread_factor * max(sigma_range, 0.05)
-    if not spread_ok:
+    if np.any(np.abs(best.g) > max_abs_gamma):
+        res.status = "not determined"
+        res.reason = (
+            f"the best fit needs a range offset of {np.max(np.abs(best.g)):.1f} m (> {max_abs_gamma:g} m): the "
+            "geometry trades the anchor's distance against the offset"
+        )
+    elif not spread_ok:
         res.status = "not determined"
         res.reason = (
             f"residuals do not verify the fit: inlier spread {sig:.2f} m > {max_spread_factor:g} x "

@@ -125,9 +125,12 @@ class Pipeline:
             from .schedule import choose_schedule
 
             rng = self.reader.read_ranges()
+            init_end = self.windows().init_end_ns
             run.schedule, why = choose_schedule(  # type: ignore[assignment]
-                rng.t_ns, rng.anchor, self.windows().init_end_ns, min_ranges=max(uwb.min_ranges, 30)
+                rng.t_ns, rng.anchor, init_end, min_ranges=max(uwb.min_ranges, 30)
             )
+            if run.schedule == "windows" and odometry and uwb.search:
+                run.schedule, why = self._first_window_decides(rng, init_end)  # type: ignore[assignment]
             _log.info("run.schedule = %s: %s", run.schedule, why)
         if run.schedule == "per-anchor" and run.refine_window_s is None:
             # late anchors are refined from their own join time: refinement runs to the end
@@ -143,6 +146,21 @@ class Pipeline:
                 run.init_window_s = round(span * 2.0 / 3.0, 3)
                 # refine to the end: the 1 s margin absorbs the rounding (split_windows clamps at the end)
                 run.refine_window_s = round(span - run.init_window_s + 1.0, 3)
+
+    def _first_window_decides(self, rng, init_end_ns: int) -> tuple[str, str]:
+        """Odometry pose source: the poses are in the recording, so the schedule can ask the data: windows
+        when the first window determines every anchor (`uwb_filter.search_window`), per-anchor otherwise."""
+        from .uwb_filter import search_window, windows_from_trajectory
+
+        odo = self.reader.read_odometry(self.config.odometry.topic)
+        traj = {"t_ns": odo.t_ns, "p": odo.p, "q_xyzw": odo.q_xyzw, "cov": np.zeros((len(odo.t_ns), 6, 6))}
+        uwb = self.config.uwb
+        wins = windows_from_trajectory(traj, vars(rng), self.reader.calibration, None, init_end_ns)
+        sigma = uwb.sigma(self.reader.calibration) * uwb.sigma_scale
+        late = [str(a) for a, w in wins.items() if not search_window(w, uwb, sigma).ok]
+        if late:
+            return "per-anchor", f"the first window does not determine anchors {', '.join(late)}"
+        return "windows", "the first window determines every anchor"
 
     def pose_source(self) -> str:
         choice = self.config.run.pose_source
@@ -374,7 +392,6 @@ class Pipeline:
         warns = add_initialised_anchors(est.state, results, cfg, cal)
         inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
         updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
-        updater.link_offsets = {a: r.link_offsets for a, r in results.items() if r.ok and r.link_offsets}
         updater.schedule(
             results,
             {

@@ -506,6 +506,13 @@ def add_anchor_to_state(
         beta_prior=beta_prior,
         pose_var=pose_var,
     )
+    if not result.verdict.get("height_observable", True):
+        # unobservable height: independent of everything, with the init's honest sigma (the range updates
+        # leave it alone, UwbUpdater.fixed_height)
+        J = {v: np.where(np.arange(5)[:, None] == 2, 0.0, M) for v, M in J.items()}
+        Q = Q.copy()
+        Q[2, :] = Q[:, 2] = 0.0
+        Q[2, 2] = float(result.cov[2, 2])
     state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q)
 
 
@@ -596,6 +603,9 @@ class UwbUpdater:
         self.pending: dict[Any, InitResult] = {}
         self.join_kw: dict = {}
         self.joined: dict[Any, int] = {}
+        # anchors whose height the init found unobservable: range updates leave it alone (no z column), so a
+        # tilting tag's lever arm cannot walk it to either side of the motion plane
+        self.fixed_height: set = set()
 
     @classmethod
     def from_config(
@@ -627,6 +637,10 @@ class UwbUpdater:
         """Anchors initialised later than the refinement's start join the state at their ``join_ns``."""
         self.pending = {a: r for a, r in results.items() if r.ok and r.join_ns is not None}
         self.join_kw = dict(join_kw)
+        self.fixed_height = {
+            a for a, r in results.items() if r.ok and not r.verdict.get("height_observable", True)
+        }
+        self.link_offsets = {a: r.link_offsets for a, r in results.items() if r.ok and r.link_offsets}
 
     def _join(self, state: State, meas: RangeMeasurement) -> bool:
         r = self.pending.get(meas.anchor)
@@ -667,6 +681,8 @@ class UwbUpdater:
         robust = None
         if self.robust is not None:  # scale in sigmas of the per-sample noise, as at init
             robust = (self.robust[0], self.robust[1] / (self.sigma * x_cur[3]))
+        if meas.anchor in self.fixed_height:
+            J.H_U[:, 2] = 0.0
         H_imu = np.zeros((1, state.dim(self.pose_var)))
         H_imu[:, 0:6] = J.H_I
         res: UpdateResult | None = None
