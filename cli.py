@@ -178,11 +178,18 @@ def convert_tabular(
     ranges: Annotated[Path, typer.Option(help="CSV: stamp,tag,antenna,anchor,distance")],
     output: Output,
     antennas: Annotated[Path | None, typer.Option(help="Antenna lever-arm yaml.")] = None,
+    pose_error: Annotated[
+        str,
+        typer.Option(
+            help="Error model of the poses: bounded (in the anchors' world frame: ground truth, SLAM with a map) "
+            "or drift (dead-reckoning odometry whose error grows).",
+        ),
+    ] = "bounded",
 ) -> None:
     """Convert any odometry (TUM) plus UWB ranges (CSV)."""
     from convert.tabular import convert_tabular as run
 
-    typer.echo(run(poses, ranges, output, antennas=antennas))
+    typer.echo(run(poses, ranges, output, antennas=antennas, pose_error=pose_error))
 
 
 @app.command()

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import InputError
 from .recording import META_CALIBRATION, META_SOURCE, TOPIC_ODOM, TOPIC_RANGE, RecordingWriter
 from .sources import (
     MAX_RANGE_M,
@@ -39,8 +40,16 @@ def convert_tabular(
     sigma_pos: float = 0.05,
     sigma_rot_deg: float = 1.0,
     max_range: float = MAX_RANGE_M,
+    pose_error: str = "bounded",
 ) -> str:
-    """Convert a TUM trajectory and a ranges CSV into one recording; returns a human summary."""
+    """Convert a TUM trajectory and a ranges CSV into one recording; returns a human summary.
+
+    ``pose_error`` is declared as the calibration's ``odometry.error_model``: ``bounded`` (default) for poses in
+    the world frame the anchors are calibrated in (ground truth, a SLAM output with a map: their error stays
+    near the message covariance), ``drift`` for a dead-reckoning odometry whose error grows with distance.
+    """
+    if pose_error not in ("bounded", "drift"):
+        raise InputError(f"--pose-error {pose_error!r}: expected bounded or drift")
     from .ntu_viral import find_antennas, uwb_section
 
     poses, ranges = Path(poses), Path(ranges)
@@ -76,7 +85,10 @@ def convert_tabular(
         advance(len(t_pose))
         write_ranges(w, r, TOPIC_RANGE)
         advance(len(r))
-        w.set_metadata(META_CALIBRATION, {"uwb": uwb})
+        w.set_metadata(
+            META_CALIBRATION,
+            {"uwb": uwb, "odometry": {"error_model": pose_error, "source": f"tabular {poses.name}"}},
+        )
         w.set_metadata(
             META_SOURCE,
             source_metadata(

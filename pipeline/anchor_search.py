@@ -157,7 +157,7 @@ def refine_robust(
     g0: np.ndarray,
     scale: float,
     *,
-    max_iter: int = 40,
+    max_iter: int = 30,
     fix_normal: bool = False,
 ) -> _Refined:
     """Cauchy-IRLS Levenberg-Marquardt over (b, gamma_l) from (b0, g0); ``scale`` [m] is the Cauchy scale.
@@ -303,7 +303,7 @@ def search_anchor(
     for i in order:
         if all(np.linalg.norm(B[i] - B[j]) > 0.5 for j in picks):
             picks.append(int(i))
-        if len(picks) >= 4:
+        if len(picks) >= 2:
             break
     scale = max(thr / 2.0, 3.0 * sigma_range)
     fits: list[_Refined] = []

@@ -116,7 +116,7 @@ class UwbConfig(BaseModel):
         description="prior on anchor heights: {mean, sigma} for all anchors, or {anchor id: {mean, sigma}}",
     )
     max_init_ranges: int = Field(
-        5000, ge=50, description="dense ranging: the init window of an anchor is evenly subsampled to this"
+        2000, ge=50, description="dense ranging: the init window of an anchor is evenly subsampled to this"
     )
     max_sigma_horizontal_m: float = Field(
         0.5,

@@ -33,7 +33,9 @@ def _ranges(xyz, anchor, gamma, sigma, rng, junk=0.0):
 
 def _window(xyz, d, t_s, link=None):
     n = len(d)
-    return InitWindow(d, np.zeros(3), np.broadcast_to(np.eye(3), (n, 3, 3)), xyz, np.zeros((6, 6)), t_s * 1e9, link)
+    return InitWindow(
+        d, np.zeros(3), np.broadcast_to(np.eye(3), (n, 3, 3)), xyz, np.zeros((6, 6)), t_s * 1e9, link
+    )
 
 
 def test_closed_form_candidates_exact():
