@@ -57,6 +57,8 @@ class SearchResult:
     def sigma_horizontal(self) -> float:
         """sqrt of the largest in-plane variance of the position (the horizontal uncertainty)."""
         P = self.cov[:3, :3]
+        if not np.all(np.isfinite(P)):
+            return float("inf")
         n = self.normal / np.linalg.norm(self.normal)
         T = np.eye(3) - np.outer(n, n)
         return float(np.sqrt(max(np.linalg.eigvalsh(T @ P @ T)[-1], 0.0)))

@@ -138,7 +138,8 @@ class Pipeline:
             run.refine_window_s = round((win.end_ns - win.init_end_ns) * 1e-9 + 1.0, 3)
             if run.vio_extent == "auto":
                 run.vio_extent = "full"  # the late anchors' init windows need the poses up to their join
-        if run.init_window_s is None and run.refine_window_s is None and odometry:
+        # (with the search the per-anchor schedule does this per anchor, from the data)
+        if run.init_window_s is None and run.refine_window_s is None and odometry and not uwb.search:
             model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
             if model == "bounded":
                 win = self.windows()
@@ -157,10 +158,18 @@ class Pipeline:
         uwb = self.config.uwb
         wins = windows_from_trajectory(traj, vars(rng), self.reader.calibration, None, init_end_ns)
         sigma = uwb.sigma(self.reader.calibration) * uwb.sigma_scale
-        late = [str(a) for a, w in wins.items() if not search_window(w, uwb, sigma).ok]
+        late = []
+        for a, w in wins.items():
+            sr = search_window(w, uwb, sigma)
+            bar = min(uwb.join_sigma_m, uwb.join_ratio * float(np.median(w.d)))
+            if not sr.ok or sr.sigma_horizontal > bar:
+                late.append(str(a))
         if late:
-            return "per-anchor", f"the first window does not determine anchors {', '.join(late)}"
-        return "windows", "the first window determines every anchor"
+            return "per-anchor", f"the first window does not pin down anchors {', '.join(late)}"
+        return (
+            "windows",
+            f"the first window pins down every anchor (horizontal sigma <= {uwb.join_sigma_m} m)",
+        )
 
     def pose_source(self) -> str:
         choice = self.config.run.pose_source
@@ -376,6 +385,8 @@ class Pipeline:
                 lambda sub: search_window(sub, cfg, sigma),
                 per_anchor=per_anchor,
                 min_ranges=max(cfg.min_ranges, 30),
+                join_sigma=cfg.join_sigma_m if per_anchor else None,
+                join_ratio=cfg.join_ratio,
             )
             out_w[a], searches[a], joins[a] = j.window, j.search, j.join_ns
         return out_w, searches, joins
@@ -428,6 +439,13 @@ class Pipeline:
             }
             for n in names
         }
+        for a, r in updater.pending.items():  # determined only by all its ranges: nothing left to refine with
+            states[str(a)] = {
+                "x": r.x,
+                "P": r.cov,
+                "noise_inflation": float(r.noise_inflation),
+                "link_offsets": {str(k): v for k, v in r.link_offsets.items()},
+            }
         for a, s in states.items():  # a height the data cannot see stays as uncertain as at init
             r = results.get(_anchor_key(a))
             if r is not None and not r.verdict.get("height_observable", True):
@@ -440,7 +458,10 @@ class Pipeline:
             replace_stage="refine",
         )
         if updater.pending:
-            warns.append(f"refine: anchors {sorted(updater.pending)} never ranged after their join time")
+            warns.append(
+                f"refine: anchors {sorted(updater.pending)} were determined only by all their ranges; "
+                "reported at their initial estimate"
+            )
         self._assemble_trajectory()
         c = updater.counts
         if c["rejected"]:

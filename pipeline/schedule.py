@@ -81,9 +81,14 @@ def join_time(
     per_anchor: bool = True,
     steps: int = 8,
     min_ranges: int = 30,
+    join_sigma: float | None = None,
+    join_ratio: float = 0.02,
 ) -> Join:
     """When ``window``'s anchor (all its ranges, time-stamped) becomes determined: the first candidate end
-    (`candidate_ends`) whose prefix ``search`` accepts; ``per_anchor`` False: the first window only."""
+    (`candidate_ends`) whose prefix ``search`` accepts with a horizontal sigma <= min(``join_sigma``,
+    ``join_ratio`` x its median range) (None: any), else all its ranges if ``search`` accepts them;
+    ``per_anchor`` False: the first window only. The bar is relative to the range too: the refinement keeps
+    the anchor's Jacobians at its first estimate (FEJ), whose direction error is sigma / range."""
     assert window.t_ns is not None, "join_time needs time-stamped ranges"
     ends = candidate_ends(window.t_ns, init_end_ns, steps) if per_anchor else [int(init_end_ns)]
     last: Join | None = None
@@ -94,7 +99,8 @@ def join_time(
         sub = window.subset(m)
         sr = search(sub)
         last = Join(te if sr.ok else None, sub, sr)
-        if sr.ok:
+        bar = None if join_sigma is None else min(join_sigma, join_ratio * float(np.median(sub.d)))
+        if sr.ok and (bar is None or te == ends[-1] or sr.sigma_horizontal <= bar):
             return last
     if last is None:  # no prefix at all
         sub = window.subset(window.t_ns < ends[-1])

@@ -119,10 +119,19 @@ class UwbConfig(BaseModel):
         2000, ge=50, description="dense ranging: the init window of an anchor is evenly subsampled to this"
     )
     max_sigma_horizontal_m: float = Field(
-        0.5,
+        1.0,
         gt=0,
         description="an anchor whose horizontal sigma after the search exceeds this is not (yet) determined",
     )
+    join_sigma_m: float = Field(
+        0.3,
+        gt=0,
+        description="per-anchor schedule: an anchor joins the refinement at the first prefix of its ranges whose "
+        "horizontal sigma is below this and below join_ratio x its median range (a start good enough for the "
+        "filter's first-estimate Jacobians); one that never gets there but is determined by all its ranges is "
+        "initialised from all of them",
+    )
+    join_ratio: float = Field(0.02, gt=0, description="see join_sigma_m (about 1 degree of bearing)")
     min_duration_s: float = Field(
         5.0, ge=0, description="an anchor ranged over a shorter time span is not determined"
     )
