@@ -237,8 +237,9 @@ def search_anchor(
     *,
     t_ns: np.ndarray | None = None,
     sigma_range: float = 0.1,
-    max_samples: int = 3000,
-    n_hypotheses: int = 400,
+    max_samples: int = 2000,
+    n_hypotheses: int = 300,
+    n_score: int = 600,
     sample_size: int | None = None,
     threshold_m: float | None = None,
     min_ranges: int = 30,
@@ -298,7 +299,10 @@ def search_anchor(
             links_all,
             planar=planar,
         )
-    costs = msac_costs(y, dd, B, G, thr)
+    # score and pre-refine on a coarser even subset; the final passes use every sampled range
+    q = subsample(len(dd), n_score)
+    yq, dq, lq = y[q], dd[q], li[q]
+    costs = msac_costs(yq, dq, B, G, thr)
     order = np.argsort(costs)
     # refine a few distinct best candidates (and their mirrors, which are in B too)
     picks: list[int] = []
@@ -311,9 +315,10 @@ def search_anchor(
     fits: list[_Refined] = []
     for i in picks:
         for b0 in (B[i], B[i] * [1, 1, -1], B[i] * [1, 1, 0]) if planar else (B[i], B[i] * [1, 1, -1]):
-            f = refine_robust(y, dd, li, L, b0, np.full(L, G[i]), scale)
+            f = refine_robust(yq, dq, lq, L, b0, np.full(L, G[i]), scale)
             fits.append(f)
     best = min(fits, key=lambda f: f.cost)
+    best = refine_robust(y, dd, li, L, best.b, best.g, scale)
     # second pass at the residuals' own scale (down-weights NLOS junk harder once the basin is found)
     s_in = _robust_sigma(best.r[np.abs(best.r) < thr])
     scale2 = max(3.0 * s_in, 3.0 * sigma_range * 0.2, 0.02)
