@@ -15,7 +15,7 @@ import typer
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from convert.errors import InputError  # noqa: E402
+from pipeline.core.errors import InputError  # noqa: E402
 
 app = typer.Typer(
     add_completion=False,

@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.errors import InputError
+from pipeline.core.progress import progress
+
 from . import msgs
-from .errors import InputError
 from .euroc import StampCheck, header_time, passthrough
 from .recording import (
     META_CALIBRATION,
@@ -41,7 +43,6 @@ from .sources import (
     order_and_dedup,
     parse_antennas,
     pose_covariance,
-    progress,
     read_csv_strings,
     read_ranges_csv,
     source_metadata,

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.progress import progress
+
 from .recording import META_CALIBRATION, META_SOURCE, TOPIC_ODOM, TOPIC_RANGE, RecordingWriter
 from .sources import (
     MAX_RANGE_M,
@@ -21,7 +23,6 @@ from .sources import (
     normalise_quaternions,
     order_and_dedup,
     pose_covariance,
-    progress,
     read_ranges_csv,
     read_tum,
     source_metadata,

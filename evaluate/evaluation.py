@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from convert.atomic import write_text_atomic
 from convert.datasets import data_root
-from convert.errors import InputError
 from convert.recording import RecordingReader
-from pipeline.lie import quat_to_rot
+from pipeline.core.atomic import write_text_atomic
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_to_rot
 
 from .align import align as fit_alignment
 from .consistency import anchor_nees, pose_nees, summarize_nees

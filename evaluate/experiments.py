@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from convert.atomic import atomic_path, write_text_atomic
 from convert.datasets import data_root
-from convert.errors import InputError
+from pipeline.core.atomic import atomic_path, write_text_atomic
+from pipeline.core.errors import InputError
 
 from .montecarlo import run_jobs, run_seeds
 from .tables import PAPER_TABLE1, PAPER_TABLE2, render, side_by_side, write_tables

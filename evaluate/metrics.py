@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.lie import log_so3
+from pipeline.core.geometry import log_so3
 
 SEGMENT_IDS = {"init": 0, "refine": 1, "localize": 2}
 

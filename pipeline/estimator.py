@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from .lie import rot_to_quat
+from .core.geometry import rot_to_quat
 
 if TYPE_CHECKING:
     from convert.recording import RecordingReader

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-from convert.errors import InputError
 from convert.recording import (
     TOPIC_CAM0,
     TOPIC_FEATURES,
@@ -29,6 +28,7 @@ from convert.recording import (
     RecordingReader,
     RecordingWriter,
 )
+from pipeline.core.errors import InputError
 
 from . import rundir as rd
 from . import runlog as rl

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from convert.atomic import atomic_path, write_text_atomic
-from convert.errors import InputError
 from convert.recording import json_default
+from pipeline.core.atomic import atomic_path, write_text_atomic
+from pipeline.core.errors import InputError
 
 CONFIG = "config.toml"
 METRICS = "metrics.json"

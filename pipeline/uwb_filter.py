@@ -18,10 +18,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.stats import chi2
 
-from convert.errors import InputError
+from pipeline.core.errors import InputError
 
+from .core.geometry import quat_slerp, quat_to_rot
 from .fim import DegenerateGeometryError
-from .lie import quat_slerp, quat_to_rot
 from .state import State, UpdateResult, Vec, ekf_update, probes, remove_probes
 from .uwb_init import InitResult, InitWindow, initialize_anchor
 from .uwb_model import jacobians, predict, range_variance

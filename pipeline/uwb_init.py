@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .core.geometry import exp_so3
 from .fim import FimReport, assess_observability
-from .lie import exp_so3
 from .uwb_model import jacobians, range_variance, tag_positions
 
 METHODS_INIT = ("lsi", "ri", "ri-robust")

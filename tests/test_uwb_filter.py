@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from pipeline.core.geometry import exp_so3, log_so3, rot_to_quat
 from pipeline.estimator import RangeMeasurement
-from pipeline.lie import exp_so3, log_so3, rot_to_quat
 from pipeline.state import Pose, State, Vec
 from pipeline.uwb_filter import (
     METHODS,
