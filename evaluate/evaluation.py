@@ -9,7 +9,9 @@ import csv
 import json
 import time
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import polars as pl
@@ -25,6 +27,9 @@ from .consistency import anchor_nees, pose_nees, summarize_nees
 from .export import compare, load_ground_truth, load_run_trajectory, run_recording_path
 from .metrics import anchor_errors, ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
 from .tables import render
+
+if TYPE_CHECKING:
+    from pipeline.runlog import RunLog
 
 SEGMENT_NAMES = ("init", "refine", "localize")
 
@@ -231,4 +236,26 @@ def evaluate_run_cli(
     write_text_atomic(
         Path(run_dir) / f"results.{ {'md': 'md', 'csv': 'csv', 'latex': 'tex'}[fmt] }", text + "\n"
     )
+    return text
+
+
+def evaluate_stage(run_dir: Path, align: str | None, open_log: Callable[[], RunLog]) -> str:
+    """The pipeline's `evaluate` stage (handed to `Pipeline(..., evaluator=)`): metrics.json and results.md, and
+    the pose NEES over time with its chi-square bounds in the stage's rerun log."""
+    from pipeline import runlog as rl
+
+    from .consistency import chi2_bounds
+
+    series: dict = {}
+    text = evaluate_run_cli(run_dir, align=align, series=series)
+    if series:
+        with open_log() as log:
+            log.stage("evaluate", int(series["t_ns"][0]))
+            for key, dof, entity in (
+                ("nees_pose", 6, rl.NEES_POSE),
+                ("nees_position", 3, f"{rl.FILTER}/nees_position"),
+                ("nees_orientation", 3, f"{rl.FILTER}/nees_orientation"),
+            ):
+                log.scalars(entity, series["t_ns"], series[key])
+                log.constant(f"{entity}_bounds", series["t_ns"], np.array(chi2_bounds(1, dof)), ["lo", "hi"])
     return text

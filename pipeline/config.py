@@ -10,13 +10,12 @@ import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from pipeline.core.errors import InputError
+from pipeline.core.names import STAGES
 
 from .core.noise import OdometryFilterConfig
 from .frontend import FrontendConfig
 from .msckf import VioConfig
 from .uwb_filter import UwbConfig
-
-STAGES = ("frontend", "vio", "init", "refine", "localize", "evaluate")
 
 
 class RunSection(BaseModel):

@@ -355,6 +355,8 @@ def groundtruth_state(reader: RecordingReader, t0_ns: int) -> ImuState:
 class MsckfEstimator:
     """The MSCKF pose source (Estimator protocol)."""
 
+    keeps_probes = True
+
     def __init__(
         self,
         config: VioConfig,

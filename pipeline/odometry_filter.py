@@ -217,6 +217,8 @@ def fit_drift_noise(traj: dict[str, np.ndarray]) -> dict[str, float]:
 class OdometryEstimator:
     """External-odometry pose source (Estimator protocol); state variable ``"imu"`` is a `Pose`."""
 
+    keeps_probes = False  # the anchors' initial covariance comes without pose cross-terms
+
     def __init__(
         self,
         config: OdometryFilterConfig | None = None,
@@ -261,6 +263,15 @@ class OdometryEstimator:
 
     def history(self) -> TrajectoryRecord:
         return TrajectoryRecord(list(self._h_t), list(self._h_p), list(self._h_R), list(self._h_cov))
+
+    def start_probes(self, period_s: float) -> None:
+        """No probes (``keeps_probes`` is False)."""
+
+    def add_probe(self) -> None:
+        """No probes (``keeps_probes`` is False)."""
+
+    def stop_probes(self, remove: bool = True) -> None:
+        """No probes (``keeps_probes`` is False)."""
 
     @property
     def pose(self) -> Pose:

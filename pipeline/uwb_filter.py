@@ -21,6 +21,7 @@ from scipy.stats import chi2
 from pipeline.core.errors import InputError
 
 from .core.geometry import quat_slerp, quat_to_rot
+from .core.names import INIT_METHODS, REFINE_METHODS
 from .fim import DegenerateGeometryError
 from .state import State, UpdateResult, Vec, ekf_update, probes, remove_probes
 from .uwb_init import InitResult, InitWindow, initialize_anchor
@@ -49,11 +50,11 @@ def anchor_var(anchor: Any) -> str:
 class UwbConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    init_method: Literal["auto", "lsi", "ri", "ri-robust"] = Field(
+    init_method: Literal[("auto", *INIT_METHODS)] = Field(
         "auto",
         description="auto: ri-robust on real recordings (NLOS is the rule there), ri (the paper's) on simulated",
     )
-    refine_method: Literal["ekf", "skf", "none"] = "skf"
+    refine_method: Literal[(*REFINE_METHODS, "none")] = "skf"
     sigma_range: float | None = Field(
         None, gt=0, description="range noise sigma [m]; default calibration or 0.1"
     )

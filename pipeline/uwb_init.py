@@ -23,10 +23,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .core.geometry import exp_so3
+from .core.names import INIT_METHODS
 from .fim import FimReport, assess_observability
 from .uwb_model import jacobians, range_variance, tag_positions
 
-METHODS_INIT = ("lsi", "ri", "ri-robust")
 _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
 _ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)
 OUTLIER_SIGMAS = 3.0
@@ -349,8 +349,8 @@ def initialize_anchor(
     many outliers) or "ok". ``correlation_block_s``: block length of the time-correlation check of the residuals
     (`noise_inflation`; None: off), whose kappa scales the range part of the covariance.
     """
-    if method not in METHODS_INIT:
-        raise ValueError(f"unknown init method {method!r}; one of {', '.join(METHODS_INIT)}")
+    if method not in INIT_METHODS:
+        raise ValueError(f"unknown init method {method!r}; one of {', '.join(INIT_METHODS)}")
     weighted = method != "lsi"
     robust = robust_loss if method == "ri-robust" else None
     w, warns = _clean(window, anchor)
@@ -558,7 +558,7 @@ def ri_vs_lsi_sweep(
     sigmas: Sequence[float],
     runs: int = 50,
     seed: int = 0,
-    methods: Sequence[str] = METHODS_INIT,
+    methods: Sequence[str] = INIT_METHODS,
     sigma_d: float = 0.1,
     gamma_prior: tuple[float, float] | None = (0.0, 1.0),
 ) -> dict:
