@@ -32,7 +32,7 @@ DEFAULT_RUNS = {"ri-vs-lsi": 100, "table1": 50, "ntu-viral": 1, "anchor-nees": 2
 # -- ri-vs-lsi ----------------------------------------------------------------------------------------------------
 def ri_vs_lsi_job(p: dict) -> dict:
     """One localisation-error level: `runs` seeded windows, every initialiser on each (common random numbers)."""
-    from pipeline.uwb_init import ri_vs_lsi_sweep
+    from .ri_vs_lsi import ri_vs_lsi_sweep
 
     res = ri_vs_lsi_sweep([p["sigma_r"]], runs=p["runs"], seed=p["seed"])
     return {
