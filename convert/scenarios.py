@@ -138,7 +138,7 @@ def scenario_config(name: str, *, seed: int = 0, **overrides) -> SimConfig:
     cfg = dict(camera=False, odometry_rate=ODOMETRY_RATE, seed=seed, scenario=name)
     cfg.update(SCENARIOS[name].build(seed))
     cfg.update(overrides)
-    if not cfg["camera"]:  # no feature tracks: a sparse room (its automatic density probe costs ~20 s at 400 m)
+    if not cfg["camera"]:  # no tracks: a sparse room (the automatic density probe costs ~20 s at 400 m)
         cfg.setdefault("landmark_density", 0.05)
     return SimConfig(**cfg)
 
