@@ -97,15 +97,19 @@ def _link_index(link: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 # ---------------------------------------------------------------------------------------------------------------
 def closed_form_candidates(
-    y: np.ndarray, d: np.ndarray, samples: np.ndarray, planar: bool
+    y: np.ndarray, d: np.ndarray, samples: np.ndarray, planar: bool, gamma: float | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Batched closed forms with one shared gamma: (H, 3) out-of-plane-mirrored pairs stacked -> (2H, 3) b and
-    (2H,) gamma, from the index rows ``samples`` (H, m) into y (N, 3) / d (N,)."""
+    """Batched closed forms with one shared gamma (estimated, or fixed to ``gamma``): (H, 3) out-of-plane-mirrored
+    pairs stacked -> (2H, 3) b and (2H,) gamma, from the index rows ``samples`` (H, m) into y (N, 3) / d (N,)."""
     Y = y[samples]  # (H, m, 3)
     D = d[samples]
     dims = 2 if planar else 3
-    A = np.concatenate([-2.0 * Y[..., :dims], 2.0 * D[..., None], np.ones(D.shape + (1,))], axis=2)
-    rhs = D**2 - np.sum(Y**2, axis=2)
+    if gamma is None:
+        A = np.concatenate([-2.0 * Y[..., :dims], 2.0 * D[..., None], np.ones(D.shape + (1,))], axis=2)
+        rhs = D**2 - np.sum(Y**2, axis=2)
+    else:  # (d - gamma)^2 - |y|^2 = -2 y.b + |b|^2: better conditioned on short baselines
+        A = np.concatenate([-2.0 * Y[..., :dims], np.ones(D.shape + (1,))], axis=2)
+        rhs = (D - gamma) ** 2 - np.sum(Y**2, axis=2)
     AtA = np.einsum("hmi,hmj->hij", A, A)
     Atb = np.einsum("hmi,hm->hi", A, rhs)
     u = AtA.shape[1]
@@ -116,7 +120,7 @@ def closed_form_candidates(
         sol = np.stack([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in zip(A, rhs, strict=True)])
     b = np.zeros((len(sol), 3))
     b[:, :dims] = sol[:, :dims]
-    g = sol[:, dims]
+    g = sol[:, dims] if gamma is None else np.full(len(sol), float(gamma))
     if planar:
         b[:, 2] = np.sqrt(np.maximum(sol[:, -1] + g**2 - b[:, 0] ** 2 - b[:, 1] ** 2, 0.0))
     mirrored = b * np.array([1.0, 1.0, -1.0])
@@ -161,20 +165,29 @@ def refine_robust(
     *,
     max_iter: int = 30,
     fix_normal: bool = False,
+    gamma_prior: tuple[float, float, float] | None = None,
 ) -> _Refined:
     """Cauchy-IRLS Levenberg-Marquardt over (b, gamma_l) from (b0, g0); ``scale`` [m] is the Cauchy scale.
-    ``fix_normal``: the out-of-plane component stays at b0[2] (its column is left out)."""
+    ``fix_normal``: the out-of-plane component stays at b0[2] (its column is left out). ``gamma_prior``
+    (mean, sigma, range sigma): a Gaussian prior on every gamma_l, weighted as (range sigma / sigma)^2 against
+    the squared range residuals."""
     b, g = np.asarray(b0, float).copy(), np.asarray(g0, float).copy()
     if g.shape == ():
         g = np.full(n_links, float(g))
     c2 = scale**2
     cols = [0, 1] + ([] if fix_normal else [2]) + [3 + i for i in range(n_links)]
 
-    def cost_of(r):
-        return float(np.sum(c2 * np.log1p(r**2 / c2)))
+    pw = 0.0 if gamma_prior is None else (gamma_prior[2] / gamma_prior[1]) ** 2
+    gm = 0.0 if gamma_prior is None else float(gamma_prior[0])
+    gi = np.arange(3, 3 + n_links)
+    gi_cols = [cols.index(i) for i in gi]
+
+    def cost_of(r, g=None):
+        prior = 0.0 if g is None or not pw else pw * float(np.sum((g - gm) ** 2))
+        return float(np.sum(c2 * np.log1p(r**2 / c2))) + prior
 
     r, u, _ = _residuals(y, d, li, b, g)
-    cost = cost_of(r)
+    cost = cost_of(r, g)
     lam = 1e-3
     E = np.zeros((len(d), n_links))
     E[np.arange(len(d)), li] = 1.0
@@ -184,6 +197,9 @@ def refine_robust(
         J = np.concatenate([u, -E], axis=1)[:, cols]  # dr/d(b, gamma); r = d - ||y - b|| - gamma
         A = (J * w[:, None]).T @ J
         gr = -(J * w[:, None]).T @ r
+        if pw:
+            A[gi_cols, gi_cols] += pw
+            gr[gi_cols] -= pw * (g - gm)
         improved = False
         while lam < 1e10:
             try:
@@ -195,7 +211,7 @@ def refine_robust(
             full[cols] = step
             b_new, g_new = b + full[:3], g + full[3:]
             r_new, u_new, _ = _residuals(y, d, li, b_new, g_new)
-            c_new = cost_of(r_new)
+            c_new = cost_of(r_new, g_new)
             if np.isfinite(c_new) and c_new <= cost:
                 small = np.linalg.norm(full) < 1e-7 * (1.0 + np.linalg.norm(b))
                 b, g, r, u, cost = b_new, g_new, r_new, u_new, c_new
@@ -208,6 +224,8 @@ def refine_robust(
     w = 1.0 / (1.0 + r**2 / c2)
     J = np.concatenate([-u, E], axis=1)  # dh/d(b, gamma)
     info = (J * w[:, None]).T @ J
+    if pw:
+        info[gi, gi] += pw
     return _Refined(b, g, cost, r, w, info)
 
 
@@ -238,7 +256,7 @@ def search_anchor(
     t_ns: np.ndarray | None = None,
     sigma_range: float = 0.1,
     max_samples: int = 2000,
-    n_hypotheses: int = 300,
+    n_hypotheses: int = 200,
     n_score: int = 600,
     sample_size: int | None = None,
     threshold_m: float | None = None,
@@ -250,6 +268,7 @@ def search_anchor(
     static_extent_m: float = 0.3,
     max_sigma_horizontal: float | None = None,
     max_abs_gamma: float = 2.0,
+    gamma_prior: tuple[float, float] | None = None,
     seed: int = 0,
 ) -> SearchResult:
     """Global search for the anchor ranged by the tag positions ``xyz`` (N, 3) with ranges ``d`` (N,) over links
@@ -290,7 +309,12 @@ def search_anchor(
     m = min(m, len(dd))
     samples = np.stack([rng.choice(len(dd), m, replace=False) for _ in range(n_hypotheses)])
     B, G = closed_form_candidates(y, dd, samples, planar)
-    good = np.all(np.isfinite(B), axis=1) & np.isfinite(G) & (np.abs(G) <= max_abs_gamma)
+    # and with the offset fixed at zero (ranges ~ distances): stable where the free offset is ill-conditioned
+    g_fix = 0.0 if gamma_prior is None else float(gamma_prior[0])
+    B0, G0 = closed_form_candidates(y, dd, samples, planar, gamma=g_fix)
+    gp = None if gamma_prior is None else (float(gamma_prior[0]), float(gamma_prior[1]), sigma_range)
+    B, G = np.concatenate([B, B0]), np.concatenate([G, G0])
+    good = np.all(np.isfinite(B), axis=1) & np.isfinite(G) & (np.abs(G - g_fix) <= max_abs_gamma)
     B, G = B[good], G[good]
     if not len(B):
         return _not_determined(
@@ -315,14 +339,14 @@ def search_anchor(
     fits: list[_Refined] = []
     for i in picks:
         for b0 in (B[i], B[i] * [1, 1, -1], B[i] * [1, 1, 0]) if planar else (B[i], B[i] * [1, 1, -1]):
-            f = refine_robust(yq, dq, lq, L, b0, np.full(L, G[i]), scale)
+            f = refine_robust(yq, dq, lq, L, b0, np.full(L, G[i]), scale, gamma_prior=gp)
             fits.append(f)
     best = min(fits, key=lambda f: f.cost)
-    best = refine_robust(y, dd, li, L, best.b, best.g, scale)
+    best = refine_robust(y, dd, li, L, best.b, best.g, scale, gamma_prior=gp)
     # second pass at the residuals' own scale (down-weights NLOS junk harder once the basin is found)
     s_in = _robust_sigma(best.r[np.abs(best.r) < thr])
     scale2 = max(3.0 * s_in, 3.0 * sigma_range * 0.2, 0.02)
-    best = refine_robust(y, dd, li, L, best.b, best.g, scale2)
+    best = refine_robust(y, dd, li, L, best.b, best.g, scale2, gamma_prior=gp)
     r = best.r
     inl = np.abs(r) < max(4.0 * s_in, thr / 4)
     frac = float(inl.mean())
@@ -335,7 +359,7 @@ def search_anchor(
             planar=planar,
         )
     # mirror basin across the motion plane
-    mir = refine_robust(y, dd, li, L, best.b * [1, 1, -1], best.g, scale2)
+    mir = refine_robust(y, dd, li, L, best.b * [1, 1, -1], best.g, scale2, gamma_prior=gp)
     if mir.cost < best.cost:  # the mirror basin is the better one
         best, mir = mir, best
         r = best.r
@@ -355,15 +379,16 @@ def search_anchor(
     # height along the normal: FIM sigma when b_3 is informative, else the curvature bound
     sig_b3 = float(np.sqrt(max(cov_y[2, 2], 0.0)))
     b = best.b.copy()
-    height_ok = (not planar) and (not mirror) and sig_b3 <= height_sigma_max
-    if not height_ok:
+    height_ok = (not planar) and sig_b3 <= height_sigma_max
+    inflate = not height_ok
+    if planar:  # both signs fit by construction: between the mirrors, sigma from the ranges' curvature
         s_hat, s_sig = _height_squared(y, dd, li, L, best, sig, kappa)
         bound = float(np.sqrt(max(s_hat, b[2] ** 2, 0.0) + 2.0 * s_sig))
-        if mirror or planar:
-            b[2] = 0.0  # between the mirrors
-            sigma_h = max(bound, abs(best.b[2]))
-        else:
-            sigma_h = max(sig_b3, abs(best.b[2]) if mirror else 0.0)
+        b[2] = 0.0
+        sigma_h = max(bound, abs(best.b[2]))
+    elif mirror:  # the data prefer this basin, weakly: keep it, the sigma reaches the other one
+        sigma_h = max(sig_b3, 0.5 * abs(best.b[2] - mir.b[2]))
+        inflate = sigma_h > sig_b3
     else:
         sigma_h = sig_b3
     T = np.zeros((3 + L, 3 + L))
@@ -371,7 +396,7 @@ def search_anchor(
     T[3:, 3:] = np.eye(L)
     cov = T @ cov_y @ T.T
     # honest height: replace the normal direction's variance (and its correlations) by sigma_h
-    if not height_ok:
+    if inflate:
         n = Vt[2]
         P = np.eye(3) - np.outer(n, n)
         Tp = np.eye(3 + L)
@@ -405,10 +430,11 @@ def search_anchor(
         costs={"best": best.cost * whit, "mirror": mir.cost * whit, "inlier_fraction": frac, "kappa": kappa},
     )
     spread_ok = sig <= max_spread_factor * max(sigma_range, 0.05)
-    if np.any(np.abs(best.g) > max_abs_gamma):
+    if np.any(np.abs(best.g - g_fix) > max_abs_gamma):
         res.status = "not determined"
         res.reason = (
-            f"the best fit needs a range offset of {np.max(np.abs(best.g)):.1f} m (> {max_abs_gamma:g} m): the "
+            f"the best fit needs a range offset of {best.g[np.argmax(np.abs(best.g - g_fix))]:.1f} m (more than "
+            f"{max_abs_gamma:g} m from {g_fix:g} m): the "
             "geometry trades the anchor's distance against the offset"
         )
     elif not spread_ok:

@@ -177,7 +177,7 @@ def test_late_anchor_joins_and_is_initialised():
     ends = candidate_ends(w.t_ns, int(100e9))
     assert ends[0] == int(100e9) and ends[-1] == int(w.t_ns.max()) + 1
     cfg = UwbConfig()
-    j = join_time(w, int(100e9), lambda sub: search_window(sub, cfg, 0.05))
+    j = join_time(w, int(100e9), lambda sub: search_window(sub, cfg, 0.05), join_sigma=cfg.join_sigma_m)
     assert j.join_ns is not None and j.join_ns > 235e9 and j.search.ok
     assert np.hypot(*(j.search.p - anchor)[:2]) < 0.3
     assert abs(j.search.p[2] - anchor[2]) <= 2 * j.search.sigma_h

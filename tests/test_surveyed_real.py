@@ -37,7 +37,7 @@ def _run(data_dir, tmp_path, name):
 
 
 def _check(truth, counts, rows, states, metrics, min_ranges=200):
-    undetermined = metrics.get("anchors_not_determined", {})
+    undetermined = {a: v["reason"] for a, v in metrics["anchors"].items() if not v.get("determined", True)}
     est = {r["anchor"]: r for r in rows if r["x"] != ""}
     for a, n in counts.items():
         if n >= min_ranges:
