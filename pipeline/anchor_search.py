@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 PLANAR_RATIO = 0.1
+LINE_RATIO = 0.03  # second extent below this x the first: the tag moved along a line
 
 
 @dataclass
@@ -298,6 +299,12 @@ def search_anchor(
             n_all,
             links_all,
         )
+    if ext[1] < LINE_RATIO * ext[0]:
+        return _not_determined(
+            f"the tag moved along a line (extents {ext[0]:.1f}/{ext[1]:.2f} m): the anchor is ambiguous around it",
+            n_all,
+            links_all,
+        )
     planar = bool(ext[2] < PLANAR_RATIO * ext[0])
     y = (xyz[sel] - c) @ Vt.T
     dd = d[sel]
@@ -381,10 +388,12 @@ def search_anchor(
     b = best.b.copy()
     height_ok = (not planar) and sig_b3 <= height_sigma_max
     inflate = not height_ok
-    if planar:  # both signs fit by construction: between the mirrors, sigma from the ranges' curvature
+    if planar:
+        # both signs fit by construction: the basin on the normal's side (up), whose ranges are the same as the
+        # mirror's, with a sigma from the ranges' curvature that reaches the mirror within 2 sigma
         s_hat, s_sig = _height_squared(y, dd, li, L, best, sig, kappa)
         bound = float(np.sqrt(max(s_hat, b[2] ** 2, 0.0) + 2.0 * s_sig))
-        b[2] = 0.0
+        b[2] = abs(best.b[2])
         sigma_h = max(bound, abs(best.b[2]))
     elif mirror:  # the data prefer this basin, weakly: keep it, the sigma reaches the other one
         sigma_h = max(sig_b3, 0.5 * abs(best.b[2] - mir.b[2]))

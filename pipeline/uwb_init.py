@@ -472,6 +472,13 @@ def initialize_anchor(
     if not est_beta:
         cov[3, 3] = beta_sigma**2
 
+    if search is not None:
+        x, cov, moved = _stay_in_basin(x, cov, search, b0)
+        if moved:
+            warns.append(
+                f"{anchor}: the {method} fit left the search's basin by {moved:.2f} m horizontally (a direction "
+                "the window cannot see, e.g. range scale against distance); the search's estimate is kept"
+            )
     if search is not None and not search.height_observable:
         x, cov = _honest_height(x, cov, search)
     if z_prior is not None:
@@ -575,13 +582,41 @@ def search_verdict(search: SearchResult) -> dict:
     if not search.height_observable:
         why = "planar tag motion" if search.planar else "weak out-of-plane geometry"
         msg = (
-            f"height unobservable ({why}): reported at {search.p[2]:.2f} +- {search.sigma_h:.2f} m along the "
-            "motion-plane normal; horizontal position estimated"
+            f"height unobservable ({why}): reported at {search.p[2]:.2f} +- {search.sigma_h:.2f} m (the basin "
+            "above the motion plane; its sigma reaches the mirror below); horizontal position estimated"
         )
         if search.mirror:
             msg += "; the mirror across the motion plane fits equally (two basins)"
         out["message"] = msg
     return out
+
+
+def _stay_in_basin(
+    x: np.ndarray, cov: np.ndarray, search: SearchResult, beta0: float, chi2_2dof: float = 11.8
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The initialiser's (x, cov), unless its horizontal position left the search's basin (squared
+    Mahalanobis distance in the motion plane > ``chi2_2dof`` under the search's covariance): then the search's
+    estimate (beta at ``beta0``, gamma the links' mean) and covariance. Returns (x, cov, horizontal move [m]
+    when replaced, else 0)."""
+    n = search.normal / np.linalg.norm(search.normal)
+    T = np.eye(3) - np.outer(n, n)
+    dp = T @ (x[:3] - search.p)
+    P = T @ search.cov[:3, :3] @ T + 1e-12 * np.outer(n, n)
+    try:
+        d2 = float(dp @ np.linalg.pinv(P, hermitian=True) @ dp)
+    except np.linalg.LinAlgError:
+        d2 = 0.0
+    if not np.isfinite(d2) or d2 <= chi2_2dof:
+        return x, cov, 0.0
+    L = len(search.gamma)
+    xs = np.r_[search.p, beta0, float(np.mean(search.gamma))]
+    cs = np.zeros((5, 5))
+    cs[:3, :3] = search.cov[:3, :3]
+    wg = np.full(L, 1.0 / L)
+    cs[4, 4] = float(wg @ search.cov[3:, 3:] @ wg)
+    cs[:3, 4] = cs[4, :3] = search.cov[:3, 3:] @ wg
+    cs[3, 3] = cov[3, 3] if np.isfinite(cov[3, 3]) and cov[3, 3] > 0 else 0.05**2
+    return xs, cs, float(np.linalg.norm(dp))
 
 
 def _honest_height(x: np.ndarray, cov: np.ndarray, search: SearchResult) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from convert.tabular import convert_tabular
+from evaluate.evaluation import evaluate_stage
 from pipeline.config import load_config
 from pipeline.run import Pipeline
 
@@ -19,7 +20,8 @@ def _run(data_dir, tmp_path, name):
         pytest.skip(f"{src} missing")
     rec = tmp_path / f"{name}.mcap"
     convert_tabular(src / "poses.tum", src / "ranges.csv", rec, src / "antennas.yaml")
-    pipe = Pipeline(load_config(None, {"run": {"recording": str(rec), "log": False}}), tmp_path / "run")
+    cfg = load_config(None, {"run": {"recording": str(rec), "log": False}})
+    pipe = Pipeline(cfg, tmp_path / "run", evaluator=evaluate_stage)
     pipe.run(progress=lambda *_: None)
     truth = {
         r["anchor"]: np.array([float(r[k]) for k in "xyz"])
