@@ -82,8 +82,8 @@ def log_history(log: RunLog, hist: dict[str, np.ndarray], first: int) -> None:
 def single_blas_thread():
     """Run the filter's many small LAPACK calls on one OpenBLAS thread (this thread only).
 
-    Multi-threaded OpenBLAS on small matrices (QR of ~500 x 70) is 10-100x slower on a loaded 2-core
-    machine than one thread. Uses OpenBLAS' thread-local setter of the libraries bundled with numpy/scipy;
+    Multi-threaded OpenBLAS on small matrices (QRs of a few hundred rows) is much slower on a loaded machine
+    than one thread (docs/results/measurements.md). Uses OpenBLAS' thread-local setter of the libraries bundled with numpy/scipy;
     a no-op when they are not found. (threadpoolctl would do the same but is not a dependency.)
     """
     setters = []

@@ -512,9 +512,9 @@ class MsckfEstimator:
           do not replace it), so that a slow drift accumulates disparity instead of hiding below the noise.
 
         The disparity test alone is not enough: with 1 px noise and tracks ~10 m away, slow flight (a few cm/s)
-        passes it (simulated MH_01: false ZUPTs and position ANEES 9.7). The IMU test rejects rotor vibration of
-        a MAV standing on the ground (|acc| std ~0.3 m/s^2, far above the white-noise model), so there the ZUPT
-        only fires in the quieter intervals.
+        passes it (false ZUPTs; docs/results/measurements.md). The IMU test rejects rotor vibration of a MAV
+        standing on the ground (far above the white-noise model), so there the ZUPT only fires in the quieter
+        intervals.
         """
         cfg = self.config
         t_ref, x, fej_R, P_imu = self._zupt_ref

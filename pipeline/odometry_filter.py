@@ -17,8 +17,8 @@ noise is isotropic, so its frame does not matter.
 
 That ``drift`` model fits dead-reckoning odometry (VIO, wheel or lidar odometry without a map), whose error
 grows without bound. A SLAM output expressed in the world frame of the calibration (NTU-VIRAL SLICT: the anchors
-are published in its frame) has a *bounded* error: it stays near the message covariance (SLICT vs the Leica
-prism: 3 cm RMS, correlation ~5-10 s), while the drift model lets the filter believe it grows to metres. The
+are published in its frame) has a *bounded* error: it stays near the message covariance (measured on SLICT:
+docs/results/measurements.md), while the drift model lets the filter believe it grows to metres. The
 ``bounded`` model treats the odometry's error as a first-order Gauss-Markov process around the odometry,
 with stationary covariance P_ss (the message covariance, else the initial sigmas) and correlation time tau:
 world-frame errors decay as e_k+1 = phi e_k + w, phi = exp(-dt / tau), Q = (1 - phi^2) P_ss. An estimate

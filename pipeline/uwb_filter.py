@@ -22,9 +22,9 @@ from pipeline.core.errors import InputError
 
 from .core.geometry import quat_slerp, quat_to_rot
 from .core.names import INIT_METHODS, REFINE_METHODS
+from .core.uwb_model import jacobians, range_model, range_variance
 from .state import Kind, State, UpdateResult, Vec, ekf_update, remove_probes, schmidt_update
 from .uwb_init import InitResult, InitWindow, initialize_anchor
-from .uwb_model import jacobians, predict, range_variance
 
 if TYPE_CHECKING:
     from .estimator import RangeMeasurement
@@ -293,7 +293,7 @@ def anchor_init_covariance(
       the world frame ([R dtheta, dp]) up to now, Cov(e_j, e_k) = P_min(j,k), Cov(e_k, e_now) = P_k, increments
       clipped to PSD; the part correlated with the current pose enters J[pose_var], the rest Q. Exact for a
       pose-only random-walk filter (the odometry filter); for the MSCKF it ignores how its updates decorrelate past
-      from present errors (anchor ANEES after refinement 24-28 instead of 5.5 with probes, `anchor-nees`).
+      from present errors (over-confident anchors after refinement; docs/results/measurements.md).
     """
     w = result.window
     x = result.x
@@ -549,7 +549,7 @@ class UwbUpdater:
         same = (
             pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
         ) and (x_lin is x_cur or np.array_equal(x_lin, x_cur))
-        h = J.h[0] if same else predict(pose.R, pose.p, p_T, x_cur)[0]
+        h = J.h[0] if same else range_model(pose.R, pose.p, p_T, x_cur)[0]
         r = float(meas.distance - h)
         R0 = (self.sigma * x_cur[3]) ** 2
         R = self.inflation.get(meas.anchor, 1.0) * R0
