@@ -1,8 +1,10 @@
 """MSCKF visual-inertial odometry with first-estimate Jacobians (FEJ).
 
-State: variable ``"imu"`` (ImuState) plus stochastic clones ``"clone/<t_ns>"`` (Pose of the IMU at each camera
-frame). Per camera frame: propagate to the frame, clone, update with the selected feature tracks, marginalise the
-oldest clone when the window is full.
+State: the navigation variable ``"imu"`` (ImuState, ``Kind.NAV``) plus stochastic clones ``"clone/<t_ns>"``
+(``Kind.CLONE``: the pose of the IMU at each camera frame). The estimator is fed by `driver.run_estimator`
+(`open` reads the IMU, `process_frame` per camera frame, `process_range` per UWB range). Per camera frame:
+propagate to the frame, clone, update with the selected feature tracks, marginalise the oldest clone when the
+window is full.
 
 Feature selection (OpenVINS style): a track is used once, when it is lost (not seen in the current frame) or
 when the oldest clone is about to be marginalised and the track has an observation in it; in both cases with at
