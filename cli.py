@@ -282,9 +282,9 @@ def evaluate(
 def export(
     run_dir: Annotated[Path, typer.Argument(help="A run directory")],
     output: Output,
-    fmt: Annotated[str, typer.Option("--format", help="Only 'tum'.")] = "tum",
+    fmt: Annotated[str, typer.Option("--format", help="tum, anchors-yaml or anchors-json.")] = "tum",
 ) -> None:
-    """Export estimate.tum and groundtruth.tum (at the estimate's stamps)."""
+    """Export estimate.tum (+ groundtruth.tum at its stamps), or the anchors with covariance (yaml / json)."""
     from evaluate.export import export_run
 
     typer.echo(export_run(run_dir, output, fmt=fmt))
