@@ -83,7 +83,13 @@ class Pipeline:
             run_kind=self.run_kind(),
             enabled=self.config.run.log,
             blueprint=False,
+            time_origin_ns=self._time_origin(),
         )
+
+    def _time_origin(self) -> int | None:
+        """Simulated recordings: the replay's time axis in seconds from the recording's start (same origin for every
+        stage and for every run of the recording); real data: its own stamps (None)."""
+        return self.reader.time_span()[0] if self.reader.truth else None
 
     def windows(self) -> Windows:
         topics = self.reader.topics()
@@ -280,11 +286,16 @@ class Pipeline:
         with self.runlog("init") as log:
             log.stage("init", win.start_ns)
             self._log_truth_anchors(log)
+            log.legend(list(results))
             for m, res in results.items():
                 for a, r in res.items():
                     if not r.ok:
                         continue
-                    log.points3d(rl.anchor_world(a, m), r.x[None, :3], labels=[f"{a} {m}"], static=True)
+                    log.initialiser(a, m, r.x[:3])
+                    if m == chosen and np.all(np.isfinite(r.cov[:3, :3])):  # 3σ, then updated over refinement
+                        log.ellipsoids(
+                            rl.anchor_world(a, "cov"), r.x[:3], r.cov[None, :3, :3], t_ns=win.init_end_ns
+                        )
                     if r.costs:
                         t = np.linspace(win.start_ns, win.init_end_ns, len(r.costs)).astype(np.int64)
                         log.scalars(rl.init(m, "cost") + f"/{a}", t, np.asarray(r.costs))
@@ -321,7 +332,16 @@ class Pipeline:
                     log.ellipsoid_series(
                         rl.anchor_world(a, "cov"), arr["t_ns"], arr["x"][:, :3], arr["cov"][:, :3, :3]
                     )
-                    log.scalars(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
+                    log.point_series(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
+            for n in est.state.names:  # at the end of refinement: the covariance anchor_states.json holds
+                if n.startswith("anchor/"):
+                    a, x = n.split("/", 1)[1], est.state.value(n).x
+                    log.ellipsoids(
+                        rl.anchor_world(a, "cov"),
+                        x[:3],
+                        est.state.cov(n)[None, :3, :3],
+                        t_ns=win.refine_end_ns,
+                    )
         self.dir.save_pickle("checkpoint_refine.pkl", est)
         hist = est.history().arrays()
         seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
@@ -477,7 +497,7 @@ class Pipeline:
             log.points3d(
                 rl.anchor_world(a, "truth"),
                 np.asarray(t["position"])[None],
-                labels=[f"{a} truth"],
+                labels=[str(a)],
                 static=True,
             )
 

@@ -615,8 +615,14 @@ class UwbUpdater:
             if self.chi2_quantile is not None and len(t):
                 log.constant(rl.uwb(a, "nis_gate"), t, float(chi2.ppf(self.chi2_quantile, 1)), ["gate"])
             log.scalars(rl.uwb(a, "rejected"), t, arr["rejected"].astype(float))
+            log.residual_band(a, t, arr["residual"], arr["nis"])
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])
+        arrs = [arr for arr in self.arrays().values() if len(arr["t_ns"])]
+        if arrs:  # the NIS of the accepted updates, all anchors pooled, as a moving average with its χ² band
+            keep = ~np.concatenate([arr["rejected"] for arr in arrs]).astype(bool)
+            t_all = np.concatenate([arr["t_ns"] for arr in arrs])
+            log.nis_average(rl.NIS_UWB, t_all[keep], np.concatenate([arr["nis"] for arr in arrs])[keep])
 
 
 # -----------------------------------------------------------------------------------------------------------------
@@ -670,14 +676,7 @@ def log_init(log: RunLog | None, results: Mapping[Any, InitResult], t_ns: int) -
         if not r.ok:
             continue
         color = rl.COLORS.get(r.method)
-        log.points3d(
-            rl.anchor_world(a, r.method),
-            r.x[:3],
-            colors=[color] if color else None,
-            radii=0.15,
-            labels=[f"{a} {r.method}"],
-            t_ns=t_ns,
-        )
+        log.initialiser(a, r.method, r.x[:3], t_ns=t_ns, static=False)
         if np.all(np.isfinite(r.cov[:3, :3])):
             log.ellipsoids(
                 rl.anchor_world(a, "cov"),
