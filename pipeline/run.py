@@ -419,7 +419,10 @@ class Pipeline:
                 ):
                     log.scalars(entity, series["t_ns"], series[key])
                     log.constant(
-                        f"{entity}_bounds", series["t_ns"], np.array(chi2_bounds(1, dof)), ["lo", "hi"]
+                        f"{entity}_bounds",
+                        series["t_ns"],
+                        np.array(chi2_bounds(1, dof)),
+                        ["χ² 2.5 %", "χ² 97.5 %"],
                     )
         parts = []
         if "prmse_m" in m:

@@ -111,6 +111,7 @@ COLORS = {
     "gate": (150, 150, 150),
     "rejected": (255, 60, 60),
     "features": (255, 230, 80),
+    "world/estimate": (240, 110, 190),  # the UWB-aided trajectory (the anchor estimate itself is "estimate")
 }
 
 
@@ -132,7 +133,7 @@ def legend_markdown(methods: Sequence[str] = ("lsi", "ri", "ri-robust")) -> str:
             for m in methods
         ),
         "| green sphere + wireframe | refined estimate with its 3σ ellipsoid (over time) |",
-        "| green / blue / grey lines | ground truth / VIO / estimate trajectories |",
+        "| green / blue / pink lines | ground truth / VIO / UWB-aided trajectories |",
     ]
     return "\n".join(rows)
 
@@ -441,7 +442,7 @@ class RunLog:
         if len(t) == 0:
             return
         if color is None:
-            color = COLORS.get(entity.rsplit("/", 1)[-1], COLORS["vio"])
+            color = COLORS.get(entity, COLORS.get(entity.rsplit("/", 1)[-1], COLORS["vio"]))
         strip = rr.LineStrips3D([p], colors=[color], radii=rr.Radius.ui_points(1.5))
         if static_strip:
             self._rec.log(f"{entity}/trajectory", strip, static=True)
@@ -664,7 +665,7 @@ def make_blueprint(
         shares.append(3)
     if has(LEGEND):
         left.append(rrb.TextDocumentView(origin=LEGEND, name="legend"))
-        shares.append(2)
+        shares.append(3)
     per_anchor = [
         rrb.Vertical(
             rrb.TimeSeriesView(
@@ -714,8 +715,21 @@ def make_blueprint(
             )
         )
     series = []
-    if has(SIGMA):
-        series.append(rrb.TimeSeriesView(origin=SIGMA, name="σ"))
+    if has(SIGMA):  # metres and degrees on their own axes
+        rot = sorted(
+            {e for e in (present or ()) if e.startswith(SIGMA + "/") and ("deg" in e or "theta" in e)}
+        )
+        series.append(
+            rrb.TimeSeriesView(
+                origin=SIGMA, contents=[f"+ {SIGMA}/**", *(f"- {e}/**" for e in rot)], name="σ position [m]"
+            )
+        )
+        if rot:
+            series.append(
+                rrb.TimeSeriesView(
+                    origin=SIGMA, contents=[f"+ {e}/**" for e in rot], name="σ orientation [deg]"
+                )
+            )
     if anchors:
         series += [
             rrb.TimeSeriesView(

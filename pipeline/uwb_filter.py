@@ -614,7 +614,12 @@ class UwbUpdater:
             log.scalars(rl.uwb(a, "nis"), t, arr["nis"])
             if self.chi2_quantile is not None and len(t):
                 log.constant(rl.uwb(a, "nis_gate"), t, float(chi2.ppf(self.chi2_quantile, 1)), ["gate"])
-            log.scalars(rl.uwb(a, "rejected"), t, arr["rejected"].astype(float))
+            rej = arr["rejected"].astype(bool)  # the gated-out ranges as red points at their residual
+            log.scalars(rl.uwb(a, "rejected"), t[rej], arr["residual"][rej])
+            if rej.any():
+                log.series_static_style(
+                    rl.uwb(a, "rejected"), ["rejected"], [rl.COLORS["rejected"]], points=True
+                )
             log.residual_band(a, t, arr["residual"], arr["nis"])
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])

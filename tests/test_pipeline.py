@@ -180,7 +180,13 @@ def test_replay_adapts_to_a_simulated_run(run_dir, sim):
     s = read_rrd_summary(run_dir / "run.rrd")
     names = set(s.blueprint_names)
     assert "cam0" not in names  # simulated tracks only: no empty camera panel
-    assert {"NEES pose (6 dof)", "NIS of the UWB updates", "σ", "legend"} <= names
+    assert {
+        "NEES pose (6 dof)",
+        "NIS of the UWB updates",
+        "σ position [m]",
+        "σ orientation [deg]",
+        "legend",
+    } <= names
     assert s.rows["filter/nis_uwb"] > 0 and s.rows["filter/nis_uwb_bounds"] >= 2
     assert s.rows["uwb/0/band"] == s.rows["uwb/0/residual"]
     assert "world/anchors/0/ri" in s.static and "legend" in s.static

@@ -118,7 +118,7 @@ def test_full_run_roundtrip(tmp_path: Path) -> None:
         "7: range residual ±3σ [m]",
         "log",
         "NEES pose (6 dof)",
-        "σ",
+        "σ position [m]",
         "β",
         "γ [m]",
     ):
@@ -224,7 +224,7 @@ def test_merge_run_logs_one_blueprint_with_all_anchors(tmp_path: Path) -> None:
     assert {"a0: NIS", "a1: NIS"} <= set(s.blueprint_names)
     assert "cam0" not in s.blueprint_names  # without camera data
     assert (
-        "σ" not in s.blueprint_names and "NEES pose (6 dof)" not in s.blueprint_names
+        "σ position [m]" not in s.blueprint_names and "NEES pose (6 dof)" not in s.blueprint_names
     )  # nothing logged there
     with pytest.raises(InputError, match="nope.rrd: missing"):
         L.merge_run_logs([tmp_path / "nope.rrd"], tmp_path / "x.rrd")
