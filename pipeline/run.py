@@ -89,7 +89,9 @@ class Pipeline:
     def _time_origin(self) -> int | None:
         """Simulated recordings: the replay's time axis in seconds from the recording's start (same origin for every
         stage and for every run of the recording); real data: its own stamps (None)."""
-        return self.reader.time_span()[0] if self.reader.truth else None
+        truth = self.reader.truth
+        simulated = truth is not None and truth.get("kind", "simulated") == "simulated"
+        return self.reader.time_span()[0] if simulated else None
 
     def windows(self) -> Windows:
         topics = self.reader.topics()

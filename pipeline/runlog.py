@@ -127,7 +127,7 @@ def legend_markdown(methods: Sequence[str] = ("lsi", "ri", "ri-robust")) -> str:
     rows = [
         "| marker | what |",
         "|---|---|",
-        "| white sphere | true anchor (simulation) |",
+        "| white sphere | true (simulated) or surveyed anchor |",
         *(
             f"| {_colour_name(m)} {shape[MARKERS.get(m, 'sphere')]} | {m.upper()} initialisation |"
             for m in methods
