@@ -28,8 +28,10 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.core.errors import InputError
+from pipeline.core.progress import progress
+
 from . import uwb_msgs
-from .errors import InputError
 from .recording import (
     META_CALIBRATION,
     META_SOURCE,
@@ -53,7 +55,6 @@ from .sources import (
     default_tags,
     load_yaml,
     parse_antennas,
-    progress,
     source_metadata,
     summary,
     uwb_calibration,
