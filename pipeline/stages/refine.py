@@ -7,6 +7,7 @@ import numpy as np
 
 from .. import rundir as rd
 from .. import runlog as rl
+from ..driver import run_estimator
 from .context import StageContext, StageResult
 
 
@@ -31,30 +32,37 @@ def run(ctx: StageContext) -> StageResult:
     )
     with ctx.runlog("refine") as log:
         log.stage("refine", win.init_end_ns)
-        est.run(ctx.features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log)
+        run_estimator(
+            est, ctx.features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log
+        )
         updater.log(log)
         for a, arr in updater.arrays().items():
             if len(arr["t_ns"]) and arr["cov"].any():
                 log.ellipsoid_series(
                     rl.anchor_world(a, "cov"), arr["t_ns"], arr["x"][:, :3], arr["cov"][:, :3, :3]
                 )
-                log.scalars(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
+                log.point_series(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
+        for (
+            a,
+            n,
+        ) in est.state.anchors.items():  # at the end of refinement: the covariance anchor_states.json holds
+            x = est.state.value(n).x
+            log.ellipsoids(
+                rl.anchor_world(a, "cov"), x[:3], est.state.cov(n)[None, :3, :3], t_ns=win.refine_end_ns
+            )
     ctx.dir.save_pickle("checkpoint_refine.pkl", est)
     hist = est.history().arrays()
     seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
     ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
     rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
-    names = [n for n in est.state.names if n.startswith("anchor/")]
     states = {
-        n.split("/", 1)[1]: {
+        str(a): {
             "x": est.state.value(n).x,
             "P": est.state.cov(n),
-            "noise_inflation": inflation.get(rd.anchor_key(n.split("/", 1)[1]), 1.0),
-            "link_offsets": {
-                str(k): v for k, v in updater.link_offsets.get(rd.anchor_key(n.split("/", 1)[1]), {}).items()
-            },
+            "noise_inflation": inflation.get(a, 1.0),
+            "link_offsets": {str(k): v for k, v in updater.link_offsets.get(a, {}).items()},
         }
-        for n in names
+        for a, n in est.state.anchors.items()
     }
     for a, r in updater.pending.items():  # determined only by all their ranges: nothing left to refine with
         states[str(a)] = {
