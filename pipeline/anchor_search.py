@@ -225,8 +225,8 @@ def refine_robust(
     w = 1.0 / (1.0 + r**2 / c2)
     J = np.concatenate([-u, E], axis=1)  # dh/d(b, gamma)
     info = (J * w[:, None]).T @ J
-    if pw:
-        info[gi, gi] += pw
+    # (the information is the ranges' alone: the gamma prior steadies the estimate, it does not vouch for it;
+    # a sigma that leans on it lets an anchor join before its own ranges pin it down)
     return _Refined(b, g, cost, r, w, info)
 
 

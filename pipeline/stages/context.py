@@ -137,7 +137,12 @@ class StageContext:
                 rng.t_ns, rng.anchor, init_end, min_ranges=max(uwb.min_ranges, 30)
             )
             if run.schedule == "windows" and odometry and uwb.search:
-                run.schedule, why = self._first_window_decides(rng, init_end)  # type: ignore[assignment]
+                # the poses come with the recording (no VIO to run before it drifts): every anchor joins when
+                # its own ranges pin it down and is refined to the end of the data
+                run.schedule, why = (
+                    "per-anchor",
+                    "odometry pose source: anchors refined to the end of the data",
+                )  # type: ignore[assignment]
             _log.info("run.schedule = %s: %s", run.schedule, why)
         if run.schedule == "per-anchor" and run.refine_window_s is None:
             # late anchors are refined from their own join time: refinement runs to the end
@@ -154,30 +159,6 @@ class StageContext:
                 run.init_window_s = round(span * 2.0 / 3.0, 3)
                 # refine to the end: the 1 s margin absorbs the rounding (split_windows clamps at the end)
                 run.refine_window_s = round(span - run.init_window_s + 1.0, 3)
-
-    def _first_window_decides(self, rng, init_end_ns: int) -> tuple[str, str]:
-        """Odometry pose source: the poses are in the recording, so the schedule can ask the data: windows
-        when the first window pins every anchor down (`uwb_filter.search_window`, horizontal sigma below the
-        join bar), per-anchor otherwise."""
-        from ..uwb_filter import search_window, windows_from_trajectory
-
-        odo = self.reader.read_odometry(self.config.odometry.topic)
-        traj = {"t_ns": odo.t_ns, "p": odo.p, "q_xyzw": odo.q_xyzw, "cov": np.zeros((len(odo.t_ns), 6, 6))}
-        uwb = self.config.uwb
-        wins = windows_from_trajectory(traj, vars(rng), self.reader.calibration, None, init_end_ns)
-        sigma = uwb.sigma(self.reader.calibration) * uwb.sigma_scale
-        late = []
-        for a, w in wins.items():
-            sr = search_window(w, uwb, sigma, self.reader.calibration)
-            bar = min(uwb.join_sigma_m, uwb.join_ratio * float(np.median(w.d)))
-            if not sr.ok or sr.sigma_horizontal > bar:
-                late.append(str(a))
-        if late:
-            return "per-anchor", f"the first window does not pin down anchors {', '.join(late)}"
-        return (
-            "windows",
-            f"the first window pins down every anchor (horizontal sigma <= {uwb.join_sigma_m} m)",
-        )
 
     def pose_source(self) -> str:
         choice = self.config.run.pose_source
