@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import os
+import signal
 import sys
 from enum import Enum
 from pathlib import Path
@@ -35,18 +36,67 @@ def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks."
 
 
 def _guard(fn):
-    """Turn bad input into one line on stderr and exit code 2 (a traceback only with --debug)."""
+    """The error policy, in one place: an expected failure (bad input, an OS error on an input or output, a
+    decoding error) -> one line on stderr naming the user's file and exit 2; SIGTERM / Ctrl-C -> temporary outputs
+    removed, exit 143 / 130; anything else is a bug -> one line and exit 1 (the traceback only with --debug).
+    Python warnings are shown once each, as one line."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        import warnings
+
+        import click
+
+        from convert.errors import Terminated, os_error_message
+
+        def _term(signum, frame):
+            raise Terminated()
+
         try:
-            return fn(*args, **kwargs)
-        except (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError) as exc:
+            previous = signal.signal(signal.SIGTERM, _term)
+        except ValueError:  # not the main thread
+            previous = None
+        caught: list[warnings.WarningMessage] = []
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                return fn(*args, **kwargs)
+        except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
+            raise
+        except Terminated:
+            typer.echo("error: terminated (SIGTERM); finished outputs kept, partial ones removed", err=True)
+            raise typer.Exit(143) from None
+        except KeyboardInterrupt:
+            typer.echo("error: interrupted; finished outputs kept, partial ones removed", err=True)
+            raise typer.Exit(130) from None
+        except Exception as exc:
             if _DEBUG["on"]:
                 raise
-            msg = str(exc) if isinstance(exc, InputError) else f"{exc.strerror}: {exc.filename}"
-            typer.echo(f"error: {msg}", err=True)
+            if isinstance(exc, InputError):
+                msg = str(exc)
+            elif isinstance(exc, OSError):
+                msg = os_error_message(exc)
+            elif isinstance(exc, UnicodeDecodeError):
+                msg = f"an input is not UTF-8 text ({exc.reason} at byte {exc.start}); convert it to UTF-8"
+            else:
+                first = (str(exc).strip().splitlines() or [""])[0]
+                typer.echo(
+                    f"error: internal error ({type(exc).__name__}: {first}); this is a bug in uwbcal, "
+                    "please report it with the output of --debug",
+                    err=True,
+                )
+                raise typer.Exit(1) from None
+            typer.echo("error: " + " ".join(msg.split("\n")).strip(), err=True)
             raise typer.Exit(2) from None
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+            seen = set()
+            for w in caught:
+                text = " ".join(str(w.message).split())
+                if text not in seen:
+                    seen.add(text)
+                    typer.echo(f"warning: {text}", err=True)
 
     return wrapper
 

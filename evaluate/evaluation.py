@@ -29,12 +29,51 @@ from .tables import render
 SEGMENT_NAMES = ("init", "refine", "localize")
 
 
+ANCHOR_COLUMNS = ("anchor", "method", "stage", "x", "y", "z", "beta", "gamma")
+
+
 def read_anchors_csv(run_dir: Path) -> list[dict]:
+    """anchors.csv rows (numbers parsed); InputError naming the file and line when it is damaged."""
     path = Path(run_dir) / "anchors.csv"
     if not path.is_file():
         return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            missing = [c for c in ANCHOR_COLUMNS if c not in (reader.fieldnames or [])]
+            if missing:
+                raise InputError(
+                    f"{path}: header: missing column(s) {', '.join(missing)}; the run directory is damaged — "
+                    "re-run the init and refine stages"
+                )
+            rows = []
+            for line, r in enumerate(reader, start=2):
+                try:
+                    vals = {k: float(r[k]) for k in ("x", "y", "z", "beta", "gamma")}
+                except (TypeError, ValueError):
+                    raise InputError(
+                        f"{path}: line {line}: not a number in x/y/z/beta/gamma; the run directory is damaged "
+                        "— re-run the init and refine stages"
+                    ) from None
+                if not all(np.isfinite(v) for v in vals.values()):
+                    raise InputError(f"{path}: line {line}: non-finite anchor estimate; re-run the stages")
+                rows.append({**r, **vals})
+            return rows
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: byte {exc.start}: not UTF-8 text; the run directory is damaged") from None
+
+
+def _read_json(path: Path, kind: type = dict):
+    """A JSON artefact of the run directory; InputError naming it when damaged."""
+    try:
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(
+            f"{path}: not valid JSON ({exc}); the run directory is damaged — re-run the stage that writes it"
+        ) from None
+    if not isinstance(data, kind):
+        raise InputError(f"{path}: expected a JSON {kind.__name__}; the run directory is damaged")
+    return data
 
 
 def final_anchor_estimates(rows: list[dict], init_method: str | None = None) -> dict[str, dict]:
@@ -82,11 +121,14 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     traj = load_run_trajectory(run_dir)
     metrics: dict = {"warnings": []}
     summary_path = run_dir / "stages.json"
-    stages = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    stages = _read_json(summary_path) if summary_path.is_file() else {}
+    if not all(isinstance(st, dict) for st in stages.values()):
+        raise InputError(f"{summary_path}: expected an object per stage; the run directory is damaged")
+    metrics["warnings"].extend(w for w in reader.verify() if w not in metrics["warnings"])
     for st in stages.values():
-        metrics["warnings"].extend(st.get("warnings", []))
+        metrics["warnings"].extend(str(w) for w in st.get("warnings", []) if w not in metrics["warnings"])
     if stages:
-        metrics["wall_s"] = float(sum(st.get("wall_s", 0.0) for st in stages.values()))
+        metrics["wall_s"] = float(sum(float(st.get("wall_s", 0.0)) for st in stages.values()))
     if len(traj):
         metrics["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
 
@@ -129,8 +171,8 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         metrics["matched_poses"] = int(len(cmp.t_ns))
 
     # -- anchors ---------------------------------------------------------------------------------------------
-    cfg = tomllib.loads((run_dir / "config.toml").read_text())
-    est = final_anchor_estimates(read_anchors_csv(run_dir), cfg.get("uwb", {}).get("init_method"))
+    cfg = tomllib.loads((run_dir / "config.toml").read_text())  # parsed by run_recording_path already
+    est = final_anchor_estimates(read_anchors_csv(run_dir), (cfg.get("uwb") or {}).get("init_method"))
     if est:
         anchors = {
             aid: {"estimate": a["position"], "beta": a["beta"], "gamma": a["gamma"], "method": a["method"]}
@@ -149,16 +191,19 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
                 metrics["gamma_error"] = ae.mean_abs_gamma
             if ae.missing:
                 metrics["warnings"].append(f"anchors not calibrated: {', '.join(ae.missing)}")
+        from .quality import range_quality
+
+        metrics["warnings"].extend(range_quality(reader, traj, est))
         init_path = run_dir / "init.json"
         if init_path.is_file():
-            init = json.loads(init_path.read_text())
-            for aid, r in init["methods"].get(init["chosen"], {}).items():
-                if aid in anchors and "fim" in r:
+            init = _read_json(init_path)
+            for aid, r in (init.get("methods") or {}).get(init.get("chosen"), {}).items():
+                if aid in anchors and isinstance(r, dict) and "fim" in r:
                     anchors[aid]["fim"] = r["fim"]  # log det, condition number, weakest direction
         metrics["anchors"] = anchors
         state_path = run_dir / "anchor_states.json"
         if ref_kind == "truth" and state_path.is_file():
-            states = json.loads(state_path.read_text())
+            states = _read_json(state_path)
             vals = []
             for aid, s in states.items():
                 if aid in ref:

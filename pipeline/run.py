@@ -140,32 +140,46 @@ class Pipeline:
 
     # -- driver ------------------------------------------------------------------------------------------------
     def run(self, stages: list[str] | None = None, progress=print) -> list[StageResult]:
-        stages = stages or list(self.config.run.stages)
+        """The stages, under the run-directory lock; config.toml and stages.json are written after each stage
+        that succeeds (`provenance`); temporary files of an interrupted earlier run are removed first."""
+        from convert.atomic import sweep_stale
+
+        stages = list(self.config.run.stages) if stages is None else list(stages)
+        if not stages:
+            raise InputError(f"--stages: no stage given; choose from {', '.join(STAGES)}")
         self._stages = list(stages)
-        self.resolve_auto()
-        self.dir.path.mkdir(parents=True, exist_ok=True)
-        rd.write_text(self.dir.file(rd.CONFIG), self.config.to_toml())
-        results = []
-        try:
-            for stage in STAGES:
-                if stage not in stages:
-                    continue
-                t0 = time.perf_counter()
-                summary, warns = getattr(self, f"stage_{stage}")()
-                res = StageResult(stage, time.perf_counter() - t0, summary, warns)
-                results.append(res)
-                self._record_stage(res)
-                progress(f"[{stage}] {summary} ({res.wall_s:.1f} s)")
-        finally:
-            if self.config.run.log:
-                self.dir.merge_rrd(self.run_kind())
+        with rd.run_lock(self.dir.path) as stale_pid:
+            if stale_pid is not None:
+                progress(f"note: took over the lock of an interrupted run (pid {stale_pid}, not running)")
+            removed = sweep_stale(self.dir.path)
+            if removed:
+                names = ", ".join(p.name for p in removed[:3]) + (" ..." if len(removed) > 3 else "")
+                progress(f"note: removed {len(removed)} temporary file(s) of an interrupted run ({names})")
+            self.reader.check_schemas()
+            for w in self.reader.warnings:
+                progress(f"warning: {w}")
+            self.resolve_auto()
+            results = []
+            try:
+                for stage in STAGES:
+                    if stage not in stages:
+                        continue
+                    t0 = time.perf_counter()
+                    summary, warns = getattr(self, f"stage_{stage}")()
+                    res = StageResult(stage, time.perf_counter() - t0, summary, warns)
+                    results.append(res)
+                    self._record_stage(res)
+                    progress(f"[{stage}] {summary} ({res.wall_s:.1f} s)")
+            finally:
+                if self.config.run.log:
+                    self.dir.merge_rrd(self.run_kind())
         return results
 
     def _record_stage(self, res: StageResult) -> None:
-        path = "stages.json"
-        stages = self.dir.load_json(path) if self.dir.exists(path) else {}
-        stages[res.stage] = {"wall_s": res.wall_s, "summary": res.summary, "warnings": res.warnings}
-        self.dir.save_json(path, {k: stages[k] for k in STAGES if k in stages})
+        from .provenance import record_stage
+
+        entry = {"wall_s": res.wall_s, "summary": res.summary, "warnings": res.warnings}
+        res.warnings += record_stage(self.dir, res.stage, entry, self.config, self._stages)
 
     # -- stages --------------------------------------------------------------------------------------------------
     def stage_frontend(self) -> tuple[str, list[str]]:
@@ -356,7 +370,7 @@ class Pipeline:
         if win.refine_end_ns >= win.end_ns:
             return "no data left after refinement; skipped", []
         est = self.dir.load_pickle("checkpoint_refine.pkl", "localize")
-        states = self.dir.load_json("anchor_states.json")
+        states = self.dir.load_json("anchor_states.json", "localize")
         anchors = {_anchor_key(a): np.asarray(s["x"]) for a, s in states.items()}
         inflation = {_anchor_key(a): float(s.get("noise_inflation", 1.0)) for a, s in states.items()}
         updater = UwbUpdater.from_config(
@@ -386,7 +400,7 @@ class Pipeline:
             align=None if self.config.run.align == "auto" else self.config.run.align,
             series=series,
         )
-        m = self.dir.load_json(rd.METRICS)
+        m = self.dir.load_json(rd.METRICS, "evaluate")
         if series:
             from evaluate.consistency import chi2_bounds
 
@@ -534,6 +548,27 @@ class Pipeline:
 INIT_METHODS = ("lsi", "ri", "ri-robust")
 
 
+def _resumed_config(output: Path, overrides: dict) -> Path | None:
+    """A partial re-run (stages given, VIO not among them) builds on the directory's artefacts: it continues
+    with the directory's config.toml (then config.toml keeps reproducing the run). Refused when that run was of
+    another recording (its artefacts would be mixed with this one's)."""
+    stages = overrides["run"].get("stages")
+    cfg_path = output / rd.CONFIG
+    if not stages or "vio" in stages or not cfg_path.is_file():
+        return None
+    from .config import read_toml
+
+    data = read_toml(cfg_path)
+    was = (data.get("run") or {}).get("recording")
+    now = overrides["run"]["recording"]
+    if isinstance(was, str) and was and Path(was).resolve() != Path(now):
+        raise InputError(
+            f"{output}: holds a run of {was}; re-running only {','.join(stages)} on {now} would mix two "
+            "recordings — run every stage, or choose another output directory"
+        )
+    return cfg_path
+
+
 def _anchor_key(a):
     """Anchor ids are ints in the recording and strings in JSON."""
     return int(a) if str(a).lstrip("-").isdigit() else a
@@ -582,8 +617,10 @@ def run_cli(
     log: bool,
 ) -> str:
     overrides: dict = {"run": {"recording": str(Path(recording).resolve()), "log": log}}
-    if stages:
+    if stages is not None:
         overrides["run"]["stages"] = [s.strip() for s in stages.split(",") if s.strip()]
+        if not overrides["run"]["stages"]:
+            raise InputError(f"--stages {stages!r}: no stage named; choose from {', '.join(STAGES)}")
     uwb: dict = {}
     if init:
         uwb["init_method"] = init
@@ -591,8 +628,8 @@ def run_cli(
         uwb["refine_method"] = refine
     if uwb:
         overrides["uwb"] = uwb
-    cfg = load_config(config, overrides)
-    RecordingReader(cfg.run.recording)  # fail early, before the run directory is touched
+    RecordingReader(overrides["run"]["recording"])  # fail early, before the run directory is touched
+    cfg = load_config(config or _resumed_config(Path(output), overrides), overrides)
     pipe = Pipeline(cfg, output)
     pipe.run()
     return getattr(pipe, "results_text", "")
