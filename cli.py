@@ -61,7 +61,7 @@ def _guard(fn):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 return fn(*args, **kwargs)
-        except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
+        except (typer.Exit, typer.Abort, click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
             raise
         except Terminated:
             typer.echo("error: terminated (SIGTERM); finished outputs kept, partial ones removed", err=True)
@@ -93,12 +93,21 @@ def _guard(fn):
                 signal.signal(signal.SIGTERM, previous)
             seen = set()
             for w in caught:
+                if not issubclass(w.category, (UserWarning, RuntimeWarning, FutureWarning)):
+                    continue
                 text = " ".join(str(w.message).split())
                 if text not in seen:
                     seen.add(text)
                     typer.echo(f"warning: {text}", err=True)
 
     return wrapper
+
+
+def _output_file(path: Path) -> None:
+    """Refuse an output file path that cannot be one (a directory, /dev/null) before any work is done."""
+    from convert.atomic import check_output_file
+
+    check_output_file(path)
 
 
 class Align(str, Enum):
@@ -175,6 +184,8 @@ def simulate(
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
     from convert.simulator import SimConfig, simulate_to_file
 
+    _output_file(output)
+
     cfg = SimConfig(
         trajectory=trajectory,
         n_anchors=anchors,
@@ -203,6 +214,8 @@ def convert_euroc(
     """Convert EuRoC (ASL folder or ROS1 bag)."""
     from convert.euroc import convert_euroc as run
 
+    _output_file(output)
+
     typer.echo(run(path, output, groundtruth=groundtruth))
 
 
@@ -218,6 +231,8 @@ def convert_ntu_viral(
     """Convert NTU-VIRAL (ROS1 bag or CSV sequence folder)."""
     from convert.ntu_viral import convert_ntu_viral as run
 
+    _output_file(output)
+
     typer.echo(run(path, output, antennas=antennas))
 
 
@@ -231,6 +246,8 @@ def convert_tabular(
 ) -> None:
     """Convert any odometry (TUM) plus UWB ranges (CSV)."""
     from convert.tabular import convert_tabular as run
+
+    _output_file(output)
 
     typer.echo(run(poses, ranges, output, antennas=antennas))
 

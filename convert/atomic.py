@@ -67,7 +67,9 @@ def sweep_stale(directory: Path, recursive: bool = True) -> list[Path]:
 def check_output_file(target: Path) -> None:
     """An output file path: refuse an existing directory or non-regular file (e.g. /dev/null) up front."""
     if target.is_dir():
-        raise InputError(f"{target}: is a directory; give a file path for the output (or remove the directory)")
+        raise InputError(
+            f"{target}: is a directory; give a file path for the output (or remove the directory)"
+        )
     if target.exists() and not target.is_file():
         raise InputError(f"{target}: exists and is not a regular file; choose another output path")
 

@@ -24,7 +24,7 @@ _ADVICE = {
     errno.EROFS: "read-only file system; write the output elsewhere",
     errno.ENOSPC: "no space left on the device; free space or write the output elsewhere",
     errno.EDQUOT: "disk quota exceeded; free space or write the output elsewhere",
-    errno.EEXIST: "already exists and is not a file uwbcal may replace; remove it or choose another path",
+    errno.EEXIST: "already exists and is in the way; remove it or choose another path",
     errno.EISDIR: "is a directory; give a file path (or remove the directory)",
     errno.ENOTDIR: "a component of the path is not a directory; check the path",
     errno.ENOENT: "no such file or directory; check the path",

@@ -246,6 +246,15 @@ class RecordingWriter:
         antenna = _col(antenna, n, np.int64, what="antenna")
         anchor = _col(anchor, n, np.int64, what="anchor")
         dist = _col(distance, n, float, what="distance")
+        for name, v, hi in (
+            ("tag", tag, 2**32 - 1),
+            ("antenna", antenna, 255),
+            ("anchor", anchor, 2**32 - 1),
+        ):
+            if n and (
+                v.min() < 0 or v.max() > hi
+            ):  # the message fields are uint32/uint8: never wrap silently
+                raise ValueError(f"{topic}: {name} id {int(v[(v < 0) | (v > hi)][0])} outside 0..{hi}")
         tags = np.unique(tag).tolist()
         sec, nsec = msgs.sec_nsec(t)
         payloads: list[bytes] = [b""] * n

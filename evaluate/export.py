@@ -90,7 +90,9 @@ def run_recording_path(run_dir: str | Path) -> Path:
     try:
         cfg = tomllib.loads(cfg_path.read_bytes().decode("utf-8"))
     except UnicodeDecodeError as exc:
-        raise InputError(f"{cfg_path}: byte {exc.start}: not UTF-8 text; the run directory is damaged") from None
+        raise InputError(
+            f"{cfg_path}: byte {exc.start}: not UTF-8 text; the run directory is damaged"
+        ) from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{cfg_path}: invalid TOML ({exc})") from None
     run = cfg.get("run")
@@ -199,6 +201,12 @@ def export_run(run_dir: str | Path, output: str | Path, fmt: str = "tum") -> str
     """``uwbcal export``: write the TUM pair of a run directory; returns a one-paragraph summary."""
     if fmt != "tum":
         raise InputError(f"--format {fmt}: unsupported; only 'tum' is available")
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise InputError(
+            f"{out}: exists and is not a directory; export writes a folder (estimate.tum, groundtruth.tum) — "
+            "give a directory path"
+        )
     tr = load_run_trajectory(run_dir)
     gt = load_ground_truth(run_recording_path(run_dir))
     est_path, gt_path, c = export_tum(tr.t_ns, tr.p, tr.q_xyzw, gt, output)

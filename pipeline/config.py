@@ -100,7 +100,9 @@ def check_numbers(data: Any, src: str, where: str = "") -> None:
         if not math.isfinite(data):
             raise InputError(f"{src}: {where} = {data}: must be a finite number")
         if abs(data) > PLAUSIBLE_MAX:
-            raise InputError(f"{src}: {where} = {data:g}: implausibly large (> {PLAUSIBLE_MAX:g}); fix the value")
+            raise InputError(
+                f"{src}: {where} = {data:g}: implausibly large (> {PLAUSIBLE_MAX:g}); fix the value"
+            )
 
 
 def read_toml(path: Path) -> dict:
@@ -123,12 +125,18 @@ def load_config(path: Path | None = None, overrides: dict | None = None) -> Pipe
     data: dict = read_toml(path) if path is not None else {}
     src = str(path) if path else "config"
     check_numbers(data, src)
+    if path is not None:  # the file on its own: its errors name it, even for keys the command line overrides
+        _validate(data, src)
     if overrides:
+        check_numbers(overrides, "overrides")
         data = merge_dicts(data, overrides)
+    return _validate(data, src)
+
+
+def _validate(data: dict, src: str) -> PipelineConfig:
     try:
         return PipelineConfig.model_validate(data, strict=True)
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(x) for x in err["loc"])
-        src = str(path) if path else "config"
         raise InputError(f"{src}: {where}: {err['msg']} ({len(exc.errors())} problem(s) in total)") from None

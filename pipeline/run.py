@@ -55,6 +55,7 @@ class Pipeline:
         self.recording = Path(config.run.recording)
         self._reader: RecordingReader | None = None
         self._stages = list(config.run.stages)  # this invocation's stages (run() narrows it)
+        self.shown_warnings: set[str] = set()
 
     # -- shared helpers ----------------------------------------------------------------------------------------
     @property
@@ -156,9 +157,12 @@ class Pipeline:
                 names = ", ".join(p.name for p in removed[:3]) + (" ..." if len(removed) > 3 else "")
                 progress(f"note: removed {len(removed)} temporary file(s) of an interrupted run ({names})")
             self.reader.check_schemas()
-            for w in self.reader.warnings:
+            for w in self.reader.warnings:  # once here; the results table leaves them out (run_cli)
                 progress(f"warning: {w}")
+                self.shown_warnings.add(f"warning: {w}")
             self.resolve_auto()
+            if any(s != "frontend" for s in stages):
+                self.windows()  # the recording has what the stages need (ranges, a pose source): fail before any
             results = []
             try:
                 for stage in STAGES:
@@ -621,6 +625,11 @@ def run_cli(
         overrides["run"]["stages"] = [s.strip() for s in stages.split(",") if s.strip()]
         if not overrides["run"]["stages"]:
             raise InputError(f"--stages {stages!r}: no stage named; choose from {', '.join(STAGES)}")
+        unknown = [s for s in overrides["run"]["stages"] if s not in STAGES]
+        if unknown:
+            raise InputError(
+                f"--stages {stages!r}: unknown stage(s) {', '.join(unknown)}; choose from {', '.join(STAGES)}"
+            )
     uwb: dict = {}
     if init:
         uwb["init_method"] = init
@@ -632,4 +641,5 @@ def run_cli(
     cfg = load_config(config or _resumed_config(Path(output), overrides), overrides)
     pipe = Pipeline(cfg, output)
     pipe.run()
-    return getattr(pipe, "results_text", "")
+    text = getattr(pipe, "results_text", "")
+    return "\n".join(ln for ln in text.splitlines() if ln not in pipe.shown_warnings)

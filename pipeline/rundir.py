@@ -89,7 +89,7 @@ class RunDir:
         try:
             with open(p, "rb") as f:
                 return pickle.load(f)
-        except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, ValueError, TypeError) as exc:
+        except Exception as exc:  # noqa: BLE001 - a damaged pickle can fail in any way
             raise self.corrupt(p, f"unreadable checkpoint ({type(exc).__name__})") from None
 
     # -- rerun logs --------------------------------------------------------------------------------------------
@@ -121,7 +121,9 @@ def run_lock(path: Path) -> Iterator[int | None]:
     (None when there was none). Re-entrant within one process (``run`` -> ``evaluate``)."""
     path = Path(path)
     if path.exists() and not path.is_dir():
-        raise InputError(f"{path}: exists and is not a directory; choose another output directory for the run")
+        raise InputError(
+            f"{path}: exists and is not a directory; choose another output directory for the run"
+        )
     key = path.resolve()
     if key in _HELD:
         _HELD[key] += 1
@@ -131,6 +133,7 @@ def run_lock(path: Path) -> Iterator[int | None]:
             _HELD[key] -= 1
         return
     lock = path / LOCK
+    created = not path.exists()
     try:
         path.mkdir(parents=True, exist_ok=True)
         while True:
@@ -167,3 +170,6 @@ def run_lock(path: Path) -> Iterator[int | None]:
         with contextlib.suppress(OSError):
             os.unlink(lock)
         os.close(fd)
+        if created:  # a run that failed before writing anything leaves no empty directory behind
+            with contextlib.suppress(OSError):
+                path.rmdir()
