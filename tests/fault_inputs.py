@@ -76,11 +76,17 @@ ANTENNA_YAML = "antenna_offset: [1, 1, 0.0, 0.0, 0.1]\nranging_bias: [1, 0.0]\n"
 
 # -- recordings ----------------------------------------------------------------------------------------------------
 def rewrite(
-    src: Path, dst: Path, *, ranges=None, chunk_size: int | None = None, swap_schema: dict | None = None
+    src: Path,
+    dst: Path,
+    *,
+    ranges=None,
+    chunk_size: int | None = None,
+    swap_schema: dict | None = None,
+    calibration=None,
 ) -> Path:
     """Copy a recording message by message; ``ranges(RangeData) -> RangeData`` edits the ranges,
     ``chunk_size`` re-chunks, ``swap_schema = {topic: (msgtype, source_topic)}`` writes another topic's
-    messages under ``topic`` (a wrong message type)."""
+    messages under ``topic`` (a wrong message type), ``calibration(dict) -> dict`` edits the calibration."""
     r = RecordingReader(src)
     topics = r.topics()
     kw = {"chunk_size": chunk_size} if chunk_size else {}
@@ -106,6 +112,8 @@ def rewrite(
                 w.write_raw(topic, t, msgtype, raw)
         for name in (META_CALIBRATION, META_SOURCE, META_TRUTH):
             m = r.metadata(name)
+            if name == META_CALIBRATION and calibration is not None:
+                m = calibration(m)
             if m is not None:
                 w.set_metadata(name, m)
     return dst

@@ -41,6 +41,7 @@ class Shared:
     rec: Path  # 20 s simulated odometry + ranges + ground truth, 3 anchors
     rec_chunks: Path  # the same in 32 kB chunks (bit rot hits one chunk of many)
     run: Path  # a finished run of `rec`
+    rec60: Path  # 60 s: a geometry that makes a ranging bias observable
 
 
 @pytest.fixture(scope="session")
@@ -52,7 +53,9 @@ def shared(tmp_path_factory) -> Shared:
     run = root / "run"
     res = runner.invoke(app, ["run", str(rec), "-o", str(run), "--no-log"])
     assert res.exit_code == 0, res.output
-    return Shared(root, rec, chunks, run)
+    rec60 = root / "sim60.mcap"
+    simulate_to_file(SimConfig(duration=60.0, n_anchors=3, odometry_rate=20.0, camera=False, seed=1), rec60)
+    return Shared(root, rec, chunks, run, rec60)
 
 
 class Ctx:
@@ -1109,13 +1112,21 @@ case("diff-missing-key-regressed", [11], "diff abuse", diff(GOOD, {"prmse_m": {"
 
 
 # -- data quality reaching metrics.json -----------------------------------------------------------------------------
-def edited_ranges(edit):
+TIGHT_GAMMA = {"mean": -0.3, "sigma": 0.1}  # the simulator's true offset, declared as an informative prior
+
+
+def edited_ranges(edit, gamma_prior: dict | None = None, long: bool = False):
     def make(c: Ctx) -> Path:
         def f(r):
             r.distance = edit(r).astype(float)
             return r
 
-        return fi.rewrite(c.shared.rec, c.p("rec.mcap"), ranges=f)
+        def cal(m):
+            m["uwb"]["gamma_prior"] = gamma_prior
+            return m
+
+        src = c.shared.rec60 if long else c.shared.rec
+        return fi.rewrite(src, c.p("rec.mcap"), ranges=f, calibration=cal if gamma_prior else None)
 
     return make
 
@@ -1156,9 +1167,24 @@ case(
     "quality-anchor-biased-2m",
     [10],
     "data quality",
-    run_on(edited_ranges(lambda r: np.where(r.anchor == 2, r.distance + 2.0, r.distance))),
+    run_on(edited_ranges(lambda r: np.where(r.anchor == 2, r.distance + 2.0, r.distance), TIGHT_GAMMA, True)),
     "ok",
-    check=metrics_warn("anchor 2: "),
+    check=metrics_warn("anchor 2: ranging offset gamma"),
+)
+
+
+def no_bias_warning(c: Ctx, res) -> None:
+    m = json.loads((c.p("run") / "metrics.json").read_text())
+    assert not [w for w in m["warnings"] if "biased" in w or "ranging offset" in w], m["warnings"]
+
+
+case(
+    "quality-unbiased-no-false-alarm",
+    [10],
+    "data quality",
+    run_on(edited_ranges(lambda r: r.distance, TIGHT_GAMMA, True)),
+    "ok",
+    check=no_bias_warning,
 )
 case(
     "quality-truncated-recording",
