@@ -158,16 +158,31 @@ def demo(output: Annotated[Path, typer.Option("-o", "--output")] = Path("recordi
 @_guard
 def simulate(
     output: Output,
-    trajectory: Annotated[
-        str | None, typer.Option(help="EuRoC ground-truth name (MH_01_easy) or file.")
+    scenario: Annotated[
+        str | None,
+        typer.Option(
+            help="A class of real setup: planar (ground trolley, coplanar anchors), large-area (~400 m, anchors "
+            "ranged late or briefly), per-link (3 tags, an offset per link), nlos (NLOS junk on some links). "
+            "Ranges + odometry, no camera unless --camera; other options override the scenario's."
+        ),
     ] = None,
-    anchors: Annotated[int, typer.Option(min=1, help="Number of anchors.")] = 4,
+    trajectory: Annotated[
+        str | None,
+        typer.Option(
+            help="EuRoC ground-truth name (MH_01_easy) or file, or built-in: default, planar, campus."
+        ),
+    ] = None,
+    anchors: Annotated[int | None, typer.Option(min=1, help="Number of anchors (default 4).")] = None,
     duration: Annotated[
         float | None, typer.Option(help="Seconds to simulate (default: whole trajectory).")
     ] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    nlos_rate: Annotated[float, typer.Option(help="Fraction of ranges with a positive NLOS bias.")] = 0.0,
-    dropout_rate: Annotated[float, typer.Option(help="Fraction of ranges dropped.")] = 0.0,
+    nlos_rate: Annotated[
+        float | None, typer.Option(help="Fraction of ranges with a positive NLOS bias (default 0).")
+    ] = None,
+    dropout_rate: Annotated[
+        float | None, typer.Option(help="Fraction of ranges dropped (default 0).")
+    ] = None,
     max_range: Annotated[float | None, typer.Option(help="Maximum UWB range [m].")] = None,
     odometry_rate: Annotated[
         float | None,
@@ -179,27 +194,37 @@ def simulate(
         float,
         typer.Option(min=0.0, help="Factor on the odometry drift sigmas (declared in the calibration)."),
     ] = 1.0,
-    camera: Annotated[bool, typer.Option(help="Simulate camera feature tracks.")] = True,
+    camera: Annotated[
+        bool | None,
+        typer.Option("--camera/--no-camera", help="Simulate camera feature tracks (default: yes)."),
+    ] = None,
 ) -> None:
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
     from convert.simulator import SimConfig, simulate_to_file
 
     _output_file(output)
 
-    cfg = SimConfig(
-        trajectory=trajectory,
-        n_anchors=anchors,
-        duration=duration,
-        seed=seed,
-        nlos_rate=nlos_rate,
-        dropout_rate=dropout_rate,
-        max_range=max_range,
-        odometry_rate=odometry_rate,
-        odometry_noise_scale=odometry_noise_scale,
-        camera=camera,
-    )
-    summary = simulate_to_file(cfg, output)
-    typer.echo(summary)
+    given = {
+        "trajectory": trajectory,
+        "n_anchors": anchors,
+        "duration": duration,
+        "nlos_rate": nlos_rate,
+        "dropout_rate": dropout_rate,
+        "max_range": max_range,
+        "odometry_rate": odometry_rate,
+        "camera": camera,
+    }
+    given = {k: v for k, v in given.items() if v is not None}
+    if odometry_noise_scale != 1.0:
+        given["odometry_noise_scale"] = odometry_noise_scale
+    if scenario is not None:
+        from convert.scenarios import scenario_to_file
+
+        if anchors is not None:
+            raise InputError(f"--anchors {anchors}: scenario {scenario} fixes its anchors; drop --anchors")
+        typer.echo(scenario_to_file(scenario, output, seed=seed, **given))
+        return
+    typer.echo(simulate_to_file(SimConfig(seed=seed, **given), output))
 
 
 @convert_app.command("euroc")
@@ -227,13 +252,20 @@ def convert_ntu_viral(
     antennas: Annotated[
         Path | None, typer.Option(help="uwb_antennas.yaml (default: next to the data).")
     ] = None,
+    anchors_truth: Annotated[
+        Path | None,
+        typer.Option(
+            help="Published/surveyed anchors CSV [site,]anchor,x,y,z -> uwbcal.truth "
+            "(default: published_anchors.csv next to the data; the sequence's site is taken)."
+        ),
+    ] = None,
 ) -> None:
     """Convert NTU-VIRAL (ROS1 bag or CSV sequence folder)."""
     from convert.ntu_viral import convert_ntu_viral as run
 
     _output_file(output)
 
-    typer.echo(run(path, output, antennas=antennas))
+    typer.echo(run(path, output, antennas=antennas, anchors_truth=anchors_truth))
 
 
 @convert_app.command("tabular")
@@ -243,13 +275,20 @@ def convert_tabular(
     ranges: Annotated[Path, typer.Option(help="CSV: stamp,tag,antenna,anchor,distance")],
     output: Output,
     antennas: Annotated[Path | None, typer.Option(help="Antenna lever-arm yaml.")] = None,
+    anchors_truth: Annotated[
+        Path | None,
+        typer.Option(
+            help="Surveyed anchors CSV anchor,x,y,z (the poses' frame) -> uwbcal.truth; "
+            "uwbcal evaluate then reports anchor errors against it."
+        ),
+    ] = None,
 ) -> None:
     """Convert any odometry (TUM) plus UWB ranges (CSV)."""
     from convert.tabular import convert_tabular as run
 
     _output_file(output)
 
-    typer.echo(run(poses, ranges, output, antennas=antennas))
+    typer.echo(run(poses, ranges, output, antennas=antennas, anchors_truth=anchors_truth))
 
 
 @app.command()

@@ -54,17 +54,10 @@ class RunDir:
         write_text_atomic(self.path / name, json.dumps(data, indent=2, default=json_default) + "\n")
 
     def load_json(self, name: str, stage: str = "this stage") -> Any:
-        p = self.require(name, stage)
-        try:
-            return json.loads(p.read_bytes().decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise self.corrupt(p, f"not valid JSON ({exc})") from None
+        return read_json(self.require(name, stage), object)
 
     def corrupt(self, p: Path, problem: str) -> InputError:
-        return InputError(
-            f"{p}: {problem}; the run directory is damaged — re-run the stage that writes it "
-            f"(uwbcal run REC -o {self.path})"
-        )
+        return corrupt(p, problem)
 
     def save_npz(self, name: str, **arrays: np.ndarray) -> None:
         with atomic_path(self.path / name) as tmp:
@@ -107,6 +100,25 @@ class RunDir:
 
 def write_text(path: Path, text: str) -> None:
     write_text_atomic(path, text)
+
+
+def corrupt(p: Path, problem: str) -> InputError:
+    """The error for a damaged artefact of a run directory."""
+    return InputError(
+        f"{p}: {problem}; the run directory is damaged — re-run the stage that writes it "
+        f"(uwbcal run REC -o {p.parent} --stages ...)"
+    )
+
+
+def read_json(path: Path, kind: type = dict) -> Any:
+    """A JSON artefact of a run directory (of type ``kind``); InputError naming it when damaged."""
+    try:
+        data = json.loads(Path(path).read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise corrupt(path, f"not valid JSON ({exc})") from None
+    if not isinstance(data, kind):
+        raise corrupt(path, f"a JSON {type(data).__name__}, expected a JSON {kind.__name__}")
+    return data
 
 
 _HELD: dict[Path, int] = {}  # run directories this process has locked -> nesting depth

@@ -976,12 +976,6 @@ for cid, name, data, cmd in (
         b"anchor,method,stage,x,y,z,beta,gamma\n0,ri,init,a,b,c,1,0\n",
         "evaluate",
     ),
-    (
-        "eval-anchors-csv-nan",
-        "anchors.csv",
-        b"anchor,method,stage,x,y,z,beta,gamma\n0,ri,refine,nan,0,0,1,0\n",
-        "evaluate",
-    ),
     ("eval-stages-json-garbage", "stages.json", b"{not json", "evaluate"),
     ("eval-stages-json-list", "stages.json", b"[1, 2]", "evaluate"),
     ("eval-stages-json-values-not-objects", "stages.json", b'{"vio": 3}', "evaluate"),
@@ -1057,6 +1051,22 @@ case(
     )(c.run_copy()),
     names=lambda c: str(c.p("run") / "trajectory.npz"),
     new_ok=RUN_FILES,
+)
+
+
+def nan_anchor_is_undetermined(c: Ctx, res) -> None:
+    m = json.loads((c.p("run") / "metrics.json").read_text())
+    assert m["anchors"]["0"]["determined"] is False and "estimate" not in m["anchors"]["0"], m["anchors"]
+    assert "error_m" not in m["anchors"]["0"]
+
+
+case(
+    "eval-anchors-csv-nan-is-undetermined",
+    [12],
+    "corrupt run directory",
+    corrupt("anchors.csv", b"anchor,method,stage,x,y,z,beta,gamma\n0,ri,refine,nan,0,0,1,0\n"),
+    "ok",
+    check=nan_anchor_is_undetermined,
 )
 
 
