@@ -131,6 +131,26 @@ class Pipeline:
                 # refine to the end: the 1 s margin absorbs the rounding (split_windows clamps at the end)
                 run.refine_window_s = round(span - run.init_window_s + 1.0, 3)
 
+    def _check_values(self) -> None:
+        """Refuse NaN/inf or absurd values in the ranges and the pose source's input before any stage (they would
+        surface as a numerical failure deep in a filter)."""
+        from convert.info import nan_problems
+
+        topics, problems = self.reader.topics(), []
+        if TOPIC_RANGE in topics:
+            r = self.reader.read_ranges()
+            problems += nan_problems(TOPIC_RANGE, r.t_ns, r.distance)
+        if self.pose_source() == "odometry" and TOPIC_ODOM in topics:
+            o = self.reader.read_odometry()
+            problems += nan_problems(TOPIC_ODOM, o.t_ns, o.p, o.q_xyzw)
+        elif TOPIC_IMU in topics:
+            m = self.reader.read_imu()
+            problems += nan_problems(TOPIC_IMU, m.t_ns, m.gyro, m.acc)
+        if problems:
+            raise InputError(
+                f"{self.recording}: {problems[0].text}; re-convert the data (uwbcal convert drops such records)"
+            )
+
     def pose_source(self) -> str:
         choice = self.config.run.pose_source
         if choice != "auto":
@@ -163,6 +183,7 @@ class Pipeline:
             self.resolve_auto()
             if any(s != "frontend" for s in stages):
                 self.windows()  # the recording has what the stages need (ranges, a pose source): fail before any
+                self._check_values()
             results = []
             try:
                 for stage in STAGES:

@@ -1275,6 +1275,36 @@ case(
 )
 
 
+# -- absurd values inside a recording (not from a converter) ---------------------------------------------------------
+def odometry_edit(row: int, value: float):
+    def make(c: Ctx) -> Path:
+        r = RecordingReader(c.shared.rec)
+        o = r.read_odometry()
+        o.p[row, 0] = value
+        rng = r.read_ranges()
+        with RecordingWriter(c.p("rec.mcap")) as w:
+            w.write_odometry_batch(o.t_ns, o.p, o.q_xyzw, o.cov, topic="/odometry")
+            w.write_range_batch(rng.t_ns, rng.tag, rng.antenna, rng.anchor, rng.distance)
+            w.set_metadata("uwbcal.calibration", r.calibration)
+        return c.p("rec.mcap")
+
+    return make
+
+
+case("run-odometry-x-1e300", [10], "NaN/inf/huge", run_on(odometry_edit(50, 1e300)), names=named("rec.mcap"))
+case(
+    "run-odometry-nan", [10], "NaN/inf/huge", run_on(odometry_edit(50, float("nan"))), names=named("rec.mcap")
+)
+case(
+    "info-odometry-x-1e300",
+    [10],
+    "NaN/inf/huge",
+    info(odometry_edit(50, 1e300)),
+    "ok",
+    check=info_says("absurd (> 1e+06) values"),
+)
+
+
 # -- the table runner ------------------------------------------------------------------------------------------------
 def _files(root: Path) -> set[str]:
     return {str(p.relative_to(root)) for p in root.rglob("*")}
