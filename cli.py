@@ -16,7 +16,8 @@ import typer
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from convert.errors import InputError  # noqa: E402
+from pipeline.core.errors import InputError  # noqa: E402
+from pipeline.core.names import INIT_METHODS, REFINE_METHODS  # noqa: E402
 
 app = typer.Typer(
     add_completion=False,
@@ -47,7 +48,7 @@ def _guard(fn):
 
         import click
 
-        from convert.errors import Terminated, os_error_message
+        from pipeline.core.errors import Terminated, os_error_message
 
         def _term(signum, frame):
             raise Terminated()
@@ -105,7 +106,7 @@ def _guard(fn):
 
 def _output_file(path: Path) -> None:
     """Refuse an output file path that cannot be one (a directory, /dev/null) before any work is done."""
-    from convert.atomic import check_output_file
+    from pipeline.core.atomic import check_output_file
 
     check_output_file(path)
 
@@ -123,16 +124,8 @@ class TableFormat(str, Enum):
     latex = "latex"
 
 
-class InitMethod(str, Enum):
-    lsi = "lsi"
-    ri = "ri"
-    ri_robust = "ri-robust"
-
-
-class RefineMethod(str, Enum):
-    ekf = "ekf"
-    skf = "skf"
-    none = "none"
+InitMethod = Enum("InitMethod", {m.replace("-", "_"): m for m in INIT_METHODS}, type=str)
+RefineMethod = Enum("RefineMethod", {m: m for m in (*REFINE_METHODS, "none")}, type=str)
 
 
 class Experiment(str, Enum):
@@ -312,6 +305,7 @@ def run(
     no_log: Annotated[bool, typer.Option("--no-log", help="Do not write run.rrd.")] = False,
 ) -> None:
     """Run the pipeline stages on a recording into a run directory."""
+    from evaluate.evaluation import evaluate_stage
     from pipeline.run import run_cli
 
     typer.echo(
@@ -323,6 +317,7 @@ def run(
             refine=refine and refine.value,
             stages=stages,
             log=not no_log,
+            evaluator=evaluate_stage,
         )
     )
 

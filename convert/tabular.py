@@ -12,8 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.errors import InputError
+from pipeline.core.progress import progress
+
 from .anchor_truth import read_anchor_truth, truth_note, truth_record
-from .errors import InputError
 from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH, TOPIC_ODOM, TOPIC_RANGE, RecordingWriter
 from .sources import (
     MAX_RANGE_M,
@@ -24,7 +26,6 @@ from .sources import (
     normalise_quaternions,
     order_and_dedup,
     pose_covariance,
-    progress,
     read_ranges_csv,
     read_tum,
     source_metadata,

@@ -27,8 +27,8 @@ import numpy as np
 
 from convert.anchor_truth import POSE_FRAMES
 from convert.datasets import data_root
-from convert.errors import InputError
 from convert.recording import RecordingReader
+from pipeline.core.errors import InputError
 from pipeline.rundir import corrupt, read_json
 
 from .consistency import anchor_nees, chi2_bounds

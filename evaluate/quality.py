@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from convert.recording import TOPIC_RANGE
-from pipeline.lie import quat_to_rot
+from pipeline.core.geometry import quat_to_rot
 
 MIN_RANGES = 10  # fewer ranges of an anchor: no verdict
 BIAS_SIGMAS = 3.0  # |median residual| > max(3 sigma_range, BIAS_FLOOR_M): biased

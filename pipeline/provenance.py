@@ -11,8 +11,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from pipeline.core.names import STAGES
+
 from . import rundir as rd
-from .config import STAGES, PipelineConfig
+from .config import PipelineConfig
 
 # keys that say how a run was invoked, not what it computed
 _INVOCATION = {("run", "stages"), ("run", "log")}

@@ -15,7 +15,7 @@ class Terminated(BaseException):  # noqa: N818 - like KeyboardInterrupt: not an 
     """SIGTERM received: unwind (temporary outputs are removed on the way) and exit 143."""
 
 
-# A temporary output (convert.atomic): ".<name>.<pid>.<token>.part" next to the target <name>.
+# A temporary output (pipeline.core.atomic): ".<name>.<pid>.<token>.part" next to the target <name>.
 TEMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.(?P<token>[A-Za-z0-9_]+)\.part$")
 
 _ADVICE = {

@@ -1,6 +1,6 @@
 """Atomic file output: write to a temporary sibling, rename over the target only on success.
 
-Temporary files are named ``.<name>.<pid>.<token>.part`` (`convert.errors.TEMP_RE`). They are removed on any
+Temporary files are named ``.<name>.<pid>.<token>.part`` (`pipeline.core.errors.TEMP_RE`). They are removed on any
 exception, including `Terminated` (SIGTERM, see `cli`) and KeyboardInterrupt; those of a process killed outright
 (SIGKILL, power loss) are removed by the next write of the same target, or by `sweep_stale` over a directory.
 Finished files get the permissions the umask gives (not mkstemp's 0600).
