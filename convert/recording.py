@@ -67,6 +67,27 @@ TOPIC_SCHEMAS = {
 }
 
 
+def written_by_uwbcal(path: str | os.PathLike) -> bool:
+    """The MCAP header names uwbcal as the writing library (it survives truncation, unlike the metadata)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC) + 9 + 4 + 64)
+    except OSError:
+        return False
+    if not head.startswith(MCAP_MAGIC) or len(head) < len(MCAP_MAGIC) + 13:
+        return False
+    op, _n = _REC_HEAD.unpack_from(head, len(MCAP_MAGIC))
+    if op != OP_HEADER:
+        return False
+    pos = len(MCAP_MAGIC) + 9
+    (plen,) = _U32.unpack_from(head, pos)
+    pos += 4 + plen
+    if pos + 4 > len(head):
+        return False
+    (llen,) = _U32.unpack_from(head, pos)
+    return head[pos + 4 : pos + 4 + llen] == b"uwbcal"
+
+
 def schema_mismatches(topics: dict[str, TopicInfo]) -> dict[str, str]:
     """topic -> problem, for the known topics whose schema is not the one they must carry."""
     return {
@@ -80,7 +101,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 _CHUNK_SIZE = 4 * 1024 * 1024
 
 OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = 0x03, 0x04, 0x05, 0x06, 0x07
-OP_METADATA, OP_DATA_END, OP_FOOTER = 0x0C, 0x0F, 0x02
+OP_METADATA, OP_DATA_END, OP_FOOTER, OP_HEADER = 0x0C, 0x0F, 0x02, 0x01
 _REC_HEAD = struct.Struct("<BQ")
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 
