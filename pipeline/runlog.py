@@ -610,7 +610,8 @@ class RunLog:
         )
 
     def residual_band(self, anchor: object, t_ns: Any, residual: Any, nis: Any, n_sigma: float = 3.0) -> None:
-        """±n·σ of the range innovation beside the residual: σ = |r| / sqrt(NIS) (NIS = r²/S), at `uwb/<id>/band`."""
+        """±n·σ of the range innovation beside the residual: σ = |r| / sqrt(NIS) (NIS = r²/S), at `uwb/<id>/band`;
+        with n = sqrt(the χ² gate) a range is rejected exactly when its residual leaves the band."""
         if self._rec is None:
             return
         r = np.asarray(residual, dtype=np.float64).reshape(-1)
@@ -620,7 +621,7 @@ class RunLog:
         sig = n_sigma * np.abs(r[ok]) / np.sqrt(nis[ok])
         entity = uwb(anchor, "band")
         self.scalars(entity, t, np.c_[sig, -sig])
-        self.series_static_style(entity, [f"+{n_sigma:g}σ", f"-{n_sigma:g}σ"], [COLORS["gate"]] * 2)
+        self.series_static_style(entity, [f"+{n_sigma:.3g}σ", f"-{n_sigma:.3g}σ"], [COLORS["gate"]] * 2)
 
     def nis_average(self, entity: str, t_ns: Any, nis: Any, dof: int = 1, window: int = 50) -> None:
         """Moving average of NIS over `window` updates with the two-sided 95 % χ² bounds of that average."""
@@ -653,7 +654,7 @@ def make_blueprint(
     """The layout a run opens on, built from what the run logged (`present`: entity paths; None = all):
 
     left, the 3-D world (anchors with markers per initialiser, trajectories, 3σ ellipsoids), the camera only when
-    the run has camera data, and the marker legend; right, per-anchor range residual (±3σ band) and NIS tabs,
+    the run has camera data, and the marker legend; right, per-anchor range residual (with the gate as a ±σ band) and NIS tabs,
     NEES and NIS side by side each with its χ² band, σ / β / γ / VIO / init tabs, and the stage log."""
     import rerun.blueprint as rrb
 
@@ -671,7 +672,7 @@ def make_blueprint(
             rrb.TimeSeriesView(
                 origin=f"uwb/{a}",
                 contents=[f"+ uwb/{a}/residual/**", f"+ uwb/{a}/band/**", f"+ uwb/{a}/rejected/**"],
-                name=f"{a}: range residual ±3σ [m]",
+                name=f"{a}: range residual and gate band [m]",
             ),
             rrb.TimeSeriesView(
                 origin=f"uwb/{a}", contents=[f"+ uwb/{a}/nis/**", f"+ uwb/{a}/nis_gate/**"], name=f"{a}: NIS"
