@@ -123,16 +123,16 @@ VIO_NIS = "filter/vio"
 
 
 def legend_markdown(methods: Sequence[str] = ("lsi", "ri", "ri-robust")) -> str:
-    shape = {"box": "box", "sphere": "sphere", "cross": "cross"}
+    shape = {"box": "wireframe box", "sphere": "sphere", "cross": "cross"}
     rows = [
         "| marker | what |",
         "|---|---|",
-        "| white sphere | true (simulated) or surveyed anchor |",
+        "| small sphere with the anchor id | true (simulated) or surveyed anchor |",
         *(
             f"| {_colour_name(m)} {shape[MARKERS.get(m, 'sphere')]} | {m.upper()} initialisation |"
             for m in methods
         ),
-        "| green sphere + wireframe | refined estimate with its 3σ ellipsoid (over time) |",
+        "| green dot + wireframe ellipsoid | refined estimate and its 3σ ellipsoid (over time) |",
         "| green / blue / pink lines | ground truth / VIO / UWB-aided trajectories |",
     ]
     return "\n".join(rows)
@@ -574,18 +574,25 @@ class RunLog:
         c = np.asarray(p, dtype=np.float64).reshape(3)
         color = COLORS.get(method, COLORS["none"])
         marker = MARKERS.get(method, "sphere")
+        # wireframe and thin lines: the markers of one anchor overlap (the estimates agree within centimetres)
         if marker == "box":
-            arch = rr.Boxes3D(centers=[c], half_sizes=[[0.12] * 3], colors=[color], fill_mode="Solid")
+            arch = rr.Boxes3D(
+                centers=[c],
+                half_sizes=[[0.15] * 3],
+                colors=[color],
+                radii=rr.Radius.ui_points(1.5),
+                fill_mode="MajorWireframe",
+            )
         elif marker == "cross":
-            e = 0.18 * np.eye(3)
+            e = 0.25 * np.eye(3)
             arch = rr.LineStrips3D(
-                [[c - v, c + v] for v in e], colors=[color], radii=rr.Radius.ui_points(3.0)
+                [[c - v, c + v] for v in e], colors=[color], radii=rr.Radius.ui_points(1.5)
             )
         else:
-            arch = rr.Points3D([c], colors=[color], radii=[0.12])
+            arch = rr.Points3D([c], colors=[color], radii=[0.07])
         self._rec.log(entity, arch, static=static)
 
-    def point_series(self, entity: str, t_ns: Any, p: Any, color: Any = None, radius: float = 0.1) -> None:
+    def point_series(self, entity: str, t_ns: Any, p: Any, color: Any = None, radius: float = 0.05) -> None:
         """A point moving over time (e.g. an anchor estimate over refinement), column-wise."""
         if self._rec is None:
             return
