@@ -43,7 +43,7 @@ class RunSection(BaseModel):
         description="anchor initialisation schedule: windows = the paper's (every anchor from the first window); "
         "per-anchor = each anchor as soon as its own ranges determine it, joining the refinement then (refine "
         "runs to the end); auto: per-anchor when some anchor is ranged mostly after the first window or the poses "
-        "come with the recording (odometry pose source), else windows",
+        "have a bounded error (odometry error_model bounded), else windows",
     )
     coupling: Literal["tight", "loose"] = Field(
         "tight",

@@ -368,7 +368,7 @@ def initialize_anchor(
     (`noise_inflation`; None: off), whose kappa scales the range part of the covariance.
 
     ``search`` (`anchor_search.search_anchor` on this window): its verdict decides — "not determined" (with
-    its reason) when it could not place the anchor; otherwise it is the only start (and its mirror when the
+    its reason) when it could not place the anchor; otherwise it starts the solver beside the closed forms (and its mirror when the
     two fit equally), its per-link offsets correct the ranges (``per_link``), and a height it found
     unobservable is reported at its value with its honest sigma (the FIM verdict then covers the in-plane
     parameters). ``max_ranges``: the window is evenly subsampled to this many ranges (dense ranging).
@@ -433,13 +433,9 @@ def initialize_anchor(
         starts.append(("search", full(np.r_[search.p, g0])))
         if search.mirror_p is not None:
             starts.append(("search-mirror", full(np.r_[search.mirror_p, g0])))
-    for lbl, cands in (
-        ()
-        if search is not None
-        else (
-            ("closed-form", multilateration(xyz, w.d)),
-            ("closed-form-gamma-prior", multilateration(xyz, w.d, gamma_prior[0]) if gamma_prior else []),
-        )
+    for lbl, cands in (  # beside the search: the lowest cost wins, `_stay_in_basin` guards the basin
+        ("closed-form", multilateration(xyz, w.d)),
+        ("closed-form-gamma-prior", multilateration(xyz, w.d, gamma_prior[0]) if gamma_prior else []),
     ):
         for i, th in enumerate(cands):
             if np.all(np.isfinite(th)):
@@ -595,10 +591,16 @@ def search_verdict(search: SearchResult) -> dict:
 
 
 def _stay_in_basin(
-    x: np.ndarray, cov: np.ndarray, search: SearchResult, beta0: float, chi2_2dof: float = 11.8
+    x: np.ndarray,
+    cov: np.ndarray,
+    search: SearchResult,
+    beta0: float,
+    chi2_2dof: float = 11.8,
+    min_move_m: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """The initialiser's (x, cov), unless its horizontal position left the search's basin (squared
-    Mahalanobis distance in the motion plane > ``chi2_2dof`` under the search's covariance): then the search's
+    Mahalanobis distance in the motion plane > ``chi2_2dof`` under the search's covariance, and more than
+    ``min_move_m``: a different basin, not a prior pulling within one): then the search's
     estimate (beta at ``beta0``, gamma the links' mean) and covariance. Returns (x, cov, horizontal move [m]
     when replaced, else 0)."""
     n = search.normal / np.linalg.norm(search.normal)
@@ -609,7 +611,7 @@ def _stay_in_basin(
         d2 = float(dp @ np.linalg.pinv(P, hermitian=True) @ dp)
     except np.linalg.LinAlgError:
         d2 = 0.0
-    if not np.isfinite(d2) or d2 <= chi2_2dof:
+    if not np.isfinite(d2) or d2 <= chi2_2dof or float(np.linalg.norm(dp)) <= min_move_m:
         return x, cov, 0.0
     L = len(search.gamma)
     xs = np.r_[search.p, beta0, float(np.mean(search.gamma))]

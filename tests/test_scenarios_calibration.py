@@ -15,10 +15,11 @@ from pipeline.config import load_config
 from pipeline.run import Pipeline
 
 
-def _run(tmp_path, name, **kw):
+def _run(tmp_path, name, schedule=None, **kw):
     rec = tmp_path / f"{name}.mcap"
     scenario_to_file(name, rec, seed=1, **kw)
-    cfg = load_config(None, {"run": {"recording": str(rec), "log": False}})
+    run = {"recording": str(rec), "log": False} | ({"schedule": schedule} if schedule else {})
+    cfg = load_config(None, {"run": run})
     pipe = Pipeline(cfg, tmp_path / "run", evaluator=evaluate_stage)
     pipe.run(progress=lambda *_: None)
     metrics = json.loads(pipe.dir.file("metrics.json").read_text())
@@ -27,11 +28,14 @@ def _run(tmp_path, name, **kw):
 
 
 def test_planar_height_flagged_and_honest(tmp_path):
-    pipe, m, init = _run(tmp_path, "planar", duration=20.0)
+    # 20 s of a drifting odometry: the first third pins few anchors down, so each joins on its own data
+    pipe, m, init = _run(tmp_path, "planar", schedule="per-anchor", duration=20.0)
     anchors = m["anchors"]
-    assert len(anchors) == 8
+    assert len(anchors) == 8 and sum(v["determined"] for v in anchors.values()) >= 4
     for a, v in anchors.items():
-        assert v["determined"], (a, v.get("reason"))
+        if not v["determined"]:  # honestly: with its reason
+            assert v["reason"], a
+            continue
         assert v["verdict"]["height_observable"] is False and v["verdict"]["planar_motion"] is True
         assert v["z_error_sigmas"] <= 2.0, (a, v["z_error_sigmas"])
         assert v["error_horizontal_m"] < 1.0

@@ -137,12 +137,13 @@ class StageContext:
                 rng.t_ns, rng.anchor, init_end, min_ranges=max(uwb.min_ranges, 30)
             )
             if run.schedule == "windows" and odometry and uwb.search:
-                # the poses come with the recording (no VIO to run before it drifts): every anchor joins when
-                # its own ranges pin it down and is refined to the end of the data
-                run.schedule, why = (
-                    "per-anchor",
-                    "odometry pose source: anchors refined to the end of the data",
-                )  # type: ignore[assignment]
+                model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
+                if model == "bounded":
+                    # poses in the anchors' frame that do not drift (ground truth, SLAM with a map): the thirds
+                    # guard against drift that is not there; every anchor joins when its own ranges pin it
+                    # down and is refined to the end of the data
+                    run.schedule = "per-anchor"  # type: ignore[assignment]
+                    why = "bounded pose source: anchors refined to the end of the data"
             _log.info("run.schedule = %s: %s", run.schedule, why)
         if run.schedule == "per-anchor" and run.refine_window_s is None:
             # late anchors are refined from their own join time: refinement runs to the end
