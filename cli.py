@@ -121,9 +121,22 @@ def simulate(
         typer.Option(min=0.0, help="Factor on the odometry drift sigmas (declared in the calibration)."),
     ] = 1.0,
     camera: Annotated[bool, typer.Option(help="Simulate camera feature tracks.")] = True,
+    imu_from: Annotated[
+        Path | None,
+        typer.Option(
+            help="A converted recording with a real IMU and ground truth: keep its IMU, ground truth and "
+            "biases, simulate tracks and ranges along its trajectory (a hybrid recording)."
+        ),
+    ] = None,
 ) -> None:
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
     from convert.simulator import SimConfig, simulate_to_file
+
+    if imu_from is not None and (trajectory is not None or odometry_rate is not None):
+        raise InputError(
+            f"{imu_from}: --imu-from takes the trajectory from the recording's ground truth; drop "
+            "--trajectory / --odometry-rate"
+        )
 
     cfg = SimConfig(
         trajectory=trajectory,
@@ -137,6 +150,11 @@ def simulate(
         odometry_noise_scale=odometry_noise_scale,
         camera=camera,
     )
+    if imu_from is not None:
+        from convert.hybrid import hybrid_to_file
+
+        typer.echo(hybrid_to_file(imu_from, cfg, output))
+        return
     summary = simulate_to_file(cfg, output)
     typer.echo(summary)
 

@@ -20,6 +20,7 @@ from convert.errors import InputError
 from convert.recording import RecordingReader
 from pipeline.lie import quat_to_rot
 
+from .align import Alignment
 from .align import align as fit_alignment
 from .consistency import anchor_nees, pose_nees, summarize_nees
 from .export import compare, load_ground_truth, load_run_trajectory, run_recording_path
@@ -73,6 +74,16 @@ def reference_anchors(reader: RecordingReader) -> tuple[dict[str, dict], str] | 
     return None, None
 
 
+def initial_pose_alignment(R_est0: np.ndarray, p_est0: np.ndarray, R_gt0: np.ndarray, p_gt0: np.ndarray):
+    """The yaw rotation and offset that put the first estimated pose on the ground truth's (the gauge of a
+    filter that starts in its own gravity-aligned frame)."""
+    D = R_gt0 @ R_est0.T
+    yaw = np.arctan2(D[1, 0], D[0, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Alignment(R=Rz, t=p_gt0 - Rz @ p_est0, method="initial-pose")
+
+
 def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = None) -> dict:
     """metrics.json content; ``series`` (if given) receives the per-time NEES arrays for logging."""
     run_dir = Path(run_dir)
@@ -91,8 +102,11 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         metrics["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
 
     ref, ref_kind = reference_anchors(reader)
+    # a VIO started by the static initialiser estimates in its own frame (gravity-aligned, yaw 0, origin at
+    # the start): position and yaw are a gauge, the anchors live in that frame too
+    static_frame = (run_dir / "static_init.json").is_file()
     if align in (None, "auto"):
-        align = "none" if ref_kind == "truth" else "se3"
+        align = "posyaw" if static_frame else "none" if ref_kind == "truth" else "se3"
     metrics["alignment"] = align
 
     # -- trajectory -----------------------------------------------------------------------------------------
@@ -101,6 +115,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     except InputError as exc:
         gt = None
         metrics["warnings"].append(f"no trajectory metrics: {exc}")
+    al = None
     if gt is not None and len(traj):
         cmp = compare(traj.t_ns, traj.p, traj.q_xyzw, gt)
         al = fit_alignment(cmp.p_est, cmp.p_gt, align)
@@ -112,10 +127,20 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         if cmp.q_gt is not None:
             R_gt = quat_to_rot(cmp.q_gt)
             metrics["ormse_deg"] = ormse_deg_by_segment(R_al, R_gt, masks)
-            if align == "none" and traj.cov is not None:
-                # NEES of the body pose (the lever arm is zero for full-pose ground truth)
-                p_body = traj.p[cmp.assoc.idx]
-                ne = pose_nees(R_est, p_body, traj.cov[cmp.assoc.idx], R_gt, cmp.p_gt)
+            if (align == "none" or static_frame) and traj.cov is not None:
+                # NEES of the body pose (the lever arm is zero for full-pose ground truth). In the static
+                # initialiser's frame: after the alignment that is its gauge (yaw and position of the first pose
+                # set to the ground truth's; the filter's covariance starts ~0 in them), not a fitted one (that
+                # would take out error the covariance accounts for)
+                ga = Alignment()
+                if static_frame:
+                    ga = initial_pose_alignment(R_est[0], cmp.p_est[0], R_gt[0], cmp.p_gt[0])
+                    metrics["nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
+                p_body = ga.apply_positions(traj.p[cmp.assoc.idx])
+                A = np.eye(6)
+                A[3:, 3:] = ga.R
+                cov = A @ traj.cov[cmp.assoc.idx] @ A.T
+                ne = pose_nees(ga.apply_rotations(R_est), p_body, cov, R_gt, cmp.p_gt)
                 metrics["nees_pose"] = summarize_nees(ne.pose, 6)
                 metrics["nees_orientation"] = summarize_nees(ne.orientation, 3)
                 metrics["nees_position"] = summarize_nees(ne.position, 3)
@@ -131,13 +156,28 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     # -- anchors ---------------------------------------------------------------------------------------------
     cfg = tomllib.loads((run_dir / "config.toml").read_text())
     est = final_anchor_estimates(read_anchors_csv(run_dir), cfg.get("uwb", {}).get("init_method"))
+    # anchors estimated in the static initialiser's frame: compared after the trajectory's alignment
+    anchor_al = al if static_frame and ref_kind == "truth" and al is not None else None
+    if anchor_al is not None:
+        metrics["anchor_alignment"] = f"{align} alignment of the trajectory (static initialiser's frame)"
     if est:
         anchors = {
             aid: {"estimate": a["position"], "beta": a["beta"], "gamma": a["gamma"], "method": a["method"]}
             for aid, a in est.items()
         }
         if ref is not None:
-            ae = anchor_errors(est, ref)
+            cmp_est = est
+            if anchor_al is not None:
+                cmp_est = {
+                    aid: {
+                        **a,
+                        "position": anchor_al.apply_positions(np.asarray(a["position"], float)).tolist(),
+                    }
+                    if a.get("position") is not None
+                    else a
+                    for aid, a in est.items()
+                }
+            ae = anchor_errors(cmp_est, ref)
             for aid, row in ae.per_anchor.items():
                 anchors[aid].update({k: v for k, v in row.items()})
             if ae.per_anchor:
@@ -164,7 +204,13 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
                 if aid in ref:
                     t = ref[aid]
                     truth_vec = np.r_[t["position"], t.get("beta", 1.0), t.get("gamma", 0.0)]
-                    v = float(anchor_nees(np.asarray(s["x"]), np.asarray(s["P"]), truth_vec))
+                    x, P = np.asarray(s["x"], float), np.asarray(s["P"], float)
+                    if anchor_al is not None:
+                        A = np.eye(len(x))
+                        A[:3, :3] = anchor_al.s * anchor_al.R
+                        x = np.r_[anchor_al.apply_positions(x[:3]), x[3:]]
+                        P = A @ P @ A.T
+                    v = float(anchor_nees(x, P, truth_vec))
                     anchors[aid]["nees"] = v
                     vals.append(v)
             if vals:

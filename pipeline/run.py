@@ -119,6 +119,11 @@ class Pipeline:
             uwb.init_method = auto_init_method(self.reader.source.get("dataset"))  # type: ignore[assignment]
         run = self.config.run
         odometry = self.pose_source() == "odometry"
+        if not odometry:  # a real IMU: static initialisation and the real-IMU noise model (pipeline.real_imu)
+            from .real_imu import apply_real_imu_defaults
+
+            for k, v in apply_real_imu_defaults(self.config.vio, self.reader.source).items():
+                _log.info("vio.%s = %s (real IMU default, pipeline/real_imu.py)", k, v)
         if odometry:
             apply_calibration_noise(self.config.odometry, self.reader.calibration)
         if run.init_window_s is None and run.refine_window_s is None and odometry:
@@ -516,6 +521,9 @@ class Pipeline:
 
                 res = static_init_from_recording(self.reader, start_ns=self.windows().start_ns)
                 _log.info("vio: static initialisation: %s", res)
+                # the world frame is the initialiser's (gravity-aligned, yaw 0, origin at the start): the
+                # evaluator aligns position and yaw when it finds this
+                self.dir.save_json("static_init.json", res.summary())
                 initial, cov = res.state, res.P
             return MsckfEstimator.from_recording(self._features_reader(), self.config.vio, initial, cov)
         from .odometry_filter import OdometryEstimator
