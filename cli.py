@@ -15,7 +15,8 @@ import typer
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from convert.errors import InputError  # noqa: E402
+from pipeline.core.errors import InputError  # noqa: E402
+from pipeline.core.names import INIT_METHODS, REFINE_METHODS  # noqa: E402
 
 app = typer.Typer(
     add_completion=False,
@@ -64,16 +65,8 @@ class TableFormat(str, Enum):
     latex = "latex"
 
 
-class InitMethod(str, Enum):
-    lsi = "lsi"
-    ri = "ri"
-    ri_robust = "ri-robust"
-
-
-class RefineMethod(str, Enum):
-    ekf = "ekf"
-    skf = "skf"
-    none = "none"
+InitMethod = Enum("InitMethod", {m.replace("-", "_"): m for m in INIT_METHODS}, type=str)
+RefineMethod = Enum("RefineMethod", {m: m for m in (*REFINE_METHODS, "none")}, type=str)
 
 
 class Experiment(str, Enum):
@@ -99,16 +92,31 @@ def demo(output: Annotated[Path, typer.Option("-o", "--output")] = Path("recordi
 @_guard
 def simulate(
     output: Output,
-    trajectory: Annotated[
-        str | None, typer.Option(help="EuRoC ground-truth name (MH_01_easy) or file.")
+    scenario: Annotated[
+        str | None,
+        typer.Option(
+            help="A class of real setup: planar (ground trolley, coplanar anchors), large-area (~400 m, anchors "
+            "ranged late or briefly), per-link (3 tags, an offset per link), nlos (NLOS junk on some links). "
+            "Ranges + odometry, no camera unless --camera; other options override the scenario's."
+        ),
     ] = None,
-    anchors: Annotated[int, typer.Option(min=1, help="Number of anchors.")] = 4,
+    trajectory: Annotated[
+        str | None,
+        typer.Option(
+            help="EuRoC ground-truth name (MH_01_easy) or file, or built-in: default, planar, campus."
+        ),
+    ] = None,
+    anchors: Annotated[int | None, typer.Option(min=1, help="Number of anchors (default 4).")] = None,
     duration: Annotated[
         float | None, typer.Option(help="Seconds to simulate (default: whole trajectory).")
     ] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    nlos_rate: Annotated[float, typer.Option(help="Fraction of ranges with a positive NLOS bias.")] = 0.0,
-    dropout_rate: Annotated[float, typer.Option(help="Fraction of ranges dropped.")] = 0.0,
+    nlos_rate: Annotated[
+        float | None, typer.Option(help="Fraction of ranges with a positive NLOS bias (default 0).")
+    ] = None,
+    dropout_rate: Annotated[
+        float | None, typer.Option(help="Fraction of ranges dropped (default 0).")
+    ] = None,
     max_range: Annotated[float | None, typer.Option(help="Maximum UWB range [m].")] = None,
     odometry_rate: Annotated[
         float | None,
@@ -120,7 +128,10 @@ def simulate(
         float,
         typer.Option(min=0.0, help="Factor on the odometry drift sigmas (declared in the calibration)."),
     ] = 1.0,
-    camera: Annotated[bool, typer.Option(help="Simulate camera feature tracks.")] = True,
+    camera: Annotated[
+        bool | None,
+        typer.Option("--camera/--no-camera", help="Simulate camera feature tracks (default: yes)."),
+    ] = None,
     imu_from: Annotated[
         Path | None,
         typer.Option(
@@ -132,31 +143,37 @@ def simulate(
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
     from convert.simulator import SimConfig, simulate_to_file
 
-    if imu_from is not None and (trajectory is not None or odometry_rate is not None):
-        raise InputError(
-            f"{imu_from}: --imu-from takes the trajectory from the recording's ground truth; drop "
-            "--trajectory / --odometry-rate"
-        )
-
-    cfg = SimConfig(
-        trajectory=trajectory,
-        n_anchors=anchors,
-        duration=duration,
-        seed=seed,
-        nlos_rate=nlos_rate,
-        dropout_rate=dropout_rate,
-        max_range=max_range,
-        odometry_rate=odometry_rate,
-        odometry_noise_scale=odometry_noise_scale,
-        camera=camera,
-    )
+    given = {
+        "trajectory": trajectory,
+        "n_anchors": anchors,
+        "duration": duration,
+        "nlos_rate": nlos_rate,
+        "dropout_rate": dropout_rate,
+        "max_range": max_range,
+        "odometry_rate": odometry_rate,
+        "camera": camera,
+    }
+    given = {k: v for k, v in given.items() if v is not None}
+    if odometry_noise_scale != 1.0:
+        given["odometry_noise_scale"] = odometry_noise_scale
     if imu_from is not None:
         from convert.hybrid import hybrid_to_file
 
-        typer.echo(hybrid_to_file(imu_from, cfg, output))
+        if scenario is not None or trajectory is not None or odometry_rate is not None:
+            raise InputError(
+                f"{imu_from}: --imu-from takes the trajectory from the recording's ground truth; drop "
+                "--scenario / --trajectory / --odometry-rate"
+            )
+        typer.echo(hybrid_to_file(imu_from, SimConfig(seed=seed, **given), output))
         return
-    summary = simulate_to_file(cfg, output)
-    typer.echo(summary)
+    if scenario is not None:
+        from convert.scenarios import scenario_to_file
+
+        if anchors is not None:
+            raise InputError(f"--anchors {anchors}: scenario {scenario} fixes its anchors; drop --anchors")
+        typer.echo(scenario_to_file(scenario, output, seed=seed, **given))
+        return
+    typer.echo(simulate_to_file(SimConfig(seed=seed, **given), output))
 
 
 @convert_app.command("euroc")
@@ -182,11 +199,18 @@ def convert_ntu_viral(
     antennas: Annotated[
         Path | None, typer.Option(help="uwb_antennas.yaml (default: next to the data).")
     ] = None,
+    anchors_truth: Annotated[
+        Path | None,
+        typer.Option(
+            help="Published/surveyed anchors CSV [site,]anchor,x,y,z -> uwbcal.truth "
+            "(default: published_anchors.csv next to the data; the sequence's site is taken)."
+        ),
+    ] = None,
 ) -> None:
     """Convert NTU-VIRAL (ROS1 bag or CSV sequence folder)."""
     from convert.ntu_viral import convert_ntu_viral as run
 
-    typer.echo(run(path, output, antennas=antennas))
+    typer.echo(run(path, output, antennas=antennas, anchors_truth=anchors_truth))
 
 
 @convert_app.command("tabular")
@@ -196,19 +220,69 @@ def convert_tabular(
     ranges: Annotated[Path, typer.Option(help="CSV: stamp,tag,antenna,anchor,distance")],
     output: Output,
     antennas: Annotated[Path | None, typer.Option(help="Antenna lever-arm yaml.")] = None,
+    anchors_truth: Annotated[
+        Path | None,
+        typer.Option(
+            help="Surveyed anchors CSV anchor,x,y,z (the poses' frame) -> uwbcal.truth; "
+            "uwbcal evaluate then reports anchor errors against it."
+        ),
+    ] = None,
 ) -> None:
     """Convert any odometry (TUM) plus UWB ranges (CSV)."""
     from convert.tabular import convert_tabular as run
 
-    typer.echo(run(poses, ranges, output, antennas=antennas))
+    typer.echo(run(poses, ranges, output, antennas=antennas, anchors_truth=anchors_truth))
+
+
+@convert_app.command("bag")
+@_guard
+def convert_bag(
+    path: Annotated[Path, typer.Argument(help="ROS 1 .bag, ROS 2 .db3 / .mcap, or a ROS 2 bag folder")],
+    output: Output,
+    imu: Annotated[str | None, typer.Option(help="IMU topic (sensor_msgs/Imu).")] = None,
+    cam0: Annotated[str | None, typer.Option(help="First camera topic (Image / CompressedImage).")] = None,
+    cam1: Annotated[str | None, typer.Option(help="Second camera topic.")] = None,
+    uwb: Annotated[
+        list[str] | None, typer.Option(help="UWB range topic (repeatable); default: every UWB type found.")
+    ] = None,
+    odometry: Annotated[str | None, typer.Option(help="External odometry topic (nav_msgs/Odometry).")] = None,
+    groundtruth: Annotated[str | None, typer.Option(help="Ground-truth pose or position topic.")] = None,
+    antennas: Annotated[Path | None, typer.Option(help="Antenna lever-arm yaml.")] = None,
+    calibration: Annotated[
+        Path | None, typer.Option(help="Calibration yaml (imu, cameras, uwb, groundtruth, odometry).")
+    ] = None,
+) -> None:
+    """Convert any ROS 1 / ROS 2 bag (topics found by message type unless given)."""
+    from convert.bag import convert_bag as run
+
+    typer.echo(
+        run(
+            path,
+            output,
+            imu=imu,
+            cam0=cam0,
+            cam1=cam1,
+            uwb=uwb,
+            odometry=odometry,
+            groundtruth=groundtruth,
+            antennas=antennas,
+            calibration=calibration,
+        )
+    )
 
 
 @app.command()
 @_guard
-def info(recording: Annotated[Path, typer.Argument(help="A .mcap recording")]) -> None:
-    """Topics, counts, rates, duration, calibration and problems found."""
+def info(
+    recording: Annotated[Path, typer.Argument(help="A .mcap recording, or a ROS bag (what would be mapped)")],
+) -> None:
+    """Topics, counts, rates, duration, calibration and problems found (of a bag: the topic map)."""
+    from convert.bag import bag_info, is_bag
     from convert.info import recording_info
 
+    if is_bag(recording):
+        typer.echo(bag_info(recording))
+        return
     typer.echo(recording_info(recording).render())
 
 
@@ -224,6 +298,7 @@ def run(
     no_log: Annotated[bool, typer.Option("--no-log", help="Do not write run.rrd.")] = False,
 ) -> None:
     """Run the pipeline stages on a recording into a run directory."""
+    from evaluate.evaluation import evaluate_stage
     from pipeline.run import run_cli
 
     typer.echo(
@@ -235,6 +310,7 @@ def run(
             refine=refine and refine.value,
             stages=stages,
             log=not no_log,
+            evaluator=evaluate_stage,
         )
     )
 
@@ -257,9 +333,9 @@ def evaluate(
 def export(
     run_dir: Annotated[Path, typer.Argument(help="A run directory")],
     output: Output,
-    fmt: Annotated[str, typer.Option("--format", help="Only 'tum'.")] = "tum",
+    fmt: Annotated[str, typer.Option("--format", help="tum, anchors-yaml or anchors-json.")] = "tum",
 ) -> None:
-    """Export estimate.tum and groundtruth.tum (at the estimate's stamps)."""
+    """Export estimate.tum (+ groundtruth.tum at its stamps), or the anchors with covariance (yaml / json)."""
     from evaluate.export import export_run
 
     typer.echo(export_run(run_dir, output, fmt=fmt))

@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from pipeline.core.errors import InputError
+
 from .recording import (
     META_CALIBRATION,
     META_SOURCE,
@@ -53,7 +54,7 @@ HYBRID_KNOT_DT = 0.05  # spline knots [s]: 20 Hz resolves a MAV's motion; equal 
 
 def _gt_imu_frame(reader: RecordingReader) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t_ns, p, q_xyzw) of the IMU frame from /groundtruth/pose and the calibration's ground-truth lever arm."""
-    from pipeline.lie import quat_to_rot
+    from pipeline.core.geometry import quat_to_rot
 
     gt = reader.read_poses(TOPIC_GT_POSE)
     lever = np.asarray(reader.calibration.get("groundtruth", {}).get("lever_arm", [0.0, 0.0, 0.0]), float)

@@ -58,6 +58,12 @@ class InfoReport:
             )
             for f in src.get("files", []):
                 lines.append(f"           {f.get('path')}  sha256 {str(f.get('sha256', '?'))[:16]}")
+            for topic, acc in sorted((src.get("messages") or {}).items()):
+                role = acc.get("role") or "not mapped"
+                lines.append(
+                    f"  bag {topic} ({acc.get('type')}): {acc.get('count')} -> {role}, "
+                    f"{acc.get('converted')} converted, {acc.get('dropped')} dropped"
+                )
         lines += [
             "",
             f"{'topic':<24} {'type':<34} {'count':>8} {'rate Hz':>9} {'start s':>9} {'end s':>9} {'dur s':>8}",
@@ -70,12 +76,10 @@ class InfoReport:
             )
         lines += self._render_calibration()
         if self.truth:
-            lines += ["", "truth (simulation)"]
+            lines += ["", f"truth ({self.truth.get('kind', 'simulated')})"]
             for aid, a in self.truth.get("anchors", {}).items():
-                lines.append(
-                    f"  anchor {aid}: p={np.round(a['position'], 3).tolist()} beta={a.get('beta')} "
-                    f"gamma={a.get('gamma')}"
-                )
+                extra = "".join(f" {k}={a[k]}" for k in ("beta", "gamma") if a.get(k) is not None)
+                lines.append(f"  anchor {aid}: p={np.round(a['position'], 3).tolist()}{extra}")
             rest = {k: v for k, v in self.truth.items() if k != "anchors"}
             if rest:
                 lines.append("  " + ", ".join(f"{k}={v}" for k, v in rest.items()))

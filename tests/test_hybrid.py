@@ -9,9 +9,9 @@ import json
 import numpy as np
 import pytest
 
-from convert.errors import InputError
 from convert.recording import RecordingReader
-from pipeline.lie import quat_to_rot
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_to_rot
 from pipeline.msckf import VioConfig
 from pipeline.real_imu import REAL_IMU_DEFAULTS, apply_real_imu_defaults, imu_is_real
 
