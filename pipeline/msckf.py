@@ -49,13 +49,7 @@ class VioConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     fej: bool = Field(True, description="first-estimate Jacobians (keeps the 4-DoF unobservable subspace)")
-    max_clones: int = Field(
-        20,
-        ge=2,
-        description="sliding-window length (clones); 20 (1 s at 20 Hz): with 15 the feature updates are "
-        "overconfident after the motion onset (built-in trajectory, 4 seeds: demo pose NEES 16.3/5.8/7.7/14.8, "
-        "bound 14.45; with 20: 9.6/4.1/7.7/6.8), at ~1.25x the cost",
-    )
+    max_clones: int = Field(15, ge=2, description="sliding-window length (clones)")
     pixel_sigma: float = Field(1.0, gt=0, description="feature measurement noise [px]")
     chi2_quantile: float = Field(0.95, gt=0, lt=1, description="per-feature chi-squared gate")
     min_track_length: int = Field(3, ge=2)
