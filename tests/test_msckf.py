@@ -326,6 +326,12 @@ def test_compress_normal_keeps_information():
     np.testing.assert_allclose(Hn.T @ Hn, H.T @ H, atol=1e-9)
     np.testing.assert_allclose(Hn.T @ rn, H.T @ r, atol=1e-9)
     np.testing.assert_allclose(Hq.T @ Hq, H.T @ H, atol=1e-9)
+    # gauge directions that are not coordinate axes (the rank-revealing pivoting must still find them)
+    Q = np.linalg.qr(rng.normal(size=(30, 30)))[0]
+    Hn, rn = compress_normal(H @ Q, r)
+    assert Hn.shape[0] == 26
+    np.testing.assert_allclose(Hn.T @ Hn, Q.T @ H.T @ H @ Q, atol=1e-9)
+    np.testing.assert_allclose(Hn.T @ rn, Q.T @ H.T @ r, atol=1e-9)
 
 
 # ---------------------------------------------------------------------------------------------------------------
