@@ -211,15 +211,14 @@ def triangulate(
         pc = np.einsum("fmij,fmj->fmi", Rcw, pf[:, None, :] - pw)
         z = pc[..., 2]
         zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
-        r = (xy - pc[..., :2] / zs[..., None]) * wv[..., 0]
-        Jn = np.zeros((F, M, 2, 3))
-        Jn[..., 0, 0] = Jn[..., 1, 1] = 1.0 / zs
-        Jn[..., 0, 2] = -pc[..., 0] / zs**2
-        Jn[..., 1, 2] = -pc[..., 1] / zs**2
-        J = (Jn @ Rcw) * wv
-        Hn = np.einsum("fmki,fmkj->fij", J, J)
+        nrm = pc[..., :2] / zs[..., None]
+        r = (xy - nrm) * wv[..., 0]
+        # d normalised / d pf = ([[1, 0, -x], [0, 1, -y]] / z) R_cw, written out row by row
+        J = (Rcw[..., :2, :] - nrm[..., None] * Rcw[..., 2:3, :]) * (wv[..., 0, 0] / zs)[..., None, None]
+        J2 = J.reshape(F, 2 * M, 3)
+        Hn = np.swapaxes(J2, 1, 2) @ J2
         Hn += (1e-9 * np.trace(Hn, axis1=1, axis2=2))[:, None, None] * np.eye(3) + eye_eps
-        g = np.einsum("fmki,fmk->fi", J, r)
+        g = (np.swapaxes(J2, 1, 2) @ r.reshape(F, 2 * M, 1))[..., 0]
         bad = ~(ok & np.isfinite(Hn).all(axis=(1, 2)) & np.isfinite(g).all(axis=1))
         Hn[bad] = np.eye(3)
         g[bad] = 0.0
@@ -281,12 +280,32 @@ def feature_jacobians(
     return uv, H_pose, H_f, p_c
 
 
-def nullspace_project(H_f: np.ndarray, H_x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Project (K, 2m, .) stacks onto the left nullspace of H_f (K, 2m, 3): rows 2m-3 remain."""
+def nullspace_project(
+    H_f: np.ndarray,
+    H_pose: np.ndarray,
+    C: np.ndarray,
+    n_clones: int,
+    r: np.ndarray,
+    valid: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Project K features' stacked measurements onto the left nullspace of their feature Jacobians.
+
+    ``H_f`` (K, 2m, 3); ``H_pose`` (K, m, 2, 6): observation j of feature k wrt the error of its clone
+    ``C[k, j]`` (a clone at most once per feature; slots with ``valid`` False are ignored); ``r`` (K, 2m).
+    Returns ``Ho`` (K, 2m-3, 6 n_clones) and ``ro`` (K, 2m-3). The projection is applied to the m 2x6 blocks
+    and the clone columns are assembled afterwards, i.e. without the product with a dense (2m, 6 n_clones)
+    Jacobian that is zero outside the feature's clones.
+    """
+    K, two_m, _ = H_f.shape
+    m, q = two_m // 2, two_m - 3
     Qm = np.linalg.qr(H_f, mode="complete")[0]
-    N = Qm[:, :, 3:]
-    Nt = np.swapaxes(N, 1, 2)
-    return Nt @ H_x, np.einsum("kij,kj->ki", Nt, r)
+    Nt = np.swapaxes(Qm[:, :, 3:], 1, 2)  # (K, q, 2m)
+    blocks = np.einsum("kqmi,kmij->kmqj", Nt.reshape(K, q, m, 2), H_pose)  # (K, m, q, 6)
+    cols = C if valid is None else np.where(valid, C, n_clones)  # ignored slots go to a dropped column
+    Ho = np.zeros((K, n_clones + 1, q, 6))
+    Ho[np.arange(K)[:, None], cols] = blocks
+    Ho = Ho[:, :n_clones].transpose(0, 2, 1, 3).reshape(K, q, 6 * n_clones)
+    return Ho, (Nt @ r[..., None])[..., 0]
 
 
 def compress(H: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -658,14 +677,12 @@ class MsckfEstimator:
         r = ((db.uv[orow].reshape(-1, 2) - uv_hat) * w).reshape(nf, M, 2)[good].reshape(-1, 2 * M)
         Hf = (H_f * w[:, :, None]).reshape(nf, M, 2, 3)[good].reshape(-1, 2 * M, 3)
         k = len(r)
-        Hx = np.zeros((k, M, 2, nc, 6))
-        kk, jj = np.meshgrid(np.arange(k), np.arange(M), indexing="ij")
-        Hx[kk, jj, :, C[good], :] = (H_pose * w[:, :, None]).reshape(nf, M, 2, 6)[good]
-        Hx = Hx.reshape(k, 2 * M, 6 * nc)
-        Ho, ro = nullspace_project(Hf, Hx, r)
+        Hp = (H_pose * w[:, :, None]).reshape(nf, M, 2, 6)[good]
+        Ho, ro = nullspace_project(Hf, Hp, C[good], nc, r, valid[good])
         Sidx = np.concatenate([np.arange(self.state.slice(n).start, self.state.slice(n).stop) for n in names])
         Pcc = self.state.P[np.ix_(Sidx, Sidx)]
-        S = Ho @ Pcc @ np.swapaxes(Ho, 1, 2) + np.eye(2 * M - 3)
+        HoP = (Ho.reshape(-1, 6 * nc) @ Pcc).reshape(Ho.shape)  # one GEMM instead of k small ones
+        S = HoP @ np.swapaxes(Ho, 1, 2) + np.eye(2 * M - 3)
         nis = np.einsum("ki,ki->k", ro, np.linalg.solve(S, ro[..., None])[..., 0])
         accept = nis < self._chi2[2 * counts[good] - 3]
         n_used = int(accept.sum())

@@ -22,6 +22,14 @@ from scipy.stats import chi2
 from .lie import exp_so3
 
 
+def _fresh(cls, **arrays: np.ndarray):
+    """An instance of the dataclass ``cls`` from newly computed float arrays, without ``__post_init__``'s
+    defensive copies (boxplus runs for every variable of every update)."""
+    obj = object.__new__(cls)
+    obj.__dict__.update(arrays)
+    return obj
+
+
 @dataclass
 class Vec:
     """A vector-space variable (anchors, biases, calibration)."""
@@ -36,7 +44,7 @@ class Vec:
         return self.x.shape[0]
 
     def boxplus(self, dx: np.ndarray) -> Vec:
-        return Vec(self.x + dx)
+        return _fresh(Vec, x=self.x + dx)
 
 
 @dataclass
@@ -53,7 +61,7 @@ class Pose:
     dim = 6
 
     def boxplus(self, dx: np.ndarray) -> Pose:
-        return Pose(self.R @ exp_so3(dx[0:3]), self.p + dx[3:6])
+        return _fresh(Pose, R=self.R @ exp_so3(dx[0:3]), p=self.p + dx[3:6])
 
 
 @dataclass
@@ -73,12 +81,13 @@ class ImuState:
     dim = 15
 
     def boxplus(self, dx: np.ndarray) -> ImuState:
-        return ImuState(
-            self.R @ exp_so3(dx[0:3]),
-            self.p + dx[3:6],
-            self.v + dx[6:9],
-            self.bg + dx[9:12],
-            self.ba + dx[12:15],
+        return _fresh(
+            ImuState,
+            R=self.R @ exp_so3(dx[0:3]),
+            p=self.p + dx[3:6],
+            v=self.v + dx[6:9],
+            bg=self.bg + dx[9:12],
+            ba=self.ba + dx[12:15],
         )
 
     @property
