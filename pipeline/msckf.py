@@ -18,11 +18,7 @@ more rows than clone columns, and one ``ekf_update``.
 
 from __future__ import annotations
 
-import ctypes
-import glob
 import logging
-import os
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -30,15 +26,15 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.linalg import solve_triangular
 from scipy.linalg.lapack import dpstrf
-from scipy.stats import chi2
 
 from convert.errors import InputError
 
+from .blas import single_blas_thread
 from .camera import Camera
 from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
 from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
 from .lie import quat_slerp, quat_to_rot, skew
-from .state import ImuState, Pose, State, add_probe, chi2_ppf, ekf_update, remove_probes
+from .state import ImuState, Pose, State, add_probe, chi2_ppf, chi2_quantile, ekf_update, remove_probes
 
 if TYPE_CHECKING:
     from convert.recording import RecordingReader
@@ -411,7 +407,7 @@ class MsckfEstimator:
         self.clones: list[int] = []
         self.stats = VioStats()
         self._history = TrajectoryRecord()
-        self._chi2 = chi2.ppf(config.chi2_quantile, np.maximum(np.arange(2 * config.max_clones + 8), 1))
+        self._chi2 = chi2_quantile(config.chi2_quantile, np.maximum(np.arange(2 * config.max_clones + 8), 1))
         self._static: tuple[int, int] | None = None  # (t0, t1): propagate with the zero-motion model in it
         self._last_frame: tuple[np.ndarray, np.ndarray] | None = None  # ids, pixels: disparity reference
         self.source = "recording"
@@ -884,32 +880,6 @@ class MsckfEstimator:
         clones = np.stack([self.state.value(_clone_name(c)).p for c in self.clones]) if self.clones else None
         if clones is not None:
             _call(log, "points3d", f"{rl.VIO}/clones", clones, None, 0.05, None, self.t_ns)
-
-
-@contextmanager
-def single_blas_thread():
-    """Run the filter's many small LAPACK calls on one OpenBLAS thread (this thread only).
-
-    Multi-threaded OpenBLAS on small matrices (QR of ~500 x 70) is 10-100x slower on a loaded 2-core
-    machine than one thread. Uses OpenBLAS' thread-local setter of the libraries bundled with numpy/scipy;
-    a no-op when they are not found. (threadpoolctl would do the same but is not a dependency.)
-    """
-    setters = []
-    for mod in ("numpy", "scipy"):
-        try:
-            base = os.path.dirname(__import__(mod).__file__)
-            for so in glob.glob(os.path.join(base, os.pardir, f"{mod}.libs", "*openblas*.so*")):
-                fn = ctypes.CDLL(so).openblas_set_num_threads_local
-                fn.restype, fn.argtypes = ctypes.c_int, [ctypes.c_int]
-                setters.append(fn)
-        except (OSError, AttributeError, ImportError, TypeError):
-            continue
-    prev = [fn(1) for fn in setters]
-    try:
-        yield
-    finally:
-        for fn, n in zip(setters, prev, strict=True):
-            fn(max(n, 1))
 
 
 def _call(log, method: str, *args) -> None:

@@ -16,13 +16,12 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.stats import chi2
 
 from convert.errors import InputError
 
 from .fim import DegenerateGeometryError
 from .lie import quat_slerp, quat_to_rot
-from .state import State, UpdateResult, Vec, ekf_update, probes, remove_probes
+from .state import State, UpdateResult, Vec, chi2_ppf, ekf_update, probes, remove_probes
 from .uwb_init import InitResult, InitWindow, initialize_anchor
 from .uwb_model import jacobians, predict, range_variance
 
@@ -613,7 +612,7 @@ class UwbUpdater:
             log.scalars(rl.uwb(a, "residual"), t, arr["residual"])
             log.scalars(rl.uwb(a, "nis"), t, arr["nis"])
             if self.chi2_quantile is not None and len(t):
-                log.constant(rl.uwb(a, "nis_gate"), t, float(chi2.ppf(self.chi2_quantile, 1)), ["gate"])
+                log.constant(rl.uwb(a, "nis_gate"), t, chi2_ppf(self.chi2_quantile, 1), ["gate"])
             log.scalars(rl.uwb(a, "rejected"), t, arr["rejected"].astype(float))
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])

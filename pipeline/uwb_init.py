@@ -24,6 +24,7 @@ import numpy as np
 
 from .fim import FimReport, assess_observability
 from .lie import exp_so3
+from .state import chi2_ppf
 from .uwb_model import jacobians, range_variance, tag_positions
 
 METHODS_INIT = ("lsi", "ri", "ri-robust")
@@ -300,10 +301,8 @@ def noise_inflation(
     nb = int(m.sum())
     if nb < min_blocks:
         return 1.0
-    from scipy.stats import chi2
-
     kappa = float(np.sum(tot[m] ** 2 / cnt[m]) / nb / np.mean(e**2))
-    return kappa if kappa > chi2.ppf(quantile, nb) / nb else 1.0
+    return kappa if kappa > chi2_ppf(quantile, nb) / nb else 1.0
 
 
 def _clean(w: InitWindow, label: str) -> tuple[InitWindow, list[str]]:
