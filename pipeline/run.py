@@ -55,6 +55,7 @@ class Pipeline:
         self.recording = Path(config.run.recording)
         self._reader: RecordingReader | None = None
         self._stages = list(config.run.stages)  # this invocation's stages (run() narrows it)
+        self._log_server = None  # rerun logging helper process during run() (runlog_async)
 
     # -- shared helpers ----------------------------------------------------------------------------------------
     @property
@@ -77,6 +78,10 @@ class Pipeline:
         from .runlog import RunLog
 
         path = self.dir.stage_rrd(STAGE_ORDER[stage], stage) if self.config.run.log else None
+        if path is not None and self._log_server is not None:
+            return self._log_server.open(
+                path, recording_id=self.recording_id(), run_kind=self.run_kind(), blueprint=False
+            )
         return RunLog(
             path,
             recording_id=self.recording_id(),
@@ -146,6 +151,10 @@ class Pipeline:
         self.dir.path.mkdir(parents=True, exist_ok=True)
         rd.write_text(self.dir.file(rd.CONFIG), self.config.to_toml())
         results = []
+        if self.config.run.log and self.config.run.log_process:
+            from .runlog_async import start_log_server
+
+            self._log_server = start_log_server()
         try:
             for stage in STAGES:
                 if stage not in stages:
@@ -157,8 +166,16 @@ class Pipeline:
                 self._record_stage(res)
                 progress(f"[{stage}] {summary} ({res.wall_s:.1f} s)")
         finally:
-            if self.config.run.log:
-                self.dir.merge_rrd(self.run_kind())
+            server, self._log_server = self._log_server, None
+            try:
+                if self.config.run.log:
+                    if server is not None:
+                        server.merge(self.dir.path, self.run_kind())
+                    else:
+                        self.dir.merge_rrd(self.run_kind())
+            finally:
+                if server is not None:
+                    server.stop()
         return results
 
     def _record_stage(self, res: StageResult) -> None:
