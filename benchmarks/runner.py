@@ -14,7 +14,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from convert.atomic import write_text_atomic
+from pipeline.core.atomic import write_text_atomic
 
 from .cases import CASES
 
@@ -74,7 +74,7 @@ def _run_in_child(name: str, quick: bool, tree: Path | None = None) -> BenchResu
 
 
 def _check_tree(tree: Path) -> Path:
-    from convert.errors import InputError
+    from pipeline.core.errors import InputError
 
     tree = Path(tree).resolve()
     if not (tree / "benchmarks" / "cases.py").is_file():
@@ -85,7 +85,7 @@ def _check_tree(tree: Path) -> Path:
 def run_benchmarks(
     output: Path | None, cases: str | None = None, quick: bool = False, against: Path | None = None
 ) -> str:
-    from convert.errors import InputError
+    from pipeline.core.errors import InputError
 
     names = [c.strip() for c in cases.split(",")] if cases else list(CASES)
     unknown = [n for n in names if n not in CASES]

@@ -38,7 +38,7 @@ def _progress(description: str) -> Progress:
 def _worker_init() -> None:
     """One BLAS thread per worker process: ``jobs`` workers each running a multi-threaded BLAS would put
     ``jobs x cores`` threads on the cores."""
-    from pipeline.blas import limit_blas_threads
+    from pipeline.core.blas import limit_blas_threads
 
     limit_blas_threads(1)
 

@@ -27,13 +27,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.linalg import solve_triangular
 from scipy.linalg.lapack import dpstrf
 
-from convert.errors import InputError
+from pipeline.core.errors import InputError
 
-from .blas import single_blas_thread
 from .camera import Camera
+from .core.blas import single_blas_thread
+from .core.geometry import quat_slerp, quat_to_rot, skew
+from .core.topics import TOPIC_FEATURES, TOPIC_GT_IMU_BIAS, TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE
 from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
 from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
-from .lie import quat_slerp, quat_to_rot, skew
 from .state import ImuState, Pose, State, add_probe, chi2_ppf, chi2_quantile, ekf_update, remove_probes
 
 if TYPE_CHECKING:
@@ -42,14 +43,6 @@ if TYPE_CHECKING:
     from .runlog import RunLog
 
 _log = logging.getLogger(__name__)
-
-TOPIC_IMU = "/imu"
-TOPIC_FEATURES = "/cam0/features"
-TOPIC_RANGE = "/uwb/range"
-TOPIC_GT_POSE = "/groundtruth/pose"
-TOPIC_GT_IMU_BIAS = (
-    "/groundtruth/imu_bias"  # gyro bias as angular velocity, accelerometer bias as acceleration
-)
 
 
 class VioConfig(BaseModel):
@@ -386,6 +379,8 @@ def groundtruth_state(reader: RecordingReader, t0_ns: int) -> ImuState:
 
 class MsckfEstimator:
     """The MSCKF pose source (Estimator protocol)."""
+
+    keeps_probes = True
 
     def __init__(
         self,

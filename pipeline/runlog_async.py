@@ -61,10 +61,10 @@ def _serve(requests, replies) -> None:  # pragma: no cover (runs in the helper p
                 except Exception as exc:
                     errors.setdefault(lid, f"{msg[2]}: {exc!r}")
         elif op == "merge":
-            from .rundir import RunDir
+            from .runlog import merge_run_logs
 
             try:
-                path = RunDir(Path(msg[2])).merge_rrd(msg[3])
+                path = merge_run_logs(*msg[2])
                 replies.put((lid, None if path is None else str(path), None))
             except Exception as exc:
                 replies.put((lid, None, f"merge: {exc!r}"))
@@ -112,13 +112,13 @@ class LogServer:
         self.send(("open", lid, str(path), kwargs))
         return AsyncRunLog(self, lid, Path(path))
 
-    def merge(self, run_dir: Path | str, run_kind: str | None) -> Path | None:
-        """`RunDir.merge_rrd` in the helper (rerun is imported there already); raises what it raised."""
+    def merge(self, parts: list[Path], target: Path, run_kind: str | None) -> Path | None:
+        """`runlog.merge_run_logs` in the helper (rerun is imported there already); raises what it raised."""
         lid = next(self._ids)
-        self.send(("merge", lid, str(run_dir), run_kind))
+        self.send(("merge", lid, ([str(p) for p in parts], str(target), run_kind)))
         _, path, error = self.reply(lid)
         if error:
-            raise RuntimeError(f"{run_dir}: merging the stage logs failed: {error}")
+            raise RuntimeError(f"{target}: merging the stage logs failed: {error}")
         return None if path is None else Path(path)
 
     def stop(self) -> None:

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.linalg import cho_solve, qr, solve_triangular
 from scipy.special import gammaincinv
 
-from .lie import exp_so3
+from .core.geometry import exp_so3
 
 
 def _fresh(cls, **arrays: np.ndarray):

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from convert.errors import InputError
 from pipeline import runlog as L
+from pipeline.core.errors import InputError
 
 T0 = 1_403_636_579_000_000_000  # EuRoC-like absolute stamp: ns must survive the round trip exactly
 N = 200

@@ -37,7 +37,7 @@ def test_helper_writes_what_the_in_process_log_writes(tmp_path: Path, server, ca
     a, b = L.read_rrd_summary(path), L.read_rrd_summary(ref)
     assert a.rows == b.rows and a.static == b.static and a.recording_ids == ["rid"]
     # the merge runs in the helper too: one run.rrd with one blueprint
-    merged = server.merge(tmp_path, "euroc")
+    merged = server.merge([path, ref], tmp_path / "run.rrd", "euroc")
     assert merged == tmp_path / "run.rrd" and L.read_rrd_summary(merged).blueprints == 1
 
 
