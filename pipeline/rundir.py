@@ -89,9 +89,10 @@ class RunDir:
         parts = self.rrd_parts()
         if not parts:
             return None
+        name = self.path.resolve().name
         if server is not None:
-            return server.merge(parts, self.path / RRD, run_kind)
-        return merge_run_logs(parts, self.path / RRD, run_kind)
+            return server.merge(parts, self.path / RRD, run_kind, name=name)
+        return merge_run_logs(parts, self.path / RRD, run_kind, name=name)
 
 
 def write_text(path: Path, text: str) -> None:

@@ -64,7 +64,7 @@ def _serve(requests, replies) -> None:  # pragma: no cover (runs in the helper p
             from .runlog import merge_run_logs
 
             try:
-                path = merge_run_logs(*msg[2])
+                path = merge_run_logs(*msg[2], **msg[3])
                 replies.put((lid, None if path is None else str(path), None))
             except Exception as exc:
                 replies.put((lid, None, f"merge: {exc!r}"))
@@ -112,10 +112,10 @@ class LogServer:
         self.send(("open", lid, str(path), kwargs))
         return AsyncRunLog(self, lid, Path(path))
 
-    def merge(self, parts: list[Path], target: Path, run_kind: str | None) -> Path | None:
+    def merge(self, parts: list[Path], target: Path, run_kind: str | None, **kwargs: Any) -> Path | None:
         """`runlog.merge_run_logs` in the helper (rerun is imported there already); raises what it raised."""
         lid = next(self._ids)
-        self.send(("merge", lid, ([str(p) for p in parts], str(target), run_kind)))
+        self.send(("merge", lid, ([str(p) for p in parts], str(target), run_kind), kwargs))
         _, path, error = self.reply(lid)
         if error:
             raise RuntimeError(f"{target}: merging the stage logs failed: {error}")
