@@ -110,7 +110,7 @@ class LogServer:
     def open(self, path: Path | str, **kwargs: Any) -> AsyncRunLog:
         lid = next(self._ids)
         self.send(("open", lid, str(path), kwargs))
-        return AsyncRunLog(self, lid, Path(path))
+        return AsyncRunLog(self, lid, Path(path), kwargs)
 
     def merge(self, parts: list[Path], target: Path, run_kind: str | None, **kwargs: Any) -> Path | None:
         """`runlog.merge_run_logs` in the helper (rerun is imported there already); raises what it raised."""
@@ -139,11 +139,14 @@ class LogServer:
 class AsyncRunLog:
     """A `RunLog` whose calls run in the `LogServer`'s helper process (see the module docstring)."""
 
-    def __init__(self, server: LogServer, lid: int, path: Path) -> None:
+    def __init__(self, server: LogServer, lid: int, path: Path, options: dict[str, Any]) -> None:
         self._server = server
         self._id = lid
         self.path = path
         self._open = True
+        # the RunLog's settings stay readable here (anything else not starting with "_" is a forwarded call)
+        self.run_kind = options.get("run_kind", "simulation")
+        self.time_origin_ns = options.get("time_origin_ns")
 
     @property
     def enabled(self) -> bool:
