@@ -1,0 +1,75 @@
+"""The one estimator driver: merges the recording's streams in time order, feeds the estimator, logs.
+
+`run_estimator(est, reader, start_ns, end_ns, on_range=, log=)` is how every stage runs a pose source: the
+estimator opens the span (reads and checks what it propagates with, initialises), the driver interleaves its
+frames (camera frames, odometry messages) with the UWB ranges — a frame first when both have the same stamp —
+hands each range to ``on_range`` through the estimator (which brings its state to the range stamp first), and
+logs the span's trajectory, covariance and the estimator's own series.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .core.blas import single_blas_thread
+from .estimator import Estimator, RangeHandler, RangeMeasurement
+
+if TYPE_CHECKING:
+    from convert.recording import RecordingReader
+
+    from .runlog import RunLog
+
+
+def run_estimator(
+    est: Estimator,
+    reader: RecordingReader,
+    start_ns: int | None,
+    end_ns: int | None,
+    *,
+    on_range: RangeHandler | None = None,
+    log: RunLog | None = None,
+) -> None:
+    """Process ``[start_ns, end_ns)`` of ``reader`` with ``est`` (None: from the state time / to the end)."""
+    with single_blas_thread():
+        span = est.open(reader, start_ns, end_ns, trace=log is not None)
+        if span is None:
+            return
+        rng = span.ranges
+        nr = len(rng) if rng is not None else 0
+        j = 0
+        for frame in span.frames:
+            t_frame = frame[0]
+            while j < nr and rng.t_ns[j] < t_frame:
+                est.process_range(_range(rng, j), on_range)
+                j += 1
+            est.process_frame(frame)
+        while j < nr:
+            est.process_range(_range(rng, j), on_range)
+            j += 1
+        est.close(span)
+    if log is not None:
+        log_history(log, est.history().arrays(), span.first_record)
+        est.log_span(log, span)
+
+
+def _range(rng, j: int) -> RangeMeasurement:
+    return RangeMeasurement(
+        int(rng.t_ns[j]), int(rng.tag[j]), int(rng.antenna[j]), int(rng.anchor[j]), float(rng.distance[j])
+    )
+
+
+def log_history(log: RunLog, hist: dict[str, np.ndarray], first: int) -> None:
+    """world/vio: the poses from index ``first`` on, their position covariance and 3-sigma series."""
+    from . import runlog as rl
+
+    t, p, q, cov = (hist[k][first:] for k in ("t_ns", "p", "q_xyzw", "cov"))
+    if not len(t):
+        return
+    sig3 = 3.0 * np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0))
+    step = max(1, len(t) // 500)
+    log.trajectory(rl.VIO, t, p, q)
+    log.ellipsoid_series(rl.VIO_COV, t[::step], p[::step], cov[::step, 3:6, 3:6])
+    log.scalars(f"{rl.SIGMA}/vio_p3sigma", t, sig3[:, 3:6], ["x", "y", "z"])
+    log.scalars(f"{rl.SIGMA}/vio_theta3sigma_deg", t, np.degrees(sig3[:, 0:3]), ["x", "y", "z"])
