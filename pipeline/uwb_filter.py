@@ -611,7 +611,8 @@ class UwbUpdater:
                 log.series_static_style(
                     rl.uwb(a, "rejected"), ["rejected"], [rl.COLORS["rejected"]], points=True
                 )
-            log.residual_band(a, t, arr["residual"], arr["nis"])
+            gate = float(np.sqrt(chi2.ppf(self.chi2_quantile, 1))) if self.chi2_quantile is not None else 3.0
+            log.residual_band(a, t, arr["residual"], arr["nis"], n_sigma=gate)
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])
         arrs = [arr for arr in self.arrays().values() if len(arr["t_ns"])]
