@@ -611,7 +611,7 @@ class UwbUpdater:
                 log.series_static_style(
                     rl.uwb(a, "rejected"), ["rejected"], [rl.COLORS["rejected"]], points=True
                 )
-            gate = float(np.sqrt(chi2.ppf(self.chi2_quantile, 1))) if self.chi2_quantile is not None else 3.0
+            gate = float(np.sqrt(chi2_ppf(self.chi2_quantile, 1))) if self.chi2_quantile is not None else 3.0
             log.residual_band(a, t, arr["residual"], arr["nis"], n_sigma=gate)
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])
