@@ -29,6 +29,37 @@ class RangeMeasurement:
 RangeHandler = Callable[["Estimator", RangeMeasurement], None]
 
 
+def epoch_handler(handler: RangeHandler) -> bool:
+    """A handler that also takes all ranges of one stamp at once (``handler.epoch(estimator, batch)``, e.g.
+    `uwb_filter.UwbUpdater`: one stacked update per epoch)."""
+    return callable(getattr(handler, "epoch", None))
+
+
+def same_stamp_end(t_ns: np.ndarray, j: int) -> int:
+    """End (exclusive) of the run of ranges with the stamp of range ``j`` (the ranges are time ordered)."""
+    return int(np.searchsorted(t_ns, t_ns[j], side="right"))
+
+
+def deliver_ranges(estimator: Estimator, handler: RangeHandler, ranges, j0: int, j1: int) -> None:
+    """Ranges ``j0:j1`` of a `RangeData` (one stamp when j1 - j0 > 1) to ``handler``: as one epoch when the
+    handler takes epochs, else one by one."""
+    batch = [
+        RangeMeasurement(
+            int(ranges.t_ns[j]),
+            int(ranges.tag[j]),
+            int(ranges.antenna[j]),
+            int(ranges.anchor[j]),
+            float(ranges.distance[j]),
+        )
+        for j in range(j0, j1)
+    ]
+    if len(batch) > 1 and epoch_handler(handler):
+        handler.epoch(estimator, batch)
+    else:
+        for m in batch:
+            handler(estimator, m)
+
+
 @dataclass
 class TrajectoryRecord:
     """Pose estimates with 6x6 pose covariance (error [dtheta, dp]), appended during a run."""

@@ -33,7 +33,7 @@ from scipy.stats import chi2
 from convert.errors import InputError
 
 from .camera import Camera
-from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
+from .estimator import RangeHandler, TrajectoryRecord, deliver_ranges, epoch_handler, same_stamp_end
 from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
 from .lie import quat_slerp, quat_to_rot, skew
 from .state import ImuState, Pose, State, add_probe, ekf_update, remove_probes
@@ -737,16 +737,9 @@ class MsckfEstimator:
                 if t >= self.t_ns:
                     self._propagate_to(t, *args)
                     if on_range is not None:
-                        on_range(
-                            self,
-                            RangeMeasurement(
-                                t,
-                                int(ranges.tag[ri]),
-                                int(ranges.antenna[ri]),
-                                int(ranges.anchor[ri]),
-                                float(ranges.distance[ri]),
-                            ),
-                        )
+                        r_end = same_stamp_end(ranges.t_ns, ri) if epoch_handler(on_range) else ri + 1
+                        deliver_ranges(self, on_range, ranges, ri, r_end)
+                        ri = r_end - 1
                     self._record()  # after the handler: the pose including its update
                 ri += 1
 

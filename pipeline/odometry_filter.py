@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from convert.errors import InputError
 
-from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
+from .estimator import RangeHandler, TrajectoryRecord, deliver_ranges, epoch_handler, same_stamp_end
 from .lie import log_so3, quat_to_rot
 from .state import Pose, State
 
@@ -551,14 +551,9 @@ class OdometryEstimator:
                 self.advance(t_r, R_i, p_i)
             self._record()
             if on_range is not None:
-                rm = RangeMeasurement(
-                    t_r,
-                    int(ranges.tag[j - 1]),
-                    int(ranges.antenna[j - 1]),
-                    int(ranges.anchor[j - 1]),
-                    float(ranges.distance[j - 1]),
-                )
-                on_range(self, rm)
+                j0, j = j - 1, same_stamp_end(ranges.t_ns, j - 1) if epoch_handler(on_range) else j
+                self.stats.ranges += j - j0 - 1
+                deliver_ranges(self, on_range, ranges, j0, j)
         for w in self.stats.warnings():
             _log.warning("%s: %s", src, w)
         if log is not None:
