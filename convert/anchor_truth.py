@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from pipeline.core.errors import InputError
+
 from .sources import read_csv_strings, sha256_file, to_float, to_int
 
 TRUTH_KINDS = ("surveyed", "published", "simulated")

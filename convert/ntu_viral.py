@@ -16,9 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.errors import InputError
+from pipeline.core.progress import progress
+
 from . import msgs
 from .anchor_truth import find_published_anchors, read_anchor_truth, truth_note, truth_record
-from .errors import InputError
 from .euroc import StampCheck, header_time, passthrough
 from .recording import (
     META_CALIBRATION,
@@ -45,7 +47,6 @@ from .sources import (
     order_and_dedup,
     parse_antennas,
     pose_covariance,
-    progress,
     read_csv_strings,
     read_ranges_csv,
     source_metadata,

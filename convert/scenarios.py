@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from pipeline.core.errors import InputError
+
 from .simulator import SimConfig, SimData, simulate, simulate_to_file, stream
 
 ODOMETRY_RATE = 20.0

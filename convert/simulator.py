@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.lie import rot_to_quat
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import rot_to_quat
 
-from .errors import InputError
 from .euroc import EUROC_CAMERAS
 from .trajectory import SplineTrajectory, load_trajectory
 
@@ -414,7 +414,7 @@ def default_anchors(lo: np.ndarray, hi: np.ndarray, n: int) -> np.ndarray:
 def odometry_noise(scale: float = 1.0) -> dict[str, float]:
     """The odometry filter's default drift sigmas (`NOISE_KEYS`) times ``scale``: what the simulated odometry
     follows and declares in its calibration (``odometry.noise``)."""
-    from pipeline.odometry_filter import NOISE_KEYS, OdometryFilterConfig
+    from pipeline.core.noise import NOISE_KEYS, OdometryFilterConfig
 
     c = OdometryFilterConfig()
     return {k: float(getattr(c, k)) * scale for k in NOISE_KEYS}
@@ -426,8 +426,8 @@ def simulate_odometry(
     """Odometry that drifts as the odometry filter's drift model assumes: the first pose is off by a draw of its
     initial covariance, every increment T_k-1^-1 T_k by a draw of `increment_noise` (dR = dR_hat Exp(n_theta),
     dp = dp_hat + n_p), composed like dead reckoning."""
-    from pipeline.lie import exp_so3
-    from pipeline.odometry_filter import OdometryFilterConfig, compose, increment_noise, relative
+    from pipeline.core.geometry import compose, exp_so3, relative
+    from pipeline.core.noise import OdometryFilterConfig, increment_noise
 
     c = OdometryFilterConfig().model_copy(update=odometry_noise(scale))  # unvalidated: scale 0 is the truth
     s = traj.evaluate(rel_seconds(traj, t_ns))
@@ -717,7 +717,7 @@ def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str
 
 def simulate_to_file(cfg: SimConfig, output: str | Path) -> str:
     """Simulate and write the recording; returns a short human-readable summary."""
-    from .sources import progress
+    from pipeline.core.progress import progress
 
     with progress("simulating camera", None) as advance:
         data = simulate(cfg, advance=advance)

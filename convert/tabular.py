@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.progress import progress
+
 from .anchor_truth import read_anchor_truth, truth_note, truth_record
 from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH, TOPIC_ODOM, TOPIC_RANGE, RecordingWriter
 from .sources import (
@@ -23,7 +25,6 @@ from .sources import (
     normalise_quaternions,
     order_and_dedup,
     pose_covariance,
-    progress,
     read_ranges_csv,
     read_tum,
     source_metadata,

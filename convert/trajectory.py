@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.lie import exp_so3, log_so3, quat_slerp, quat_to_rot, rot_to_quat
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import exp_so3, log_so3, quat_slerp, quat_to_rot, rot_to_quat
 
 from .datasets import data_root
-from .errors import InputError
 
 DEFAULT_NAME = "default"
 DEFAULT_KNOT_DT = 0.1

@@ -8,15 +8,17 @@ from __future__ import annotations
 import json
 import time
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import polars as pl
 
-from convert.atomic import write_text_atomic
-from convert.errors import InputError
 from convert.recording import RecordingReader
-from pipeline.lie import quat_to_rot
+from pipeline.core.atomic import write_text_atomic
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_to_rot
 
 from .align import align as fit_alignment
 from .anchor_report import anchor_metrics, read_run_anchors, reference_anchors
@@ -24,6 +26,9 @@ from .consistency import pose_nees, summarize_nees
 from .export import compare, load_ground_truth, load_run_trajectory, run_recording_path
 from .metrics import ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
 from .tables import render
+
+if TYPE_CHECKING:
+    from pipeline.runlog import RunLog
 
 SEGMENT_NAMES = ("init", "refine", "localize")
 
@@ -197,4 +202,27 @@ def evaluate_run_cli(
     write_text_atomic(
         Path(run_dir) / f"results.{ {'md': 'md', 'csv': 'csv', 'latex': 'tex'}[fmt] }", text + "\n"
     )
+    return text
+
+
+def evaluate_stage(run_dir: Path, align: str | None, open_log: Callable[[], RunLog]) -> str:
+    """The pipeline's `evaluate` stage (handed to `Pipeline(..., evaluator=)`): metrics.json and results.md, and
+    the pose NEES over time with its chi-square bounds in the stage's rerun log."""
+    from pipeline import runlog as rl
+
+    from .consistency import chi2_bounds
+
+    series: dict = {}
+    text = evaluate_run_cli(run_dir, align=align, series=series)
+    if series:
+        with open_log() as log:
+            log.stage("evaluate", int(series["t_ns"][0]))
+            for key, dof, entity in (
+                ("nees_pose", 6, rl.NEES_POSE),
+                ("nees_position", 3, f"{rl.FILTER}/nees_position"),
+                ("nees_orientation", 3, f"{rl.FILTER}/nees_orientation"),
+            ):
+                log.scalars(entity, series["t_ns"], series[key])
+                bounds = np.array(chi2_bounds(1, dof))
+                log.constant(f"{entity}_bounds", series["t_ns"], bounds, ["χ² 2.5 %", "χ² 97.5 %"])
     return text

@@ -16,9 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.lie import log_so3
-
-SEGMENT_IDS = {"init": 0, "refine": 1, "localize": 2}
+from pipeline.core.geometry import log_so3
+from pipeline.core.names import SEGMENT_IDS
 
 
 def position_errors(p_est: np.ndarray, p_gt: np.ndarray) -> np.ndarray:

@@ -13,13 +13,13 @@ from typer.testing import CliRunner
 
 from cli import app
 from convert.anchor_truth import read_anchor_truth
-from convert.errors import InputError
 from convert.ntu_viral import convert_ntu_viral
 from convert.recording import RecordingReader
 from convert.tabular import convert_tabular
 from evaluate.anchor_report import AnchorReference, anchor_metrics, read_run_anchors
 from evaluate.evaluation import render_metrics
 from evaluate.metrics import anchor_errors, inter_anchor_distance_errors
+from pipeline.core.errors import InputError
 
 T0 = 1_700_000_000_000_000_000
 TRUTH = {"0": [0.0, 0.0, 1.0], "1": [4.0, 0.0, 1.0], "2": [4.0, 3.0, 1.0], "3": [0.0, 3.0, 2.0]}

@@ -8,10 +8,10 @@ from scipy.stats import binom
 from typer.testing import CliRunner
 
 from cli import app
-from convert.errors import InputError
 from convert.recording import RecordingReader
 from convert.scenarios import CAMPUS_BRIEF, NLOS_ANCHORS, SCENARIOS, scenario_config, simulate_scenario
 from convert.simulator import rel_seconds
+from pipeline.core.errors import InputError
 
 
 def _tag_positions(data) -> np.ndarray:

@@ -10,7 +10,7 @@ import pytest
 from scipy.stats import chi2
 
 from pipeline.estimator import RangeMeasurement
-from pipeline.lie import exp_so3
+from pipeline.core.geometry import exp_so3
 from pipeline.state import Pose, State, Vec, ekf_update
 from pipeline.uwb_filter import UwbUpdater
 

@@ -3,14 +3,12 @@
 import numpy as np
 import pytest
 
-from pipeline.lie import exp_so3
+from evaluate.ri_vs_lsi import ri_vs_lsi_sweep, simulate_window, smooth_trajectory
+from pipeline.core.geometry import exp_so3
 from pipeline.uwb_init import (
     InitWindow,
     initialize_anchor,
     multilateration,
-    ri_vs_lsi_sweep,
-    simulate_window,
-    smooth_trajectory,
     solve_from,
 )
 
