@@ -34,7 +34,7 @@ class RunSection(BaseModel):
         "auto",
         description="auto: the VIO-only pass stops at the end of the initialisation window when refine runs in "
         "the same invocation (refine and localize carry the filter on); full: always to the end of the data "
-        "(a VIO-only baseline beside the UWB-aided estimate, ~1.6x the VIO cost); init: always stop there",
+        "(a VIO-only baseline beside the UWB-aided estimate, at extra VIO cost); init: always stop there",
     )
 
     coupling: Literal["tight", "loose"] = Field(

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from pipeline.estimator import RangeMeasurement
 from pipeline.core.geometry import exp_so3
-from pipeline.state import Pose, State, Vec, ekf_update
+from pipeline.estimator import RangeMeasurement
+from pipeline.state import Kind, Pose, State, Vec, ekf_update
 from pipeline.uwb_filter import UwbUpdater
 
 ARMS = {(1, 0): np.array([0.2, 0.3, 0.0]), (2, 0): np.array([0.2, -0.3, 0.1])}
@@ -25,16 +25,16 @@ def _state(n_anchors: int = 3, seed: int = 0) -> State:
         "imu",
         Pose(exp_so3(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, 0.5])),
         A @ A.T + 1e-4 * np.eye(6),
+        kind=Kind.NAV,
     )
-    st.add("clone/1", Pose(np.eye(3), np.zeros(3)), np.eye(6) * 0.01)
+    st.add("clone/1", Pose(np.eye(3), np.zeros(3)), np.eye(6) * 0.01, kind=Kind.CLONE, key=1)
     st.P[0:6, 6:12] = st.P[6:12, 0:6] = 0.005 * np.eye(6)
     for a in range(n_anchors):
         J = np.zeros((5, 6))
         J[0:3, 3:6] = -np.eye(3)
         pos = np.array([6.0 * np.cos(2.1 * a), 6.0 * np.sin(2.1 * a), 2.0 + a])
-        st.augment(
-            f"anchor/{a}", Vec(np.r_[pos, 1.0, 0.2]), {"imu": J}, Q=np.diag([0.04] * 3 + [2.5e-3, 0.04])
-        )
+        Q = np.diag([0.04] * 3 + [2.5e-3, 0.04])
+        st.augment(f"anchor/{a}", Vec(np.r_[pos, 1.0, 0.2]), {"imu": J}, Q=Q, kind=Kind.ANCHOR, key=a)
     return st
 
 
@@ -196,3 +196,43 @@ def test_update_epoch_of_one_range_is_update_and_skips_unknown_anchors():
     ub.update_epoch(b, m + [RangeMeasurement(10, 1, 0, 42, 5.0)])  # anchor 42 unknown: skipped
     assert np.array_equal(a.P, b.P) and np.array_equal(_flat(a), _flat(b))
     assert ub.counts["skipped"] == 1 and ub.counts["accepted"] == 1
+
+
+def test_driver_hands_each_stamp_to_an_epoch_handler_once(tmp_path):
+    """Odometry + ranges to 3 anchors at each stamp: an epoch handler gets one batch per stamp; a plain handler
+    every range (the updates themselves: the tests above)."""
+    from convert.recording import RecordingReader
+    from convert.tabular import convert_tabular
+    from pipeline.driver import run_estimator
+    from pipeline.odometry_filter import OdometryEstimator
+
+    t0 = 1_700_000_000_000_000_000
+    (tmp_path / "p.tum").write_text(
+        "".join(f"{1_700_000_000 + 0.1 * k:.1f} {0.1 * k} 1 0 0 0 0 1\n" for k in range(40))
+    )
+    anchors = np.array([[5.0, 5.0, 2.0], [-3.0, 4.0, 1.0], [2.0, -6.0, 3.0]])
+    rows = []
+    for k in range(60):  # 60 stamps x 3 anchors, stamps between the odometry messages
+        t = t0 + 5_000_000 + k * 50_000_000
+        p = np.array([0.1 * (t - t0) * 1e-8, 1.0, 0.0])
+        rows += [f"{t},1,0,{a},{np.linalg.norm(p - anchors[a]) + 0.3:.4f}" for a in range(3)]
+    (tmp_path / "r.csv").write_text("stamp,tag,antenna,anchor,distance\n" + "\n".join(rows) + "\n")
+    rec = tmp_path / "o.mcap"
+    convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", rec)
+    reader = RecordingReader(rec)
+
+    class Counting:
+        def __init__(self, epochs: bool) -> None:
+            self.calls, self.sizes = 0, []
+            if epochs:
+                self.epoch = lambda est, batch: self.sizes.append(len(batch))
+
+        def __call__(self, est, m) -> None:
+            self.calls += 1
+
+    for epochs, calls, sizes in ((True, 0, [3] * 60), (False, 3 * 60, [])):
+        h = Counting(epochs)
+        est = OdometryEstimator.from_recording(reader)
+        run_estimator(est, reader, None, None, on_range=h)
+        assert h.calls == calls and h.sizes == sizes
+        assert est.stats.ranges == 180 and est.stats.ranges_after_odometry == 0
