@@ -60,8 +60,6 @@ class UwbConfig(BaseModel):
     sigma_scale: float = Field(
         1.0, gt=0, description="assumed / nominal noise ratio (sigma_U of paper Table 1)"
     )
-    init_window_s: float | None = Field(None, gt=0, description="see run.init_window_s (that one wins)")
-    refine_window_s: float | None = Field(None, gt=0, description="see run.refine_window_s (that one wins)")
     chi2_quantile: float | None = Field(
         0.95, gt=0, lt=1, description="NIS gate of range updates (update_loss gate); None: off"
     )
