@@ -469,7 +469,7 @@ def _per_row(S, r, R, PHt, chi2_gate, robust, robust_R):
     the robust inflation on its diagonal), r, PHt and the row figures."""
     d = np.diag(S).copy()
     row_nis = r * r / d
-    gate = _chi2_gate(chi2_gate, 1) if chi2_gate is not None else None
+    gate = chi2_ppf(chi2_gate, 1) if chi2_gate is not None else None
     keep = row_nis <= gate if gate is not None else np.ones(len(r), bool)
     if robust is not None:
         kind, c = robust
