@@ -460,11 +460,15 @@ def bench(
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Write results as JSON.")] = None,
     cases: Annotated[str | None, typer.Option(help="Comma-separated case names.")] = None,
     quick: Annotated[bool, typer.Option(help="Small sizes (smoke run).")] = False,
+    against: Annotated[
+        Path | None,
+        typer.Option(help="Another uwbcal checkout (e.g. a git worktree of main): run every case on it too."),
+    ] = None,
 ) -> None:
     """Run the benchmarks (wall time, real-time factor, peak memory, ratio to baseline)."""
     from benchmarks.runner import run_benchmarks
 
-    typer.echo(run_benchmarks(output, cases=cases, quick=quick))
+    typer.echo(run_benchmarks(output, cases=cases, quick=quick, against=against))
 
 
 def main() -> None:  # pragma: no cover

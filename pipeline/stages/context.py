@@ -58,6 +58,7 @@ class StageContext:
         self.stages = list(config.run.stages)  # this invocation's stages (Pipeline.run narrows it)
         self.results_text = ""
         self._reader: RecordingReader | None = None
+        self.log_server = None  # rerun logging helper process while Pipeline.run runs (runlog_async)
 
     @property
     def reader(self) -> RecordingReader:
@@ -77,14 +78,15 @@ class StageContext:
 
     def runlog(self, stage: str) -> rl.RunLog:
         path = self.dir.stage_rrd(STAGE_NUMBER[stage], stage) if self.config.run.log else None
-        return rl.RunLog(
-            path,
+        kw = dict(
             recording_id=self.recording_id(),
             run_kind=self.run_kind(),
-            enabled=self.config.run.log,
             blueprint=False,
             time_origin_ns=self.time_origin(),
         )
+        if path is not None and self.log_server is not None:  # the log's calls go to the helper process
+            return self.log_server.open(path, **kw)  # type: ignore[return-value]  (same methods as RunLog)
+        return rl.RunLog(path, enabled=self.config.run.log, **kw)
 
     def time_origin(self) -> int | None:
         """Simulated recordings: the replay's time axis in seconds from the recording's start (same origin for every
