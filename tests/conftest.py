@@ -5,14 +5,50 @@ import pytest
 
 from convert.datasets import data_root
 
+_FALSY = {"", "0", "false", "no", "off"}
+
+
+def ci() -> bool:
+    """Any truthy ``CI`` value (1, true, yes, ...) means CI: missing real data fails instead of skipping."""
+    return os.environ.get("CI", "").strip().lower() not in _FALSY
+
+
+def pytest_collection_modifyitems(config, items):
+    """Every test that uses real data (the ``data_dir`` fixture, directly or through another fixture) is marked
+    ``data``, so ``-m "not data"`` selects the synthetic suite."""
+    for item in items:
+        if "data_dir" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.data)
+
 
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
-    """The real data folder. Missing: skip locally, fail under CI (CI=true)."""
+    """The real data folder. Missing: skip locally, fail under CI (any truthy CI)."""
     root = data_root()
     if not (root / "euroc").is_dir() or not (root / "ntu_viral").is_dir():
         msg = f"real data not found at {root} (set UWBCAL_DATA)"
-        if os.environ.get("CI", "").lower() == "true":
+        if ci():
             pytest.fail(msg)
         pytest.skip(msg)
     return root
+
+
+@pytest.fixture(scope="session")
+def euroc_micro(data_dir, tmp_path_factory) -> tuple[Path, str]:
+    """EuRoC V1_01_micro (with the V1_01_easy.csv ground truth) converted once per session: (mcap, summary)."""
+    from convert.euroc import convert_euroc
+
+    out = tmp_path_factory.mktemp("euroc_micro") / "v101.mcap"
+    text = convert_euroc(
+        data_dir / "euroc" / "V1_01_micro", out, groundtruth=data_dir / "euroc/groundtruth/V1_01_easy.csv"
+    )
+    return out, text
+
+
+@pytest.fixture(scope="session")
+def eee_01(data_dir, tmp_path_factory) -> tuple[Path, str]:
+    """NTU-VIRAL eee_01 (CSV sequence folder) converted once per session: (mcap, summary)."""
+    from convert.ntu_viral import convert_ntu_viral
+
+    out = tmp_path_factory.mktemp("eee_01") / "eee_01.mcap"
+    return out, convert_ntu_viral(data_dir / "ntu_viral" / "eee_01", out)

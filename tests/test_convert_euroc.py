@@ -20,9 +20,8 @@ def _micro(data_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def micro_rec(data_dir, tmp_path_factory) -> tuple[Path, str]:
-    out = tmp_path_factory.mktemp("euroc") / "v1.mcap"
-    return out, convert_euroc(_micro(data_dir), out)
+def micro_rec(euroc_micro) -> tuple[Path, str]:
+    return euroc_micro  # the session's one conversion (conftest)
 
 
 def test_real_micro_counts_and_drops(micro_rec, data_dir):

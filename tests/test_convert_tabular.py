@@ -12,7 +12,7 @@ from convert.recording import RangeData, RecordingReader
 from convert.sources import Drops, clean_ranges, order_and_dedup, parse_antennas, read_tum
 from convert.tabular import convert_tabular
 
-T0 = 1_609_059_013_000_000_000
+from support import T0
 
 
 def _tum(path: Path, n: int = 50) -> np.ndarray:

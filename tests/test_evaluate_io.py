@@ -237,20 +237,17 @@ def test_export_tum_pure_and_errors(tmp_path):
         export_run(tmp_path, tmp_path, fmt="kitti")
 
 
-@pytest.mark.data
-def test_export_real_ntu_viral_prism_matches_evo_se3(data_dir, tmp_path):
+def test_export_real_ntu_viral_prism_matches_evo_se3(eee_01, tmp_path):
     """Real NTU-VIRAL eee_01: SLICT odometry as the estimate vs the Leica prism (position-only, lever arm,
     another world frame): our association + SE(3) alignment + PRMSE agree with evo's aligned APE on the TUM pair."""
     from evo.core import metrics, sync
     from evo.tools import file_interface
 
-    from convert.ntu_viral import convert_ntu_viral
     from convert.recording import RecordingReader
     from evaluate.align import align
     from evaluate.export import compare, load_ground_truth
 
-    rec = tmp_path / "eee_01.mcap"
-    convert_ntu_viral(data_dir / "ntu_viral" / "eee_01", rec)
+    rec = eee_01[0]  # the session's one conversion (conftest)
     od = RecordingReader(rec).read_odometry()
     run = tmp_path / "run"
     run.mkdir()

@@ -21,7 +21,7 @@ from pipeline.odometry_filter import (
 )
 from pipeline.state import Pose, ekf_update
 
-T0 = 1_600_000_000_000_000_000
+from support import T0
 
 
 def _trajectory(n=200, dt_s=0.1, seed=0):

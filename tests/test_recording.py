@@ -21,7 +21,7 @@ from convert.recording import (
     RecordingWriter,
 )
 
-T0 = 1_403_636_580_838_555_648
+from support import T0
 
 
 @pytest.fixture

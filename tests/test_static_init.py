@@ -13,8 +13,9 @@ from pipeline.static_init import (
     still_prefix,
 )
 
+from support import T0
+
 G = 9.81
-T0 = 1_500_000_000_000_000_000
 
 
 def _synthetic(still_s=3.0, moving_s=2.0, rate=200.0, roll=0.3, pitch=-0.2, yaw=1.1, seed=0):
