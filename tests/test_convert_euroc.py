@@ -250,6 +250,7 @@ def test_bag_wrong_type_on_known_topic(tmp_path):
             w.write(
                 c, 10 + k, ts.serialize_ros1(ts.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String")
             )
+    assert content.imu_t  # the good bag next to it does hold IMU messages on /imu0
     with pytest.raises(InputError, match="no IMU messages"):
         convert_euroc(bag, tmp_path / "w.mcap")
-    assert content.imu_t
+    assert not (tmp_path / "w.mcap").exists()  # atomic: nothing half-written is left behind

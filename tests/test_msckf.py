@@ -175,25 +175,47 @@ def test_triangulation_and_nullspace_noise_free():
     xyp = np.concatenate([xy.reshape(nf, m, 2), np.full((nf, 2, 2), 7.0)], axis=1)
     est, ok = triangulate(R_wc, p_wc, Cp, xyp, np.arange(m + 2)[None, :] < m, iterations=5)
     assert ok.all() and np.abs(est - pts).max() < 1e-8
-    # nullspace projection: the feature drops out; the noise-free residual of the true state is 0
+    # nullspace projection, against an independent SVD of H_f: fed the identity it returns its basis N^T, whose
+    # rows are orthonormal, annihilate H_f and span the same space as the SVD's left-nullspace basis
     Hf = H_f.reshape(nf, 2 * m, 3)
     Hx = np.zeros((nf, m, 2, m, 6))
     for j in range(m):
         Hx[:, j, :, j, :] = H_pose.reshape(nf, m, 2, 6)[:, j]
     Hx = Hx.reshape(nf, 2 * m, 6 * m)
-    r = np.zeros((nf, 2 * m))
-    Ho, ro = nullspace_project(Hf, Hx, r)
+    eye = np.broadcast_to(np.eye(2 * m), (nf, 2 * m, 2 * m))
+    Nt, _ = nullspace_project(Hf, eye, np.zeros((nf, 2 * m)))
+    assert Nt.shape == (nf, 2 * m - 3, 2 * m)
+    np.testing.assert_allclose(
+        Nt @ np.swapaxes(Nt, 1, 2),
+        np.broadcast_to(np.eye(2 * m - 3), Nt.shape[:1] + (2 * m - 3,) * 2),
+        atol=1e-12,
+    )
+    assert np.abs(Nt @ Hf).max() < 1e-10 * np.abs(Hf).max()
+    U = np.linalg.svd(Hf)[0][:, :, 3:]  # left singular vectors beyond rank 3 = the left nullspace
+    np.testing.assert_allclose(np.swapaxes(Nt, 1, 2) @ Nt, U @ np.swapaxes(U, 1, 2), atol=1e-10)
+    # a residual made of feature error only vanishes; one made of pose error only maps through Ho
+    df = rng.normal(0, 0.1, (nf, 3))
+    dx = rng.normal(0, 0.01, 6 * m)
+    Ho, ro_f = nullspace_project(Hf, Hx, np.einsum("kij,kj->ki", Hf, df))
     assert Ho.shape == (nf, 2 * m - 3, 6 * m)
-    assert np.abs(np.swapaxes(Ho, 1, 2) @ np.zeros((nf, 2 * m - 3, 1))).max() == 0
-    Qn = np.linalg.qr(Hf, mode="complete")[0][:, :, 3:]
-    assert np.abs(np.swapaxes(Qn, 1, 2) @ Hf).max() < 1e-10
-    # with a wrong feature guess, the projected residual only depends on the pose error (first order)
+    assert np.abs(ro_f).max() < 1e-12 * np.abs(Hf @ df[..., None]).max()
+    _, ro_x = nullspace_project(Hf, Hx, Hx @ dx + np.einsum("kij,kj->ki", Hf, df))
+    np.testing.assert_allclose(ro_x, Ho @ dx, atol=1e-12)
+    # the projected pose Jacobian keeps all but the 7 gauge directions of a visual-only problem
+    # (global position, orientation and scale): rank 6m - 7
+    sv = np.linalg.svd(np.concatenate(Ho), compute_uv=False)
+    assert (sv > 1e-6 * sv[0]).sum() == 6 * m - 7 and sv[6 * m - 8] > 1e-3 * sv[0]
+    # with a wrong feature guess (non-linear), the projected residual only depends on the pose error
     dpf = rng.normal(0, 1e-4, (nf, 3))
     uv2 = feature_jacobians(CAM, R[cidx], p[cidx], (pts + dpf)[fidx])[0]
     _, ro2 = nullspace_project(Hf, Hx, (uv - uv2).reshape(nf, 2 * m))
     assert np.abs(ro2).max() < 1e-3 * np.abs(uv - uv2).max()
-    Hc, rc = compress(np.concatenate(Ho), np.concatenate(ro))
-    assert Hc.shape == (6 * m, 6 * m) and np.abs(rc).max() < 1e-12
+    # QR compression keeps the information: H^T H and H^T r
+    H, r = np.concatenate(Ho), np.concatenate(ro_x) + rng.normal(0, 1.0, (nf * (2 * m - 3)))
+    Hc, rc = compress(H, r)
+    assert Hc.shape == (6 * m, 6 * m)
+    np.testing.assert_allclose(Hc.T @ Hc, H.T @ H, atol=1e-9 * np.abs(H.T @ H).max())
+    np.testing.assert_allclose(Hc.T @ rc, H.T @ r, atol=1e-9 * np.abs(H.T @ r).max())
 
 
 def test_feature_database_selection():
