@@ -52,3 +52,29 @@ def eee_01(data_dir, tmp_path_factory) -> tuple[Path, str]:
 
     out = tmp_path_factory.mktemp("eee_01") / "eee_01.mcap"
     return out, convert_ntu_viral(data_dir / "ntu_viral" / "eee_01", out)
+
+
+@pytest.fixture(scope="session")
+def sim_recording(tmp_path_factory) -> Path:
+    """A 45 s simulation (camera, IMU, 4 anchors, ground truth), written once per session."""
+    from convert.simulator import SimConfig, simulate_to_file
+
+    rec = tmp_path_factory.mktemp("sim") / "sim.mcap"
+    simulate_to_file(SimConfig(duration=45.0, seed=3), rec)
+    return rec
+
+
+@pytest.fixture(scope="session")
+def sim_run(sim_recording, tmp_path_factory) -> Path:
+    """`uwbcal run --init ri --refine skf` on the session's simulation, once per session. Read-only: a test that
+    re-runs stages into it works on a copy (`shutil.copytree`)."""
+    from typer.testing import CliRunner
+
+    from cli import app
+
+    out = tmp_path_factory.mktemp("run") / "run"
+    res = CliRunner().invoke(
+        app, ["run", str(sim_recording), "-o", str(out), "--init", "ri", "--refine", "skf"]
+    )
+    assert res.exit_code == 0, res.output
+    return out

@@ -2,31 +2,26 @@
 
 import csv
 import json
+import shutil
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
 from cli import app
-from convert.simulator import SimConfig, simulate_to_file
 from pipeline.runlog import read_rrd_summary
 
 runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory):
-    d = tmp_path_factory.mktemp("pipe")
-    rec = d / "sim.mcap"
-    simulate_to_file(SimConfig(duration=45.0, seed=3), rec)
-    return rec
+def sim(sim_recording):
+    return sim_recording  # conftest: simulated once per session
 
 
 @pytest.fixture(scope="module")
-def run_dir(sim, tmp_path_factory):
-    out = tmp_path_factory.mktemp("run") / "run"
-    res = runner.invoke(app, ["run", str(sim), "-o", str(out), "--init", "ri", "--refine", "skf"])
-    assert res.exit_code == 0, res.output
-    return out
+def run_dir(sim_run):
+    return sim_run  # conftest: run once per session (read-only here)
 
 
 def test_run_directory_contract(run_dir):
@@ -106,7 +101,8 @@ def test_vio_extent(run_dir, sim, tmp_path):
         assert z["t_ns"][-1] * 1e-9 > win["refine_end_s"]
 
 
-def test_stage_rerun_alone_keeps_other_artefacts(run_dir, sim):
+def test_stage_rerun_alone_keeps_other_artefacts(run_dir, sim, tmp_path):
+    run_dir = Path(shutil.copytree(run_dir, tmp_path / "copy"))
     before = (run_dir / "vio.npz").stat().st_mtime_ns
     res = runner.invoke(
         app, ["run", str(sim), "-o", str(run_dir), "--stages", "init,evaluate", "--init", "lsi"]
