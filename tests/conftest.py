@@ -78,3 +78,16 @@ def sim_run(sim_recording, tmp_path_factory) -> Path:
     )
     assert res.exit_code == 0, res.output
     return out
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory) -> tuple[Path, str]:
+    """`uwbcal demo` (the built-in 120 s trajectory, every stage), once per session: (run dir, its output)."""
+    from typer.testing import CliRunner
+
+    from cli import app
+
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    res = CliRunner().invoke(app, ["demo", "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    return out, res.output

@@ -52,15 +52,9 @@ def test_help_lists_every_command():
         assert cmd in res.output
 
 
-def test_demo(tmp_path, monkeypatch):
-    import pipeline.demo
-    from convert.simulator import SimConfig
-
-    # the built-in 120 s trajectory, cut to 30 s for the smoke test
-    monkeypatch.setattr(pipeline.demo, "SimConfig", lambda **kw: SimConfig(**{**kw, "duration": 30.0}))
-    out = tmp_path / "demo"
-    res = _ok(["demo", "-o", out])
-    assert "results (metrics.json):" in res.output and f"uwbcal view {out}" in res.output
+def test_demo(demo_run, tmp_path):
+    out, text = demo_run  # conftest: `uwbcal demo -o DIR` exited 0
+    assert "results (metrics.json):" in text and f"uwbcal view {out}" in text
     m = json.loads((out / "metrics.json").read_text())
     assert len(m["anchors"]) == 4 and (out / "run.rrd").stat().st_size > 0
     (tmp_path / "file").write_text("x")

@@ -21,7 +21,7 @@ from scipy.stats import chi2
 from convert.recording import RecordingReader, RecordingWriter
 from pipeline.estimator import TrajectoryRecord
 from pipeline.lie import exp_so3, log_so3, quat_to_rot, rot_to_quat
-from pipeline.msckf import MsckfEstimator, VioConfig
+from pipeline.msckf import MsckfEstimator, VioConfig, groundtruth_state
 from pipeline.odometry_filter import OdometryEstimator, OdometryFilterConfig
 
 from support import T0, errors_vs_truth, simulate_vi
@@ -189,9 +189,16 @@ def msckf_runs(tmp_path_factory):
     for seed in range(MSCKF_SEEDS):
         path = d / f"vi{seed}.mcap"
         truth = simulate_vi(path, duration=MSCKF_SECONDS, seed=seed)
+        rd = RecordingReader(path)
+        # the filter starts from the truth moved by a draw of its own initial covariance (starting exactly at
+        # the truth with that covariance would make it under-confident by construction)
+        c = VioConfig()
+        P0 = np.diag(np.repeat([c.sigma_theta0, c.sigma_p0, c.sigma_v0, c.sigma_bg0, c.sigma_ba0], 3) ** 2)
+        x_true = groundtruth_state(rd, rd.topics()["/imu"].start_ns)
+        x0 = x_true.boxplus(np.random.default_rng(1000 + seed).multivariate_normal(np.zeros(15), P0))
         for fej in (True, False) if seed < FEJ_SEEDS else (True,):
             rd = RecordingReader(path)
-            est = MsckfEstimator.from_recording(rd, VioConfig(fej=fej))
+            est = MsckfEstimator.from_recording(rd, VioConfig(fej=fej), x0, P0)
             est.run(rd, None, None)
             out[fej].append((est, truth))
     return out
