@@ -15,7 +15,8 @@ import typer
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from convert.errors import InputError  # noqa: E402
+from pipeline.core.errors import InputError  # noqa: E402
+from pipeline.core.names import INIT_METHODS, REFINE_METHODS  # noqa: E402
 
 app = typer.Typer(
     add_completion=False,
@@ -64,16 +65,8 @@ class TableFormat(str, Enum):
     latex = "latex"
 
 
-class InitMethod(str, Enum):
-    lsi = "lsi"
-    ri = "ri"
-    ri_robust = "ri-robust"
-
-
-class RefineMethod(str, Enum):
-    ekf = "ekf"
-    skf = "skf"
-    none = "none"
+InitMethod = Enum("InitMethod", {m.replace("-", "_"): m for m in INIT_METHODS}, type=str)
+RefineMethod = Enum("RefineMethod", {m: m for m in (*REFINE_METHODS, "none")}, type=str)
 
 
 class Experiment(str, Enum):
@@ -99,16 +92,31 @@ def demo(output: Annotated[Path, typer.Option("-o", "--output")] = Path("recordi
 @_guard
 def simulate(
     output: Output,
-    trajectory: Annotated[
-        str | None, typer.Option(help="EuRoC ground-truth name (MH_01_easy) or file.")
+    scenario: Annotated[
+        str | None,
+        typer.Option(
+            help="A class of real setup: planar (ground trolley, coplanar anchors), large-area (~400 m, anchors "
+            "ranged late or briefly), per-link (3 tags, an offset per link), nlos (NLOS junk on some links). "
+            "Ranges + odometry, no camera unless --camera; other options override the scenario's."
+        ),
     ] = None,
-    anchors: Annotated[int, typer.Option(min=1, help="Number of anchors.")] = 4,
+    trajectory: Annotated[
+        str | None,
+        typer.Option(
+            help="EuRoC ground-truth name (MH_01_easy) or file, or built-in: default, planar, campus."
+        ),
+    ] = None,
+    anchors: Annotated[int | None, typer.Option(min=1, help="Number of anchors (default 4).")] = None,
     duration: Annotated[
         float | None, typer.Option(help="Seconds to simulate (default: whole trajectory).")
     ] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    nlos_rate: Annotated[float, typer.Option(help="Fraction of ranges with a positive NLOS bias.")] = 0.0,
-    dropout_rate: Annotated[float, typer.Option(help="Fraction of ranges dropped.")] = 0.0,
+    nlos_rate: Annotated[
+        float | None, typer.Option(help="Fraction of ranges with a positive NLOS bias (default 0).")
+    ] = None,
+    dropout_rate: Annotated[
+        float | None, typer.Option(help="Fraction of ranges dropped (default 0).")
+    ] = None,
     max_range: Annotated[float | None, typer.Option(help="Maximum UWB range [m].")] = None,
     odometry_rate: Annotated[
         float | None,
@@ -120,25 +128,35 @@ def simulate(
         float,
         typer.Option(min=0.0, help="Factor on the odometry drift sigmas (declared in the calibration)."),
     ] = 1.0,
-    camera: Annotated[bool, typer.Option(help="Simulate camera feature tracks.")] = True,
+    camera: Annotated[
+        bool | None,
+        typer.Option("--camera/--no-camera", help="Simulate camera feature tracks (default: yes)."),
+    ] = None,
 ) -> None:
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
     from convert.simulator import SimConfig, simulate_to_file
 
-    cfg = SimConfig(
-        trajectory=trajectory,
-        n_anchors=anchors,
-        duration=duration,
-        seed=seed,
-        nlos_rate=nlos_rate,
-        dropout_rate=dropout_rate,
-        max_range=max_range,
-        odometry_rate=odometry_rate,
-        odometry_noise_scale=odometry_noise_scale,
-        camera=camera,
-    )
-    summary = simulate_to_file(cfg, output)
-    typer.echo(summary)
+    given = {
+        "trajectory": trajectory,
+        "n_anchors": anchors,
+        "duration": duration,
+        "nlos_rate": nlos_rate,
+        "dropout_rate": dropout_rate,
+        "max_range": max_range,
+        "odometry_rate": odometry_rate,
+        "camera": camera,
+    }
+    given = {k: v for k, v in given.items() if v is not None}
+    if odometry_noise_scale != 1.0:
+        given["odometry_noise_scale"] = odometry_noise_scale
+    if scenario is not None:
+        from convert.scenarios import scenario_to_file
+
+        if anchors is not None:
+            raise InputError(f"--anchors {anchors}: scenario {scenario} fixes its anchors; drop --anchors")
+        typer.echo(scenario_to_file(scenario, output, seed=seed, **given))
+        return
+    typer.echo(simulate_to_file(SimConfig(seed=seed, **given), output))
 
 
 @convert_app.command("euroc")
@@ -164,11 +182,18 @@ def convert_ntu_viral(
     antennas: Annotated[
         Path | None, typer.Option(help="uwb_antennas.yaml (default: next to the data).")
     ] = None,
+    anchors_truth: Annotated[
+        Path | None,
+        typer.Option(
+            help="Published/surveyed anchors CSV [site,]anchor,x,y,z -> uwbcal.truth "
+            "(default: published_anchors.csv next to the data; the sequence's site is taken)."
+        ),
+    ] = None,
 ) -> None:
     """Convert NTU-VIRAL (ROS1 bag or CSV sequence folder)."""
     from convert.ntu_viral import convert_ntu_viral as run
 
-    typer.echo(run(path, output, antennas=antennas))
+    typer.echo(run(path, output, antennas=antennas, anchors_truth=anchors_truth))
 
 
 @convert_app.command("tabular")
@@ -178,11 +203,18 @@ def convert_tabular(
     ranges: Annotated[Path, typer.Option(help="CSV: stamp,tag,antenna,anchor,distance")],
     output: Output,
     antennas: Annotated[Path | None, typer.Option(help="Antenna lever-arm yaml.")] = None,
+    anchors_truth: Annotated[
+        Path | None,
+        typer.Option(
+            help="Surveyed anchors CSV anchor,x,y,z (the poses' frame) -> uwbcal.truth; "
+            "uwbcal evaluate then reports anchor errors against it."
+        ),
+    ] = None,
 ) -> None:
     """Convert any odometry (TUM) plus UWB ranges (CSV)."""
     from convert.tabular import convert_tabular as run
 
-    typer.echo(run(poses, ranges, output, antennas=antennas))
+    typer.echo(run(poses, ranges, output, antennas=antennas, anchors_truth=anchors_truth))
 
 
 @app.command()
@@ -206,6 +238,7 @@ def run(
     no_log: Annotated[bool, typer.Option("--no-log", help="Do not write run.rrd.")] = False,
 ) -> None:
     """Run the pipeline stages on a recording into a run directory."""
+    from evaluate.evaluation import evaluate_stage
     from pipeline.run import run_cli
 
     typer.echo(
@@ -217,6 +250,7 @@ def run(
             refine=refine and refine.value,
             stages=stages,
             log=not no_log,
+            evaluator=evaluate_stage,
         )
     )
 

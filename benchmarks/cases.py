@@ -71,6 +71,7 @@ def _simulate(work: Path, name: str, **kw) -> Path:
 
 def _pipeline(rec: Path, out: Path, log: bool, stages: list[str] | None = None) -> float:
     """Run the pipeline on a recording; returns the timed seconds (simulation excluded)."""
+    from evaluate.evaluation import evaluate_stage
     from pipeline.config import load_config
     from pipeline.run import Pipeline
 
@@ -78,7 +79,7 @@ def _pipeline(rec: Path, out: Path, log: bool, stages: list[str] | None = None) 
     if stages:
         over["run"]["stages"] = stages
     t0 = time.perf_counter()
-    Pipeline(load_config(None, over), out).run(progress=lambda *_: None)
+    Pipeline(load_config(None, over), out, evaluate_stage).run(progress=lambda *_: None)
     return time.perf_counter() - t0
 
 

@@ -266,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     text = json.dumps(res, indent=2)
     print(text)
     if a.output:
-        from convert.atomic import write_text_atomic
+        from pipeline.core.atomic import write_text_atomic
 
         write_text_atomic(a.output, text + "\n")
     return 0 if res["uwbcal"]["exit"] == 0 else 1

@@ -11,7 +11,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from convert.atomic import write_text_atomic
+from pipeline.core.atomic import write_text_atomic
 
 from .cases import CASES
 
@@ -64,7 +64,7 @@ def run_benchmarks(output: Path | None, cases: str | None = None, quick: bool = 
     names = [c.strip() for c in cases.split(",")] if cases else list(CASES)
     unknown = [n for n in names if n not in CASES]
     if unknown:
-        from convert.errors import InputError
+        from pipeline.core.errors import InputError
 
         raise InputError(f"unknown benchmark case(s) {unknown}; known: {sorted(CASES)}")
     # baselines run first so that every ratio is measured in this same invocation

@@ -32,8 +32,8 @@ def _local_simulate(path: Path, seed: int, duration: float | None) -> None:
     from convert.euroc import EUROC_CAMERAS, EUROC_IMU
     from convert.recording import META_CALIBRATION, META_TRUTH, RecordingWriter
     from pipeline.camera import Camera
+    from pipeline.core.geometry import log_so3, quat_to_rot, rot_to_quat
     from pipeline.imu import GRAVITY
-    from pipeline.lie import log_so3, quat_to_rot, rot_to_quat
 
     gt = np.loadtxt(data_root() / "euroc" / "groundtruth" / "MH_01_easy.txt")
     tg = gt[:, 0] - gt[0, 0]
@@ -115,7 +115,7 @@ def posyaw_align(p_est: np.ndarray, p_gt: np.ndarray) -> tuple[np.ndarray, np.nd
 def run_one(args: tuple[int, bool, float | None, str]) -> dict:
     seed, fej, duration, workdir = args
     from convert.recording import RecordingReader
-    from pipeline.lie import log_so3, quat_slerp, quat_to_rot
+    from pipeline.core.geometry import log_so3, quat_slerp, quat_to_rot
     from pipeline.msckf import MsckfEstimator, VioConfig
 
     path = Path(workdir) / f"mh01_{seed}_{duration}.mcap"

@@ -16,8 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.errors import InputError
+from pipeline.core.progress import progress
+
 from . import msgs
-from .errors import InputError
 from .recording import (
     META_CALIBRATION,
     META_SOURCE,
@@ -38,7 +40,6 @@ from .sources import (
     load_yaml,
     normalise_quaternions,
     order_and_dedup,
-    progress,
     read_csv_strings,
     read_tum,
     ros1_header_stamp,

@@ -70,12 +70,10 @@ class InfoReport:
             )
         lines += self._render_calibration()
         if self.truth:
-            lines += ["", "truth (simulation)"]
+            lines += ["", f"truth ({self.truth.get('kind', 'simulated')})"]
             for aid, a in self.truth.get("anchors", {}).items():
-                lines.append(
-                    f"  anchor {aid}: p={np.round(a['position'], 3).tolist()} beta={a.get('beta')} "
-                    f"gamma={a.get('gamma')}"
-                )
+                extra = "".join(f" {k}={a[k]}" for k in ("beta", "gamma") if a.get(k) is not None)
+                lines.append(f"  anchor {aid}: p={np.round(a['position'], 3).tolist()}{extra}")
             rest = {k: v for k, v in self.truth.items() if k != "anchors"}
             if rest:
                 lines.append("  " + ", ".join(f"{k}={v}" for k, v in rest.items()))

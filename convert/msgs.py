@@ -17,7 +17,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from .errors import InputError
+from pipeline.core.errors import InputError
 
 UWB_RANGE = "uwbcal_msgs/msg/UwbRange"
 FEATURE_TRACKS = "uwbcal_msgs/msg/FeatureTracks"

@@ -4,7 +4,9 @@ Bag: /imu/imu -> /imu, /left/image_raw -> /cam0/image_raw, /right/image_raw -> /
 /uwb_endorange_info (uwb_driver/UwbRange) -> /uwb/range, /leica/pose/relative (prism) -> /groundtruth/position.
 Folder: uwb_ranges.csv -> /uwb/range, slict_odometry.csv -> /odometry (with a configured pose covariance),
 leica_prism.csv -> /groundtruth/position. Antenna lever arms and the ranging-bias prior come from
-uwb_antennas.yaml (folder, its parent, or ``antennas``).
+uwb_antennas.yaml (folder, its parent, or ``antennas``). Anchor truth: ``published_anchors.csv`` (``site,anchor,x,y,z``;
+folder, its parent, or ``anchors_truth``), the rows of the sequence's site -> ``uwbcal.truth`` (kind "published",
+frame "odometry" = SLICT for a folder; "slict" for a bag, whose recording has no SLICT poses).
 """
 
 from __future__ import annotations
@@ -14,12 +16,16 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.errors import InputError
+from pipeline.core.progress import progress
+
 from . import msgs
-from .errors import InputError
+from .anchor_truth import find_published_anchors, read_anchor_truth, truth_note, truth_record
 from .euroc import StampCheck, header_time, passthrough
 from .recording import (
     META_CALIBRATION,
     META_SOURCE,
+    META_TRUTH,
     TOPIC_CAM0,
     TOPIC_CAM1,
     TOPIC_GT_POSITION,
@@ -41,7 +47,6 @@ from .sources import (
     order_and_dedup,
     parse_antennas,
     pose_covariance,
-    progress,
     read_csv_strings,
     read_ranges_csv,
     source_metadata,
@@ -242,6 +247,27 @@ def _calibration(uwb: dict, odometry: dict | None = None) -> dict:
     return out
 
 
+def published_truth(
+    path: Path, anchors_truth: Path | None, ranged: np.ndarray, drops: Drops, frame: str
+) -> tuple[dict | None, Path | None]:
+    """``uwbcal.truth`` from the published anchors of the sequence's site (``eee_01`` -> ``eee``): the file given,
+    else ``published_anchors.csv`` beside the data (a found file without the site is noted, not an error)."""
+    site = (path.stem if path.is_file() else path.name).split("_")[0] or None
+    given = anchors_truth is not None
+    file = Path(anchors_truth) if given else find_published_anchors(path)
+    if file is None:
+        return None, None
+    try:
+        anchors = read_anchor_truth(file, site=site)
+    except InputError as exc:
+        if given:
+            raise
+        drops.note(f"no anchor truth: {exc}")
+        return None, None
+    drops.note(truth_note(anchors, ranged, file))
+    return truth_record(anchors, "published", file, frame=frame), file
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # sequence folder (CSVs)
 # ---------------------------------------------------------------------------------------------------------------
@@ -263,6 +289,7 @@ def convert_folder(
     output: str | Path,
     antennas: Path | None = None,
     *,
+    anchors_truth: Path | None = None,
     sigma_pos: float = 0.03,
     sigma_rot_deg: float = 0.5,
     max_range: float = MAX_RANGE_M,
@@ -308,6 +335,12 @@ def convert_folder(
     if antenna_file is not None:
         files.append(antenna_file)
     uwb = uwb_section(antenna_file, ranges.tag, ranges.antenna, drops)
+    # SLICT poses are in the frame the anchors are published in; without them the run's frame is the VIO's
+    truth, truth_file = published_truth(
+        path, anchors_truth, ranges.anchor, drops, "odometry" if odom is not None else "slict"
+    )
+    if truth_file is not None:
+        files.append(truth_file)
     hasher = Hasher(files)
     cov = pose_covariance(sigma_pos, sigma_rot_deg)
     total = len(ranges) + (len(odom[0]) if odom else 0) + (len(gt[0]) if gt else 0)
@@ -321,6 +354,8 @@ def convert_folder(
             w.write_position_batch(*gt, topic=TOPIC_GT_POSITION)
             advance(len(gt[0]))
         w.set_metadata(META_CALIBRATION, _calibration(uwb, NTU_ODOMETRY if odom is not None else None))
+        if truth is not None:
+            w.set_metadata(META_TRUTH, truth)
         w.set_metadata(
             META_SOURCE,
             source_metadata(
@@ -393,7 +428,12 @@ def leica_handler(check: StampCheck):
 
 
 def convert_bag(
-    path: Path, output: str | Path, antennas: Path | None = None, *, max_range: float = MAX_RANGE_M
+    path: Path,
+    output: str | Path,
+    antennas: Path | None = None,
+    *,
+    anchors_truth: Path | None = None,
+    max_range: float = MAX_RANGE_M,
 ) -> str:
     drops = Drops()
     check = StampCheck()
@@ -419,20 +459,30 @@ def convert_bag(
             drops.note("anchors " + ", ".join(f"{a} ({c})" for a, c in sorted(ranges.anchors.items())))
         uwb = uwb_section(antenna_file, np.asarray(ranges.tags, int), np.asarray(ranges.antennas, int), drops)
         w.set_metadata(META_CALIBRATION, _calibration(uwb))
+        truth, _ = published_truth(path, anchors_truth, np.asarray(list(ranges.anchors), int), drops, "slict")
+        if truth is not None:
+            w.set_metadata(META_TRUTH, truth)
         w.set_metadata(
             META_SOURCE, source_metadata("ntu_viral", path.stem, hasher.result(), drops, format="rosbag1")
         )
     return summary(output, counts, drops, f"NTU-VIRAL ROS1 bag {path.name}")
 
 
-def convert_ntu_viral(path: str | Path, output: str | Path, antennas: str | Path | None = None) -> str:
-    """Convert an NTU-VIRAL ROS1 bag or sequence folder of CSVs; returns a human summary."""
+def convert_ntu_viral(
+    path: str | Path,
+    output: str | Path,
+    antennas: str | Path | None = None,
+    anchors_truth: str | Path | None = None,
+) -> str:
+    """Convert an NTU-VIRAL ROS1 bag or sequence folder of CSVs; returns a human summary. Anchor truth:
+    ``anchors_truth`` (``[site,]anchor,x,y,z``) or ``published_anchors.csv`` beside the data -> ``uwbcal.truth``."""
     path = Path(path)
     ant = Path(antennas) if antennas is not None else None
+    truth = Path(anchors_truth) if anchors_truth is not None else None
     if not path.exists():
         raise InputError(f"{path}: not found")
     if path.is_file():
         if path.suffix != ".bag":
             raise InputError(f"{path}: not a ROS1 .bag; give a .bag or a sequence folder with uwb_ranges.csv")
-        return convert_bag(path, output, ant)
-    return convert_folder(path, output, ant)
+        return convert_bag(path, output, ant, anchors_truth=truth)
+    return convert_folder(path, output, ant, anchors_truth=truth)

@@ -30,21 +30,21 @@ from mcap.records import Metadata as McapMetadata
 from mcap.records import Schema as McapSchema
 from mcap.writer import CompressionType, Writer
 
-from . import msgs
-from .errors import InputError
+from pipeline.core.errors import InputError
+from pipeline.core.topics import (  # noqa: F401  (re-exported: the recording format names its topics)
+    TOPIC_CAM0,
+    TOPIC_CAM1,
+    TOPIC_FEATURES,
+    TOPIC_GT_IMU_BIAS,
+    TOPIC_GT_POSE,
+    TOPIC_GT_POSITION,
+    TOPIC_IMU,
+    TOPIC_ODOM,
+    TOPIC_RANGE,
+    TOPIC_VIO,
+)
 
-TOPIC_IMU = "/imu"
-TOPIC_CAM0 = "/cam0/image_raw"
-TOPIC_CAM1 = "/cam1/image_raw"
-TOPIC_FEATURES = "/cam0/features"
-TOPIC_RANGE = "/uwb/range"
-TOPIC_GT_POSE = "/groundtruth/pose"
-TOPIC_GT_POSITION = "/groundtruth/position"
-# ground-truth IMU biases (EuRoC state_groundtruth_estimate0 b_w, b_a) as sensor_msgs/Imu:
-# angular_velocity = gyro bias [rad/s], linear_acceleration = accelerometer bias [m/s^2]
-TOPIC_GT_IMU_BIAS = "/groundtruth/imu_bias"
-TOPIC_ODOM = "/odometry"
-TOPIC_VIO = "/vio/odometry"
+from . import msgs
 
 META_CALIBRATION = "uwbcal.calibration"
 META_SOURCE = "uwbcal.source"

@@ -9,8 +9,10 @@ Models (world z up, gravity (0, 0, -g), R = world_from_IMU):
   random walks with per-sample steps sigma_rw sqrt(dt).
 - Camera cam0 (EuRoC intrinsics, radtan, T_imu_cam): landmarks on the faces of a box room around the flight
   volume; raw (distorted) pixels + Gaussian noise of the visible ones, track id = landmark id.
-- UWB: d = beta (|p + R p_T - p_a| + n) + gamma, n ~ N(0, sigma^2); optional NLOS (+Exp(mean) bias), dropouts,
-  maximum range. Stamps staggered across anchors.
+- UWB: d = beta (|p + R p_T - p_a| + n) + gamma + o_{a,t}, n ~ N(0, sigma^2), one link per (anchor a, tag t)
+  (``tags``: several tags with their lever arms; ``link_gamma_offset``: per-link offsets o_{a,t}, default 0);
+  optional NLOS (+Exp(mean) bias, at ``nlos_rate`` or per link ``link_nlos_rate``), dropouts, maximum range and
+  per-anchor visibility windows. Stamps staggered across links.
 """
 
 from __future__ import annotations
@@ -22,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.lie import rot_to_quat
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import rot_to_quat
 
-from .errors import InputError
 from .euroc import EUROC_CAMERAS
 from .trajectory import SplineTrajectory, load_trajectory
 
@@ -70,6 +72,13 @@ class SimConfig:
     max_range: float | None = None
     tag_id: int = 1
     tag_lever_arm: Sequence[float] = (0.05, 0.0, 0.1)  # p_T in the IMU frame
+    # several tags (ids tag_id, tag_id + 1, ...; antenna 0 each) with their lever arms; None: one tag_lever_arm
+    tags: Sequence[Sequence[float]] | None = None
+    link_gamma_offset: Sequence[Sequence[float]] | None = None  # [n_anchors, n_tags] added to gamma per link
+    link_nlos_rate: Sequence[Sequence[float]] | None = None  # [n_anchors, n_tags]; replaces nlos_rate
+    # anchor index -> [(start_s, end_s), ...] from the start: the only times it can be ranged (absent: always)
+    visibility: dict[int, Sequence[Sequence[float]]] | None = None
+    scenario: str | None = None  # the `convert.scenarios` name this config came from (recorded in the truth)
     knot_dt: float = 0.1  # B-spline knot spacing when fitting a ground-truth file
     # external odometry (/odometry) drifting exactly as the odometry filter's drift model says (its default
     # sigmas times odometry_noise_scale): a pose source whose noise the filter models correctly. None: none
@@ -136,6 +145,27 @@ class SimConfig:
             v = np.asarray(getattr(self, name), float)
             if v.shape != (3,) or not np.all(np.isfinite(v)):
                 raise bad(name, getattr(self, name), "must be 3 numbers")
+        if self.tags is not None:
+            v = np.asarray(self.tags, float)
+            if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0 or not np.all(np.isfinite(v)):
+                raise bad("tags", self.tags, "must be a list of [x, y, z] lever arms")
+        shape = (self.n_anchors, len(self.lever_arms()))
+        for name, lo, hi in (("link_gamma_offset", -np.inf, np.inf), ("link_nlos_rate", 0.0, 1.0)):
+            v = getattr(self, name)
+            if v is not None:
+                a = np.asarray(v, float)
+                if a.shape != shape or not np.all((a >= lo) & (a <= hi)):
+                    raise bad(
+                        name, v, f"must be {shape[0]} x {shape[1]} (anchors x tags) values in [{lo}, {hi}]"
+                    )
+        for a, wins in (self.visibility or {}).items():
+            w = np.asarray(wins, float).reshape(-1, 2) if len(wins) else np.zeros((0, 2))
+            if not 0 <= int(a) < self.n_anchors or not np.all(np.isfinite(w)) or np.any(w[:, 1] < w[:, 0]):
+                raise bad("visibility", {a: wins}, "must map an anchor index to [(start_s, end_s), ...]")
+
+    def lever_arms(self) -> np.ndarray:
+        """[n_tags, 3] lever arms; tag i has id ``tag_id + i``."""
+        return np.asarray(self.tags if self.tags is not None else [self.tag_lever_arm], float).reshape(-1, 3)
 
     def per_anchor(self, name: str) -> np.ndarray:
         return np.broadcast_to(
@@ -179,6 +209,7 @@ class RangeSim:
     true_distance: np.ndarray  # [N] |p + R p_T - p_a|
     nlos: np.ndarray  # [N] bool: an NLOS bias was added
     candidates: int = 0  # stamps before dropouts / range limit
+    tag: np.ndarray | None = None  # [N] int64 tag id (None: all cfg.tag_id)
 
 
 @dataclass
@@ -383,7 +414,7 @@ def default_anchors(lo: np.ndarray, hi: np.ndarray, n: int) -> np.ndarray:
 def odometry_noise(scale: float = 1.0) -> dict[str, float]:
     """The odometry filter's default drift sigmas (`NOISE_KEYS`) times ``scale``: what the simulated odometry
     follows and declares in its calibration (``odometry.noise``)."""
-    from pipeline.odometry_filter import NOISE_KEYS, OdometryFilterConfig
+    from pipeline.core.noise import NOISE_KEYS, OdometryFilterConfig
 
     c = OdometryFilterConfig()
     return {k: float(getattr(c, k)) * scale for k in NOISE_KEYS}
@@ -395,8 +426,8 @@ def simulate_odometry(
     """Odometry that drifts as the odometry filter's drift model assumes: the first pose is off by a draw of its
     initial covariance, every increment T_k-1^-1 T_k by a draw of `increment_noise` (dR = dR_hat Exp(n_theta),
     dp = dp_hat + n_p), composed like dead reckoning."""
-    from pipeline.lie import exp_so3
-    from pipeline.odometry_filter import OdometryFilterConfig, compose, increment_noise, relative
+    from pipeline.core.geometry import compose, exp_so3, relative
+    from pipeline.core.noise import OdometryFilterConfig, increment_noise
 
     c = OdometryFilterConfig().model_copy(update=odometry_noise(scale))  # unvalidated: scale 0 is the truth
     s = traj.evaluate(rel_seconds(traj, t_ns))
@@ -425,26 +456,48 @@ def simulate_ranges(
     cfg: SimConfig,
     rng: np.random.Generator,
 ) -> RangeSim:
+    """One stream per link (anchor a, tag k), link index l = k n_a + a, staggered by l / n_links of a period
+    (with one tag: the anchors' streams, as before multi-tag support: same stamps and draws)."""
     n_a = len(anchors)
+    arms = cfg.lever_arms()
+    n_t = len(arms)
+    n_l = n_a * n_t
     period = round(NS / cfg.uwb_rate)
-    stamps = [sample_times(t0_ns, duration, cfg.uwb_rate, offset_ns=(a * period) // n_a) for a in range(n_a)]
-    anchor = np.concatenate([np.full(len(s), a, np.int64) for a, s in enumerate(stamps)])
+    stamps = [sample_times(t0_ns, duration, cfg.uwb_rate, offset_ns=(l * period) // n_l) for l in range(n_l)]
+    link = np.concatenate([np.full(len(s), l, np.int64) for l, s in enumerate(stamps)])
     t_ns = np.concatenate(stamps)
     order = np.argsort(t_ns, kind="stable")
-    t_ns, anchor = t_ns[order], anchor[order]
+    t_ns, link = t_ns[order], link[order]
+    anchor, tag_i = link % n_a, link // n_a
     s = traj.evaluate(rel_seconds(traj, t_ns))
-    tag = s.p + s.R @ np.asarray(cfg.tag_lever_arm, float)
+    tag = s.p + (s.R @ arms[0] if n_t == 1 else np.einsum("nij,nj->ni", s.R, arms[tag_i]))
     true = np.linalg.norm(tag - anchors[anchor], axis=1)
     n = len(t_ns)
     noise = rng.standard_normal(n) * cfg.sigma_range
     nlos_u = rng.random(n)
     nlos_bias = rng.exponential(1.0, n) * cfg.nlos_bias_mean
     drop_u = rng.random(n)
-    nlos = nlos_u < cfg.nlos_rate
-    d = beta[anchor] * (true + noise) + gamma[anchor] + np.where(nlos, nlos_bias, 0.0)
+    rate = (
+        np.asarray(cfg.link_nlos_rate, float)[anchor, tag_i]
+        if cfg.link_nlos_rate is not None
+        else cfg.nlos_rate
+    )
+    nlos = nlos_u < rate
+    offset = (
+        np.asarray(cfg.link_gamma_offset, float)[anchor, tag_i] if cfg.link_gamma_offset is not None else 0.0
+    )
+    d = beta[anchor] * (true + noise) + gamma[anchor] + offset + np.where(nlos, nlos_bias, 0.0)
     keep = drop_u >= cfg.dropout_rate
     if cfg.max_range is not None:
         keep &= true <= cfg.max_range
+    if cfg.visibility:
+        rel = (t_ns - t0_ns) * 1e-9
+        for a, wins in cfg.visibility.items():
+            sel = anchor == int(a)
+            seen = np.zeros(n, bool)
+            for lo, hi in np.asarray(wins, float).reshape(-1, 2):
+                seen |= (rel >= lo) & (rel <= hi)
+            keep &= ~sel | seen
     return RangeSim(
         t_ns=t_ns[keep],
         anchor=anchor[keep],
@@ -452,6 +505,7 @@ def simulate_ranges(
         true_distance=true[keep],
         nlos=nlos[keep],
         candidates=n,
+        tag=(cfg.tag_id + tag_i[keep]).astype(np.int64),
     )
 
 
@@ -521,6 +575,41 @@ def simulate(cfg: SimConfig, *, advance=None) -> SimData:
     return data
 
 
+def _links_truth(data: SimData) -> list[dict]:
+    """Per link (anchor, tag, antenna 0): the total offset gamma + o_{a,t} (d = beta |.| + gamma_link), the
+    offset o_{a,t}, the NLOS rate and the number of ranges kept (and of those with an NLOS bias)."""
+    cfg, r = data.config, data.ranges
+    n_t = len(cfg.lever_arms())
+    off = (
+        np.zeros((len(data.anchors), n_t))
+        if cfg.link_gamma_offset is None
+        else np.asarray(cfg.link_gamma_offset)
+    )
+    rate = (
+        np.full((len(data.anchors), n_t), cfg.nlos_rate)
+        if cfg.link_nlos_rate is None
+        else np.asarray(cfg.link_nlos_rate, float)
+    )
+    tags = r.tag if r.tag is not None else np.full(len(r.t_ns), cfg.tag_id)
+    out = []
+    for a in range(len(data.anchors)):
+        for k in range(n_t):
+            sel = (r.anchor == a) & (tags == cfg.tag_id + k)
+            out.append(
+                {
+                    "anchor": a,
+                    "tag": cfg.tag_id + k,
+                    "antenna": 0,
+                    "gamma": float(data.gamma[a] + off[a, k]),
+                    "offset": float(off[a, k]),
+                    "nlos_rate": float(rate[a, k]),
+                    "ranges": int(sel.sum()),
+                    "nlos_count": int((sel & r.nlos).sum()),
+                }
+            )
+    return out
+
+
 def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
     from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH
     from .sources import converter_name, sha256_file
@@ -535,7 +624,9 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
             "rate_hz": float(cfg.imu_rate),
         },
         "uwb": {
-            "tags": {str(cfg.tag_id): {"antennas": [list(map(float, cfg.tag_lever_arm))]}},
+            "tags": {
+                str(cfg.tag_id + i): {"antennas": [arm.tolist()]} for i, arm in enumerate(cfg.lever_arms())
+            },
             "sigma_range": cfg.sigma_range,
             "gamma_prior": {"mean": 0.0, "sigma": 1.0},
             "beta_prior": {"mean": 1.0, "sigma": 0.2},
@@ -547,6 +638,8 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
     if data.features is not None:
         calibration["cameras"] = {"cam0": cam}
     truth = {
+        "kind": "simulated",
+        "anchors_frame": "world",
         "anchors": {
             str(i): {
                 "position": data.anchors[i].tolist(),
@@ -568,7 +661,14 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
         },
         "pixel_sigma": cfg.pixel_sigma,
         "landmarks": len(data.landmarks),
-        "tag": {"id": cfg.tag_id, "antenna": 0, "lever_arm": list(map(float, cfg.tag_lever_arm))},
+        "tag": {"id": cfg.tag_id, "antenna": 0, "lever_arm": cfg.lever_arms()[0].tolist()},
+        "links": _links_truth(data),
+        **({"scenario": cfg.scenario} if cfg.scenario else {}),
+        **(
+            {"visibility": {str(a): np.asarray(w, float).tolist() for a, w in cfg.visibility.items()}}
+            if cfg.visibility
+            else {}
+        ),
         "trajectory": traj.name,
         "duration": duration,
         "nlos_count": int(data.ranges.nlos.sum()),
@@ -601,7 +701,9 @@ def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str
                 if advance is not None:
                     advance(1)
         r = data.ranges
-        w.write_range_batch(r.t_ns, data.config.tag_id, 0, r.anchor, r.distance)
+        w.write_range_batch(
+            r.t_ns, r.tag if r.tag is not None else data.config.tag_id, 0, r.anchor, r.distance
+        )
         gt = data.groundtruth
         w.write_pose_batch(gt.t_ns, gt.p, gt.q_xyzw, topic=TOPIC_GT_POSE)
         if data.odometry is not None:
@@ -615,7 +717,7 @@ def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str
 
 def simulate_to_file(cfg: SimConfig, output: str | Path) -> str:
     """Simulate and write the recording; returns a short human-readable summary."""
-    from .sources import progress
+    from pipeline.core.progress import progress
 
     with progress("simulating camera", None) as advance:
         data = simulate(cfg, advance=advance)

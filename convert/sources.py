@@ -4,12 +4,10 @@ readers, range cleaning and the streamed ROS1-bag loop. One implementation used 
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import struct
-import sys
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata as _im
 from pathlib import Path
@@ -18,7 +16,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import yaml
 
-from .errors import InputError
+from pipeline.core.errors import InputError
+from pipeline.core.progress import progress
+
 from .recording import RangeData
 
 if TYPE_CHECKING:
@@ -115,38 +115,6 @@ def summary(output: str | Path, counts: dict[str, int], drops: Drops, header: st
         lines.append("  dropped: none")
     lines.extend(f"  note: {n}" for n in drops.notes)
     return "\n".join(lines)
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# progress
-# ---------------------------------------------------------------------------------------------------------------
-@contextlib.contextmanager
-def progress(description: str, total: float | None) -> Iterator[Callable[[float], None]]:
-    """A rich progress bar on stderr (disabled when stderr is not a TTY); yields ``advance(n)``."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    console = Console(stderr=True)
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        disable=not sys.stderr.isatty(),
-        transient=True,
-    ) as bar:
-        task = bar.add_task(description, total=total)
-        pending = [0.0]
-
-        def advance(n: float = 1) -> None:
-            pending[0] += n
-            if pending[0] >= 256:  # rich redraw costs more than a message conversion
-                bar.advance(task, pending[0])
-                pending[0] = 0.0
-
-        yield advance
-        bar.advance(task, pending[0])
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -2,7 +2,8 @@
 
 ``--poses`` TUM ``t[s] x y z qx qy qz qw`` -> /odometry (with a configured pose covariance), ``--ranges``
 ``stamp,tag,antenna,anchor,distance`` (stamps in ns or s, detected by magnitude) -> /uwb/range, optional antenna
-yaml in the NTU-VIRAL format -> ``uwbcal.calibration.uwb``.
+yaml in the NTU-VIRAL format -> ``uwbcal.calibration.uwb``, optional surveyed anchors ``anchor,x,y,z`` (same
+frame as the poses) -> ``uwbcal.truth`` (kind "surveyed", see `convert.anchor_truth`).
 """
 
 from __future__ import annotations
@@ -11,7 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .recording import META_CALIBRATION, META_SOURCE, TOPIC_ODOM, TOPIC_RANGE, RecordingWriter
+from pipeline.core.progress import progress
+
+from .anchor_truth import read_anchor_truth, truth_note, truth_record
+from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH, TOPIC_ODOM, TOPIC_RANGE, RecordingWriter
 from .sources import (
     MAX_RANGE_M,
     Drops,
@@ -21,7 +25,6 @@ from .sources import (
     normalise_quaternions,
     order_and_dedup,
     pose_covariance,
-    progress,
     read_ranges_csv,
     read_tum,
     source_metadata,
@@ -36,11 +39,16 @@ def convert_tabular(
     output: str | Path,
     antennas: str | Path | None = None,
     *,
+    anchors_truth: str | Path | None = None,
     sigma_pos: float = 0.05,
     sigma_rot_deg: float = 1.0,
     max_range: float = MAX_RANGE_M,
 ) -> str:
-    """Convert a TUM trajectory and a ranges CSV into one recording; returns a human summary."""
+    """Convert a TUM trajectory and a ranges CSV into one recording; returns a human summary.
+
+    ``anchors_truth``: a surveyed ``anchor,x,y,z`` CSV in the poses' frame, written as ``uwbcal.truth``
+    (``{"kind": "surveyed", "anchors": {id: {"position"}}, "anchors_frame": "odometry", "anchors_file"}``) so that
+    ``uwbcal evaluate`` reports anchor errors against it."""
     from .ntu_viral import find_antennas, uwb_section
 
     poses, ranges = Path(poses), Path(ranges)
@@ -69,6 +77,11 @@ def convert_tabular(
     if antennas is not None:
         antenna_file = find_antennas(ranges, Path(antennas))
     uwb = uwb_section(antenna_file, r.tag, r.antenna, drops)
+    truth = None
+    if anchors_truth is not None:
+        anchors_truth = Path(anchors_truth)
+        truth = truth_record(read_anchor_truth(anchors_truth), "surveyed", anchors_truth, frame="odometry")
+        drops.note(truth_note(truth["anchors"], r.anchor, anchors_truth))
     files = [poses, ranges] + ([antenna_file] if antenna_file else [])
     hasher = Hasher(files)
     with RecordingWriter(output) as w, progress("tabular", len(t_pose) + len(r)) as advance:
@@ -77,6 +90,8 @@ def convert_tabular(
         write_ranges(w, r, TOPIC_RANGE)
         advance(len(r))
         w.set_metadata(META_CALIBRATION, {"uwb": uwb})
+        if truth is not None:
+            w.set_metadata(META_TRUTH, truth)
         w.set_metadata(
             META_SOURCE,
             source_metadata(

@@ -11,8 +11,10 @@ B-splines on Lie groups"). Pose, body angular velocity, world velocity and world
 so IMU readings simulated from them are exact derivatives. The spline is C2: acceleration and angular velocity
 are continuous.
 
-Sources: EuRoC ground truth (TUM ``.txt`` or EuRoC ``.csv``), by path or by sequence name, and a built-in
-figure-8 with vertical motion (`default_trajectory`) so that the demo needs no data.
+Sources: EuRoC ground truth (TUM ``.txt`` or EuRoC ``.csv``), by path or by sequence name, and built-in
+trajectories that need no data (`BUILTIN`): the figure-8 with vertical motion (`default_trajectory`, the demo),
+a planar ground trolley (`planar_trajectory`, "planar") and a campus drive over ~400 m (`campus_trajectory`,
+"campus").
 """
 
 from __future__ import annotations
@@ -22,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.lie import exp_so3, log_so3, quat_slerp, quat_to_rot, rot_to_quat
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import exp_so3, log_so3, quat_slerp, quat_to_rot, rot_to_quat
 
 from .datasets import data_root
-from .errors import InputError
 
 DEFAULT_NAME = "default"
 DEFAULT_KNOT_DT = 0.1
@@ -189,7 +191,11 @@ def resolve_trajectory(name_or_path: str | Path) -> Path:
             if cand.is_file():
                 return cand
     names = available_names()
-    have = ", ".join(names) if names else f"none found in {groundtruth_dir()}"
+    have = (
+        ", ".join([*BUILTIN, *names])
+        if names
+        else f"{', '.join(BUILTIN)} (EuRoC: none in {groundtruth_dir()})"
+    )
     raise InputError(
         f"{name_or_path}: trajectory not found; give a TUM .txt / EuRoC .csv ground-truth file or one of: {have}"
     )
@@ -272,9 +278,12 @@ def load_groundtruth(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
 def load_trajectory(
     name_or_path: str | Path | None = None, knot_dt: float = DEFAULT_KNOT_DT
 ) -> SplineTrajectory:
-    """The built-in default (None or ``"default"``), a EuRoC sequence name, or a ground-truth file."""
+    """The built-in default (None or ``"default"``), another built-in name (`BUILTIN`), a EuRoC sequence name, or a
+    ground-truth file."""
     if name_or_path is None or str(name_or_path) == DEFAULT_NAME:
         return default_trajectory(knot_dt=knot_dt)
+    if str(name_or_path) in BUILTIN and not Path(name_or_path).is_file():
+        return BUILTIN[str(name_or_path)](knot_dt=knot_dt)
     path = resolve_trajectory(name_or_path)
     t_ns, p, q = load_groundtruth(path)
     t = (t_ns - t_ns[0]) * 1e-9
@@ -321,3 +330,62 @@ def default_trajectory(duration: float = 120.0, knot_dt: float = DEFAULT_KNOT_DT
     return SplineTrajectory.fit(
         t, p, rot_to_quat(R), knot_dt=knot_dt, t0_ns=DEFAULT_T0_NS, name=DEFAULT_NAME, source=None
     )
+
+
+# EuRoC body axes (as `default_trajectory`): IMU x up, IMU z (the camera's optical axis) forward
+_R_BASE = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
+
+
+def _eased_phase(t: np.ndarray, t_still: float, t_ramp: float) -> np.ndarray:
+    """Time-like phase that is still until ``t_still``, then eases in (C2) over ``t_ramp`` to unit rate."""
+    x = np.clip((t - t_still) / t_ramp, 0.0, 1.0)
+    return np.where(t < t_still + t_ramp, t_ramp * (x**3 - x**4 / 2), t - t_still - t_ramp / 2)
+
+
+def _yaw_only(yaw: np.ndarray) -> np.ndarray:
+    z = np.zeros_like(yaw)
+    return exp_so3(np.stack([z, z, yaw], 1)) @ _R_BASE
+
+
+def planar_trajectory(duration: float = 150.0, knot_dt: float = DEFAULT_KNOT_DT) -> SplineTrajectory:
+    """A ground trolley: the IMU at a constant 0.3 m height, Lissajous loops over ~7 m x 5 m at up to ~0.6 m/s,
+    heading along the velocity, no roll or pitch (a lever arm with zero IMU-x component stays in one plane)."""
+    t = np.arange(0.0, duration + 1e-9, 0.02)
+    phase = _eased_phase(t, 1.0, 3.0)
+    w = 2 * np.pi / 45.0
+    p = np.stack(
+        [
+            2.8 * np.sin(w * phase) + 0.4 * np.sin(3.1 * w * phase),
+            2.0 * np.sin(2 * w * phase + 0.6) - 2.0 * np.sin(0.6),
+            np.full_like(t, 0.3),
+        ],
+        axis=1,
+    )
+    vx = 2.8 * w * np.cos(w * phase) + 0.4 * 3.1 * w * np.cos(3.1 * w * phase)
+    vy = 4.0 * w * np.cos(2 * w * phase + 0.6)
+    yaw = np.unwrap(np.arctan2(vy, vx))
+    return SplineTrajectory.fit(
+        t, p, rot_to_quat(_yaw_only(yaw)), knot_dt=knot_dt, t0_ns=DEFAULT_T0_NS, name="planar", source=None
+    )
+
+
+def campus_trajectory(duration: float = 260.0, knot_dt: float = DEFAULT_KNOT_DT) -> SplineTrajectory:
+    """A campus vehicle at 4 m/s: one ~190 m x 120 m block (left turns at 50, 80, 130, 160 s, 6 s each), then
+    straight on east to ~380 m; the road undulates by +-0.3 m (motion nearly planar)."""
+    dt = 0.02
+    t = np.arange(0.0, duration + 1e-9, dt)
+    x = np.clip((t - 1.0) / 4.0, 0.0, 1.0)
+    speed = 4.0 * (x**3 * (10 - 15 * x + 6 * x**2))  # smoothstep 0 -> 4 m/s over 1-5 s
+    yaw = np.zeros_like(t)
+    for t_turn in (50.0, 80.0, 130.0, 160.0):
+        u = np.clip((t - t_turn) / 6.0, 0.0, 1.0)
+        yaw += 0.5 * np.pi * u**3 * (10 - 15 * u + 6 * u**2)
+    v = speed[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], 1)
+    xy = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (v[1:] + v[:-1]) * dt, axis=0)])
+    p = np.column_stack([xy, 0.3 * np.sin(2 * np.pi * t / 90.0)])
+    return SplineTrajectory.fit(
+        t, p, rot_to_quat(_yaw_only(yaw)), knot_dt=knot_dt, t0_ns=DEFAULT_T0_NS, name="campus", source=None
+    )
+
+
+BUILTIN = {DEFAULT_NAME: default_trajectory, "planar": planar_trajectory, "campus": campus_trajectory}

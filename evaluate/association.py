@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convert.errors import InputError
-from pipeline.lie import quat_slerp, quat_to_rot
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_slerp, quat_to_rot
 
 # A gap in the ground truth longer than this many median sampling intervals is not interpolated across.
 AUTO_GAP_FACTOR = 10

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from pipeline.lie import log_so3
+from pipeline.core.geometry import log_so3
 
 
 def nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:

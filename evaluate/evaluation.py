@@ -5,72 +5,32 @@ Only what can be computed is written: a metric without ground truth is absent, n
 
 from __future__ import annotations
 
-import csv
 import json
 import time
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import polars as pl
 
-from convert.atomic import write_text_atomic
-from convert.datasets import data_root
-from convert.errors import InputError
 from convert.recording import RecordingReader
-from pipeline.lie import quat_to_rot
+from pipeline.core.atomic import write_text_atomic
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_to_rot
 
 from .align import align as fit_alignment
-from .consistency import anchor_nees, pose_nees, summarize_nees
+from .anchor_report import anchor_metrics, read_run_anchors, reference_anchors
+from .consistency import pose_nees, summarize_nees
 from .export import compare, load_ground_truth, load_run_trajectory, run_recording_path
-from .metrics import anchor_errors, ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
+from .metrics import ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
 from .tables import render
 
+if TYPE_CHECKING:
+    from pipeline.runlog import RunLog
+
 SEGMENT_NAMES = ("init", "refine", "localize")
-
-
-def read_anchors_csv(run_dir: Path) -> list[dict]:
-    path = Path(run_dir) / "anchors.csv"
-    if not path.is_file():
-        return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
-def final_anchor_estimates(rows: list[dict], init_method: str | None = None) -> dict[str, dict]:
-    """The calibrated anchors: the refine-stage rows, else those of the init method that was used."""
-    refine = [r for r in rows if r["stage"] == "refine"]
-    chosen = refine or [r for r in rows if r["stage"] == "init" and r["method"] == init_method]
-    return {
-        r["anchor"]: {
-            "position": [float(r["x"]), float(r["y"]), float(r["z"])],
-            "beta": float(r["beta"]),
-            "gamma": float(r["gamma"]),
-            "method": r["method"],
-        }
-        for r in chosen
-    }
-
-
-def reference_anchors(reader: RecordingReader) -> tuple[dict[str, dict], str] | tuple[None, None]:
-    """Simulation truth, or the published NTU-VIRAL anchor estimates (SLICT frame) for that site."""
-    truth = reader.truth
-    if truth and truth.get("anchors"):
-        return {str(k): v for k, v in truth["anchors"].items()}, "truth"
-    src = reader.source
-    seq = str(src.get("sequence", ""))
-    if "ntu" in str(src.get("dataset", "")).lower() and seq:
-        site = seq.split("_")[0]
-        path = data_root() / "ntu_viral" / "published_anchors.csv"
-        if path.is_file():
-            df = pl.read_csv(path)
-            rows = df.filter(pl.col("site") == site)
-            if len(rows):
-                return {
-                    str(r["anchor"]): {"position": [r["x"], r["y"], r["z"]]}
-                    for r in rows.iter_rows(named=True)
-                }, f"published ({path.name}, site {site})"
-    return None, None
 
 
 def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = None) -> dict:
@@ -90,9 +50,9 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     if len(traj):
         metrics["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
 
-    ref, ref_kind = reference_anchors(reader)
+    ref = reference_anchors(reader)
     if align in (None, "auto"):
-        align = "none" if ref_kind == "truth" else "se3"
+        align = "none" if ref is not None and ref.kind == "simulated" else "se3"
     metrics["alignment"] = align
 
     # -- trajectory -----------------------------------------------------------------------------------------
@@ -130,45 +90,21 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
 
     # -- anchors ---------------------------------------------------------------------------------------------
     cfg = tomllib.loads((run_dir / "config.toml").read_text())
-    est = final_anchor_estimates(read_anchors_csv(run_dir), cfg.get("uwb", {}).get("init_method"))
-    if est:
-        anchors = {
-            aid: {"estimate": a["position"], "beta": a["beta"], "gamma": a["gamma"], "method": a["method"]}
-            for aid, a in est.items()
-        }
-        if ref is not None:
-            ae = anchor_errors(est, ref)
-            for aid, row in ae.per_anchor.items():
-                anchors[aid].update({k: v for k, v in row.items()})
-            if ae.per_anchor:
-                metrics["anchor_error_m"] = ae.mean_m
-                metrics["anchor_reference"] = ref_kind
-            if np.isfinite(ae.mean_abs_beta):
-                metrics["beta_error"] = ae.mean_abs_beta
-            if np.isfinite(ae.mean_abs_gamma):
-                metrics["gamma_error"] = ae.mean_abs_gamma
-            if ae.missing:
-                metrics["warnings"].append(f"anchors not calibrated: {', '.join(ae.missing)}")
+    run_anchors = read_run_anchors(run_dir, cfg.get("uwb", {}).get("init_method"))
+    if run_anchors.estimates or run_anchors.undetermined:
+        anchors, top, warns = anchor_metrics(run_anchors, ref)
+        metrics.update(top)
+        metrics["warnings"].extend(warns)
         init_path = run_dir / "init.json"
         if init_path.is_file():
             init = json.loads(init_path.read_text())
             for aid, r in init["methods"].get(init["chosen"], {}).items():
-                if aid in anchors and "fim" in r:
+                if aid in anchors and r.get("fim") is not None:
                     anchors[aid]["fim"] = r["fim"]  # log det, condition number, weakest direction
         metrics["anchors"] = anchors
-        state_path = run_dir / "anchor_states.json"
-        if ref_kind == "truth" and state_path.is_file():
-            states = json.loads(state_path.read_text())
-            vals = []
-            for aid, s in states.items():
-                if aid in ref:
-                    t = ref[aid]
-                    truth_vec = np.r_[t["position"], t.get("beta", 1.0), t.get("gamma", 0.0)]
-                    v = float(anchor_nees(np.asarray(s["x"]), np.asarray(s["P"]), truth_vec))
-                    anchors[aid]["nees"] = v
-                    vals.append(v)
-            if vals:
-                metrics["nees_anchor"] = summarize_nees(np.asarray(vals), 5)
+        vals = [a["nees"] for a in anchors.values() if "nees" in a]
+        if vals:
+            metrics["nees_anchor"] = summarize_nees(np.asarray(vals), 5)
     metrics["evaluate_s"] = time.perf_counter() - t0
     return metrics
 
@@ -187,18 +123,35 @@ def metrics_tables(metrics: dict) -> tuple[pl.DataFrame, pl.DataFrame | None]:
     if not anchors:
         return traj, None
     ids = sorted(anchors, key=lambda s: (len(s), s))
+
+    def col(key: str, i: int | None = None) -> list:
+        vals = [anchors[a].get(key) for a in ids]
+        return [None if v is None else v[i] for v in vals] if i is not None else vals
+
     anc = pl.DataFrame(
         {
             "anchor": ids,
             "method": [anchors[a].get("method", "") for a in ids],
-            "x": [anchors[a]["estimate"][0] for a in ids],
-            "y": [anchors[a]["estimate"][1] for a in ids],
-            "z": [anchors[a]["estimate"][2] for a in ids],
-            "beta": [anchors[a]["beta"] for a in ids],
-            "gamma": [anchors[a]["gamma"] for a in ids],
-            "error_m": [anchors[a].get("error_m") for a in ids],
+            "x": col("estimate", 0),
+            "y": col("estimate", 1),
+            "z": col("estimate", 2),
+            "beta": col("beta"),
+            "gamma": col("gamma"),
+            "error_m": col("error_m"),
+            "horizontal_m": col("error_horizontal_m"),
+            "sigma_z_m": col("sigma_xyz", 2),
+            "nees_pos": col("nees_position"),
+            "status": [
+                "estimated"
+                if anchors[a].get("determined", True)
+                else f"not determined: {anchors[a]['reason']}"
+                for a in ids
+            ],
         },
-        schema_overrides={"error_m": pl.Float64},
+        schema_overrides={
+            k: pl.Float64
+            for k in ("x", "y", "z", "beta", "gamma", "error_m", "horizontal_m", "sigma_z_m", "nees_pos")
+        },
     )
     return traj, anc
 
@@ -213,11 +166,29 @@ def render_metrics(metrics: dict, fmt: str = "md") -> str:
         lines.append(
             f"anchor error (mean): {metrics['anchor_error_m']:.3f} m vs {metrics.get('anchor_reference')}"
         )
-    for key in ("nees_pose", "nees_anchor"):
+    at = metrics.get("anchor_truth", {})
+    if "error_3d_m" in at:
+        e3, eh = at["error_3d_m"], at["error_horizontal_m"]
+        lines.append(
+            f"anchor error vs {at['reference']}: 3-D mean {e3['mean']:.3f} m, max {e3['max']:.3f} m; "
+            f"horizontal mean {eh['mean']:.3f} m, max {eh['max']:.3f} m ({at['n_estimated']} of {at['n_truth']})"
+        )
+    if "inter_anchor_distance_error_m" in at:
+        d = at["inter_anchor_distance_error_m"]
+        lines.append(
+            f"inter-anchor distance error (frame-free, {d['pairs']} pairs): mean |e| {d['mean_abs']:.3f} m, "
+            f"max |e| {d['max_abs']:.3f} m"
+        )
+    for aid, reason in at.get("not_determined", {}).items():
+        lines.append(f"anchor {aid} not determined: {reason}")
+    for key in ("nees_pose", "nees_anchor", "nees_anchor_position"):
         if key in metrics and "mean" in metrics[key]:
             n = metrics[key]
             lo, hi = n["bounds"]
-            lines.append(f"{key}: mean {n['mean']:.2f} (dof {n['dof']}, 95% bounds [{lo:.2f}, {hi:.2f}])")
+            lines.append(
+                f"{key}: mean {n['mean']:.2f} (dof {n['dof']}, n {n.get('n_runs', 1)}, "
+                f"95% bounds [{lo:.2f}, {hi:.2f}])"
+            )
     lines += [f"warning: {w}" for w in metrics.get("warnings", [])]
     return "\n\n".join(parts + (["\n".join(lines)] if lines else []))
 
@@ -231,4 +202,26 @@ def evaluate_run_cli(
     write_text_atomic(
         Path(run_dir) / f"results.{ {'md': 'md', 'csv': 'csv', 'latex': 'tex'}[fmt] }", text + "\n"
     )
+    return text
+
+
+def evaluate_stage(run_dir: Path, align: str | None, open_log: Callable[[], RunLog]) -> str:
+    """The pipeline's `evaluate` stage (handed to `Pipeline(..., evaluator=)`): metrics.json and results.md, and
+    the pose NEES over time with its chi-square bounds in the stage's rerun log."""
+    from pipeline import runlog as rl
+
+    from .consistency import chi2_bounds
+
+    series: dict = {}
+    text = evaluate_run_cli(run_dir, align=align, series=series)
+    if series:
+        with open_log() as log:
+            log.stage("evaluate", int(series["t_ns"][0]))
+            for key, dof, entity in (
+                ("nees_pose", 6, rl.NEES_POSE),
+                ("nees_position", 3, f"{rl.FILTER}/nees_position"),
+                ("nees_orientation", 3, f"{rl.FILTER}/nees_orientation"),
+            ):
+                log.scalars(entity, series["t_ns"], series[key])
+                log.constant(f"{entity}_bounds", series["t_ns"], np.array(chi2_bounds(1, dof)), ["lo", "hi"])
     return text

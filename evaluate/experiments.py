@@ -16,10 +16,11 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
-from convert.atomic import atomic_path, write_text_atomic
 from convert.datasets import data_root
-from convert.errors import InputError
+from pipeline.core.atomic import atomic_path, write_text_atomic
+from pipeline.core.errors import InputError
 
+from .evaluation import evaluate_stage
 from .montecarlo import run_jobs, run_seeds
 from .tables import PAPER_TABLE1, PAPER_TABLE2, render, side_by_side, write_tables
 
@@ -31,7 +32,7 @@ DEFAULT_RUNS = {"ri-vs-lsi": 100, "table1": 50, "ntu-viral": 1, "anchor-nees": 2
 # -- ri-vs-lsi ----------------------------------------------------------------------------------------------------
 def ri_vs_lsi_job(p: dict) -> dict:
     """One localisation-error level: `runs` seeded windows, every initialiser on each (common random numbers)."""
-    from pipeline.uwb_init import ri_vs_lsi_sweep
+    from .ri_vs_lsi import ri_vs_lsi_sweep
 
     res = ri_vs_lsi_sweep([p["sigma_r"]], runs=p["runs"], seed=p["seed"])
     return {
@@ -114,11 +115,11 @@ def table1_job(p: dict) -> dict:
         cfg = load_config(
             None, {"run": {"recording": str(rec), "log": False, "stages": ["vio"], "vio_extent": "init"}}
         )
-        pipe = Pipeline(cfg, Path(tmp) / "run")
+        pipe = Pipeline(cfg, Path(tmp) / "run", evaluate_stage)
         pipe.run(progress=lambda *_: None)
-        win = pipe.windows()
-        truth = pipe.reader.truth["anchors"]
-        cal = pipe.reader.calibration
+        win = pipe.ctx.windows()
+        truth = pipe.ctx.reader.truth["anchors"]
+        cal = pipe.ctx.reader.calibration
         gt = load_ground_truth(rec)
         blob = pipe.dir.file("checkpoint_init.pkl").read_bytes()
         offsets = {a: rng.normal(size=3) for a in truth}  # one draw per seed, scaled by σ_I per cell
@@ -134,7 +135,7 @@ def table1_job(p: dict) -> dict:
                     est.state.add(anchor_var(int(a)), Vec(x0), P0)
                 ucfg = cfg.uwb.model_copy(update={"sigma_scale": sigma_u, "refine_method": method})
                 upd = UwbUpdater.from_config(ucfg, cal)
-                est.run(pipe.reader, win.init_end_ns, win.refine_end_ns, on_range=upd)
+                est.run(pipe.ctx.reader, win.init_end_ns, win.refine_end_ns, on_range=upd)
                 h = est.history().arrays()
                 seg = (h["t_ns"] >= win.init_end_ns) & (h["t_ns"] < win.refine_end_ns)
                 c = compare(h["t_ns"][seg], h["p"][seg], h["q_xyzw"][seg], gt)
@@ -246,12 +247,12 @@ def anchor_nees_job(p: dict) -> dict:
         }
         over = p.get("overrides") or {}
         base = Path(tmp) / "base"
-        pipe = Pipeline(load_config(None, merge_dicts(over, {"run": run})), base)
+        pipe = Pipeline(load_config(None, merge_dicts(over, {"run": run})), base, evaluate_stage)
         pipe.run(["vio", "init"], progress=lambda *_: None)
-        cfg, cal = pipe.config, pipe.reader.calibration
+        cfg, cal = pipe.config, pipe.ctx.reader.calibration
         truth = {
             int(a): np.r_[t["position"], t["beta"], t["gamma"]]
-            for a, t in pipe.reader.truth["anchors"].items()
+            for a, t in pipe.ctx.reader.truth["anchors"].items()
         }
         results = pipe.dir.load_pickle("init.pkl", "init")[cfg.uwb.init_method]
         est = pipe.dir.load_pickle("checkpoint_init.pkl", "init")
@@ -264,7 +265,7 @@ def anchor_nees_job(p: dict) -> dict:
             d = Path(tmp) / method
             shutil.copytree(base, d)
             mcfg = load_config(None, merge_dicts(over, {"run": run, "uwb": {"refine_method": method}}))
-            Pipeline(mcfg, d).run(["refine"], progress=lambda *_: None)
+            Pipeline(mcfg, d, evaluate_stage).run(["refine"], progress=lambda *_: None)
             states = json.loads((d / "anchor_states.json").read_text())
             for a, s in states.items():
                 x, P = np.asarray(s["x"]), np.asarray(s["P"])
@@ -391,7 +392,7 @@ def ntu_job(p: dict) -> dict:
                 "uwb": {"init_method": p["init"], "refine_method": p["refine"]},
             },
         )
-        Pipeline(cfg, Path(tmp) / "run").run(progress=lambda *_: None)
+        Pipeline(cfg, Path(tmp) / "run", evaluate_stage).run(progress=lambda *_: None)
         m = json.loads((Path(tmp) / "run" / "metrics.json").read_text())
     return {
         "sequence": folder.name,

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from convert.atomic import write_text_atomic
-from convert.errors import InputError
+from pipeline.core.atomic import write_text_atomic
+from pipeline.core.errors import InputError
 
 from .association import Association, associate, lever_point
 

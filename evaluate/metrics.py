@@ -2,7 +2,10 @@
 
 - PRMSE [m] = sqrt(mean ||p_hat - p||^2)
 - ORMSE [deg] = sqrt(mean ||Log(R_hat^T R)||^2) * 180 / pi
-- anchor error [m] = mean over anchors of ||p_hat_a - p_a||, with beta and gamma errors alongside.
+- anchor error [m] = mean over anchors of ||p_hat_a - p_a||, with beta and gamma errors alongside; horizontal
+  error ||(p_hat_a - p_a)_xy|| (z up); mean and max of both.
+- inter-anchor distance error [m] = ||p_hat_i - p_hat_j|| - ||p_i - p_j|| over all pairs (frame-free: unchanged by
+  any rigid motion of the estimate), mean |.| and max |.|.
 Segments are boolean masks keyed by name (``init``, ``refine``, ``localize``, ``all``).
 """
 
@@ -13,9 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.lie import log_so3
-
-SEGMENT_IDS = {"init": 0, "refine": 1, "localize": 2}
+from pipeline.core.geometry import log_so3
+from pipeline.core.names import SEGMENT_IDS
 
 
 def position_errors(p_est: np.ndarray, p_gt: np.ndarray) -> np.ndarray:
@@ -91,6 +93,9 @@ class AnchorErrors:
 
     per_anchor: dict[str, dict[str, float]] = field(default_factory=dict)
     mean_m: float = float("nan")
+    max_m: float = float("nan")
+    mean_horizontal_m: float = float("nan")
+    max_horizontal_m: float = float("nan")
     mean_abs_beta: float = float("nan")
     mean_abs_gamma: float = float("nan")
     missing: list[str] = field(default_factory=list)
@@ -106,8 +111,8 @@ def anchor_errors(estimates: Mapping, truth: Mapping) -> AnchorErrors:
     """Anchor errors for anchors present in both mappings.
 
     Both map anchor id -> ``{"position": [x, y, z], "beta": b, "gamma": g}`` (beta/gamma optional) or a plain
-    3-vector; ids are compared as strings. Keys of ``per_anchor[id]``: ``error_m``, ``error_xyz`` (3 floats) and,
-    when both sides have them, ``beta_error``, ``gamma_error``.
+    3-vector; ids are compared as strings. Keys of ``per_anchor[id]``: ``error_m``, ``error_horizontal_m``,
+    ``error_xyz`` (3 floats) and, when both sides have them, ``beta_error``, ``gamma_error``.
     """
     est = {str(k): v for k, v in estimates.items()}
     tru = {str(k): v for k, v in truth.items()}
@@ -115,7 +120,11 @@ def anchor_errors(estimates: Mapping, truth: Mapping) -> AnchorErrors:
     errs, beta_err, gamma_err = [], [], []
     for aid in sorted(set(est) & set(tru), key=lambda s: (len(s), s)):
         d = _anchor_pos(est[aid]) - _anchor_pos(tru[aid])
-        row: dict = {"error_m": float(np.linalg.norm(d)), "error_xyz": d.tolist()}
+        row: dict = {
+            "error_m": float(np.linalg.norm(d)),
+            "error_horizontal_m": float(np.linalg.norm(d[:2])),
+            "error_xyz": d.tolist(),
+        }
         errs.append(row["error_m"])
         for key, acc in (("beta", beta_err), ("gamma", gamma_err)):
             e, t = est[aid], tru[aid]
@@ -129,9 +138,38 @@ def anchor_errors(estimates: Mapping, truth: Mapping) -> AnchorErrors:
                 acc.append(abs(row[f"{key}_error"]))
         out.per_anchor[aid] = row
     if errs:
-        out.mean_m = float(np.mean(errs))
+        out.mean_m, out.max_m = float(np.mean(errs)), float(np.max(errs))
+        horiz = [r["error_horizontal_m"] for r in out.per_anchor.values()]
+        out.mean_horizontal_m, out.max_horizontal_m = float(np.mean(horiz)), float(np.max(horiz))
     if beta_err:
         out.mean_abs_beta = float(np.mean(beta_err))
     if gamma_err:
         out.mean_abs_gamma = float(np.mean(gamma_err))
+    return out
+
+
+@dataclass
+class DistanceErrors:
+    """Inter-anchor distance errors: ``per_pair["i-j"]`` = estimated - true distance [m] (i < j by id order)."""
+
+    per_pair: dict[str, float] = field(default_factory=dict)
+    mean_abs_m: float = float("nan")
+    max_abs_m: float = float("nan")
+
+
+def inter_anchor_distance_errors(estimates: Mapping, truth: Mapping) -> DistanceErrors:
+    """Distance errors over all pairs of anchors present in both mappings (same forms as `anchor_errors`).
+    Frame-free: a rotation, translation or reflection of the estimates leaves them unchanged."""
+    est = {str(k): v for k, v in estimates.items()}
+    tru = {str(k): v for k, v in truth.items()}
+    ids = sorted(set(est) & set(tru), key=lambda s: (len(s), s))
+    out = DistanceErrors()
+    if len(ids) < 2:
+        return out
+    E = np.stack([_anchor_pos(est[a]) for a in ids])
+    T = np.stack([_anchor_pos(tru[a]) for a in ids])
+    i, j = np.triu_indices(len(ids), 1)
+    err = np.linalg.norm(E[i] - E[j], axis=1) - np.linalg.norm(T[i] - T[j], axis=1)
+    out.per_pair = {f"{ids[a]}-{ids[b]}": float(e) for a, b, e in zip(i, j, err, strict=True)}
+    out.mean_abs_m, out.max_abs_m = float(np.mean(np.abs(err))), float(np.max(np.abs(err)))
     return out

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import polars as pl
 
-from convert.atomic import write_text_atomic
-from convert.errors import InputError
+from pipeline.core.atomic import write_text_atomic
+from pipeline.core.errors import InputError
 
 FORMATS = {"md": ".md", "csv": ".csv", "latex": ".tex"}
 

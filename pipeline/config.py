@@ -9,14 +9,13 @@ from typing import Any, Literal
 import tomli_w
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from convert.errors import InputError
+from pipeline.core.errors import InputError
+from pipeline.core.names import STAGES
 
+from .core.noise import OdometryFilterConfig
 from .frontend import FrontendConfig
 from .msckf import VioConfig
-from .odometry_filter import OdometryFilterConfig
 from .uwb_filter import UwbConfig
-
-STAGES = ("frontend", "vio", "init", "refine", "localize", "evaluate")
 
 
 class RunSection(BaseModel):

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from convert.simulator import SimConfig, simulate_to_file
+from evaluate.evaluation import evaluate_stage
 
 from .config import load_config
 from .run import Pipeline
@@ -16,9 +17,9 @@ def run_demo(output: Path, seed: int = 0, duration: float | None = None) -> str:
     recording = output / "recording.mcap"
     print(simulate_to_file(SimConfig(trajectory=None, seed=seed, duration=duration), recording))
     cfg = load_config(None, {"run": {"recording": str(recording.resolve())}})
-    pipe = Pipeline(cfg, output)
+    pipe = Pipeline(cfg, output, evaluate_stage)
     pipe.run()
-    text = getattr(pipe, "results_text", "")
+    text = pipe.results_text
     lines = [
         "",
         "results (metrics.json):",

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from .lie import rot_to_quat
+from .core.geometry import rot_to_quat
 
 if TYPE_CHECKING:
     from convert.recording import RecordingReader
@@ -66,8 +66,23 @@ class TrajectoryRecord:
 
 
 class Estimator(Protocol):
+    """Everything the stages use of a pose source (MSCKF VIO, external-odometry filter)."""
+
     state: State
     t_ns: int
+    # whether the estimator keeps pose probes (start_probes ... stop_probes) over the initialisation window, so
+    # that the anchors' initial covariance gets exact cross-covariances with the poses; False: the probe calls
+    # do nothing
+    keeps_probes: bool
+
+    @property
+    def warnings(self) -> list[str]: ...
+
+    def start_probes(self, period_s: float) -> None: ...
+
+    def add_probe(self) -> None: ...
+
+    def stop_probes(self, remove: bool = True) -> None: ...
 
     def run(
         self,

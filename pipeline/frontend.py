@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from convert.errors import InputError
+from pipeline.core.errors import InputError
 
 from .camera import Camera
 
@@ -481,7 +481,8 @@ def run_frontend(
 ) -> FrontendStats:
     """Read ``/cam0/image_raw``, write ``/cam0/features`` (ids + raw pixel uv) into a recording."""
     from convert.recording import META_CALIBRATION, TOPIC_CAM0, TOPIC_CAM1, RecordingWriter
-    from convert.sources import progress
+
+    from .core.progress import progress
 
     config = config or FrontendConfig()
     src = str(getattr(reader, "path", "recording"))

@@ -30,9 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convert.errors import InputError
+from pipeline.core.errors import InputError
 
-from .lie import exp_so3, jr_so3, skew
+from .core.geometry import exp_so3, jr_so3, skew
 from .state import ImuState
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -232,6 +232,6 @@ def propagate_static(x: ImuState, T: float, noise: ImuNoise, x_fej: ImuState | N
 
 def error_between(x: ImuState, y: ImuState) -> np.ndarray:
     """Error ``dx`` with ``y = x boxplus dx`` (right perturbation on R)."""
-    from .lie import log_so3
+    from .core.geometry import log_so3
 
     return np.concatenate([log_so3(x.R.T @ y.R), y.p - x.p, y.v - x.v, y.bg - x.bg, y.ba - x.ba])

@@ -30,12 +30,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.stats import chi2
 
-from convert.errors import InputError
+from pipeline.core.errors import InputError
 
 from .camera import Camera
+from .core.geometry import quat_slerp, quat_to_rot, skew
+from .core.topics import TOPIC_FEATURES, TOPIC_GT_IMU_BIAS, TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE
 from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
 from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
-from .lie import quat_slerp, quat_to_rot, skew
 from .state import ImuState, Pose, State, add_probe, ekf_update, remove_probes
 
 if TYPE_CHECKING:
@@ -44,14 +45,6 @@ if TYPE_CHECKING:
     from .runlog import RunLog
 
 _log = logging.getLogger(__name__)
-
-TOPIC_IMU = "/imu"
-TOPIC_FEATURES = "/cam0/features"
-TOPIC_RANGE = "/uwb/range"
-TOPIC_GT_POSE = "/groundtruth/pose"
-TOPIC_GT_IMU_BIAS = (
-    "/groundtruth/imu_bias"  # gyro bias as angular velocity, accelerometer bias as acceleration
-)
 
 
 class VioConfig(BaseModel):
@@ -361,6 +354,8 @@ def groundtruth_state(reader: RecordingReader, t0_ns: int) -> ImuState:
 
 class MsckfEstimator:
     """The MSCKF pose source (Estimator protocol)."""
+
+    keeps_probes = True
 
     def __init__(
         self,

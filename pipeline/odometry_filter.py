@@ -35,15 +35,22 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
-from convert.errors import InputError
-
+from .core.errors import InputError
+from .core.geometry import (
+    compose,
+    compose_jacobians,
+    exp_so3_rodrigues,
+    log_so3_one,
+    quat_to_rot,
+    relative,
+    se3_interpolate,
+)
+from .core.noise import NOISE_KEYS, OdometryFilterConfig, increment_noise
 from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
-from .lie import log_so3, quat_to_rot
 from .state import Pose, State
 
 if TYPE_CHECKING:
@@ -56,37 +63,6 @@ _log = logging.getLogger(__name__)
 IMU = "imu"
 # nav_msgs/Odometry pose covariance order (x, y, z, rx, ry, rz) -> ours (dtheta, dp)
 _ROS_TO_OURS = np.r_[3:6, 0:3]
-
-
-class OdometryFilterConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    topic: str = "/odometry"
-    sigma_p_per_sqrt_m: float = Field(
-        0.02, ge=0, description="position random walk per metre travelled [m/√m]"
-    )
-    sigma_theta_per_sqrt_rad: float = Field(
-        0.01, ge=0, description="rotation random walk per radian rotated [rad/√rad]"
-    )
-    sigma_theta_per_sqrt_m: float = Field(
-        0.002, ge=0, description="rotation random walk per metre travelled [rad/√m]"
-    )
-    sigma_p_per_sqrt_s: float = Field(0.002, ge=0, description="position noise floor over time [m/√s]")
-    sigma_theta_per_sqrt_s: float = Field(0.0005, ge=0, description="rotation noise floor over time [rad/√s]")
-    initial_sigma_p: float = Field(0.01, gt=0, description="initial position sigma [m]")
-    initial_sigma_theta_deg: float = Field(0.5, gt=0, description="initial orientation sigma [deg]")
-    initial_from_message: bool = Field(
-        False, description="take the initial covariance from the first message instead of the sigmas"
-    )
-    gap_warn_s: float = Field(1.0, gt=0, description="warn about odometry gaps longer than this")
-    error_model: Literal["auto", "drift", "bounded"] = Field(
-        "auto",
-        description="drift: random walk (odometry); bounded: Gauss-Markov around a SLAM output in the world "
-        "frame; auto: calibration odometry.error_model, else drift",
-    )
-    correlation_time_s: float | None = Field(
-        None, gt=0, description="bounded model: error correlation time [s]; default calibration or 10 s"
-    )
 
 
 @dataclass
@@ -121,108 +97,8 @@ class OdometryStats:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# pure math
+# pure math (the SE(3) helpers live in core.geometry)
 # ---------------------------------------------------------------------------------------------------------------
-def _hat(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _so3_log(R: np.ndarray) -> np.ndarray:
-    """Scalar SO(3) log (the vectorised `lie.log_so3` costs ~0.2 ms per call; this runs per message)."""
-    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
-    if c < -0.99:  # near pi the axis needs the symmetric part
-        return log_so3(R)
-    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    s = math.sqrt(v @ v)
-    theta = math.atan2(s, c)
-    return v * (theta / s if s > 1e-12 else 1.0 + theta * theta / 6.0)
-
-
-def _exp(w: np.ndarray) -> np.ndarray:
-    th2 = float(w @ w)
-    K = _hat(w)
-    if th2 < 1e-14:
-        return np.eye(3) + K + 0.5 * K @ K
-    th = math.sqrt(th2)
-    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th2) * (K @ K)
-
-
-def _left_jacobian(w: np.ndarray, inverse: bool = False) -> np.ndarray:
-    """SO(3) left Jacobian V(w) (= Jr(-w)) or its inverse: the SE(3) translation map p = V u."""
-    th2 = float(w @ w)
-    K = _hat(w)
-    th = math.sqrt(th2)
-    if inverse:
-        c = (
-            1.0 / 12.0 + th2 / 720.0
-            if th < 1e-4
-            else 1.0 / th2 - (1.0 + math.cos(th)) / (2.0 * th * math.sin(th))
-        )
-        return np.eye(3) - 0.5 * K + c * (K @ K)
-    if th < 1e-4:
-        a, b = 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
-    else:
-        a, b = (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
-    return np.eye(3) + a * K + b * (K @ K)
-
-
-def se3_log(R: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Twist ``[w, u]`` with ``Exp([w, u]) = (R, p)`` (rotation first, like our error ordering)."""
-    w = _so3_log(R)
-    return np.concatenate([w, _left_jacobian(w, inverse=True) @ p])
-
-
-def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    w, u = xi[0:3], xi[3:6]
-    return _exp(w), _left_jacobian(w) @ u
-
-
-def se3_interpolate(
-    R0: np.ndarray, p0: np.ndarray, R1: np.ndarray, p1: np.ndarray, s: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """``T0 Exp(s Log(T0^-1 T1))`` (constant-twist interpolation)."""
-    dR, dp = relative(R0, p0, R1, p1)
-    Rs, ps = se3_exp(s * se3_log(dR, dp))
-    return R0 @ Rs, p0 + R0 @ ps
-
-
-def relative(R0: np.ndarray, p0: np.ndarray, R1: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``T0^-1 T1``."""
-    return R0.T @ R1, R0.T @ (p1 - p0)
-
-
-def compose(R: np.ndarray, p: np.ndarray, dR: np.ndarray, dp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``T dT``."""
-    return R @ dR, p + R @ dp
-
-
-def compose_jacobians(R: np.ndarray, dR: np.ndarray, dp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Error Jacobians of ``T_new = T dT`` w.r.t. the pose error of T and the increment noise ``[n_theta, n_p]``
-    (``dR = dR_hat Exp(n_theta)``, ``dp = dp_hat + n_p``): ``dx_new = F dx + G n``."""
-    F = np.eye(6)
-    F[0:3, 0:3] = dR.T
-    F[3:6, 0:3] = -R @ _hat(dp)
-    G = np.zeros((6, 6))
-    G[0:3, 0:3] = np.eye(3)
-    G[3:6, 3:6] = R
-    return F, G
-
-
-def increment_noise(config: OdometryFilterConfig, dR: np.ndarray, dp: np.ndarray, dt: float) -> np.ndarray:
-    """Diagonal 6x6 covariance of the increment noise ``[n_theta, n_p]`` (see the module docstring)."""
-    c = config
-    angle = math.acos(max(-1.0, min(1.0, 0.5 * (dR[0, 0] + dR[1, 1] + dR[2, 2] - 1.0))))
-    dist = math.sqrt(float(dp @ dp))
-    dt = max(dt, 0.0)
-    q_th = (
-        c.sigma_theta_per_sqrt_rad**2 * angle
-        + c.sigma_theta_per_sqrt_m**2 * dist
-        + c.sigma_theta_per_sqrt_s**2 * dt
-    )
-    q_p = c.sigma_p_per_sqrt_m**2 * dist + c.sigma_p_per_sqrt_s**2 * dt
-    return np.diag([q_th] * 3 + [q_p] * 3)
-
-
 def bounded_step(
     R_ref: np.ndarray,
     p_ref: np.ndarray,
@@ -237,9 +113,9 @@ def bounded_step(
     (``[dtheta_body, dp]``: dtheta' = phi dR^T dtheta, dp' = phi dp; no position-from-attitude coupling, the SLAM
     error does not accumulate)."""
     dR = R_ref.T @ R_odom
-    theta = _so3_log(R_ref.T @ R_x)  # body-frame offset of the estimate at the reference stamp
+    theta = log_so3_one(R_ref.T @ R_x)  # body-frame offset of the estimate at the reference stamp
     theta_new = phi * (dR.T @ theta)
-    R_new = R_odom @ _exp(theta_new)
+    R_new = R_odom @ exp_so3_rodrigues(theta_new)
     p_new = p_odom + phi * (p_x - p_ref)
     F = np.zeros((6, 6))
     F[0:3, 0:3] = phi * dR.T
@@ -292,17 +168,6 @@ def resolve_error_model(config: OdometryFilterConfig, calibration: dict | None) 
     return model, tau
 
 
-NOISE_KEYS = (
-    "sigma_p_per_sqrt_m",
-    "sigma_theta_per_sqrt_rad",
-    "sigma_theta_per_sqrt_m",
-    "sigma_p_per_sqrt_s",
-    "sigma_theta_per_sqrt_s",
-    "initial_sigma_p",
-    "initial_sigma_theta_deg",
-)
-
-
 def apply_calibration_noise(config: OdometryFilterConfig, calibration: dict | None) -> list[str]:
     """Take the drift sigmas the recording declares (calibration ``odometry.noise``, e.g. the simulator's) for
     every sigma the user did not set; returns the keys taken. Unknown keys are an error naming them."""
@@ -352,6 +217,8 @@ def fit_drift_noise(traj: dict[str, np.ndarray]) -> dict[str, float]:
 class OdometryEstimator:
     """External-odometry pose source (Estimator protocol); state variable ``"imu"`` is a `Pose`."""
 
+    keeps_probes = False  # the anchors' initial covariance comes without pose cross-terms
+
     def __init__(
         self,
         config: OdometryFilterConfig | None = None,
@@ -396,6 +263,15 @@ class OdometryEstimator:
 
     def history(self) -> TrajectoryRecord:
         return TrajectoryRecord(list(self._h_t), list(self._h_p), list(self._h_R), list(self._h_cov))
+
+    def start_probes(self, period_s: float) -> None:
+        """No probes (``keeps_probes`` is False)."""
+
+    def add_probe(self) -> None:
+        """No probes (``keeps_probes`` is False)."""
+
+    def stop_probes(self, remove: bool = True) -> None:
+        """No probes (``keeps_probes`` is False)."""
 
     @property
     def pose(self) -> Pose:
@@ -583,20 +459,3 @@ class OdometryEstimator:
                 getattr(log, method)(*args)
             except Exception as exc:  # logging never breaks the filter
                 _log.warning("runlog.%s failed: %s", method, exc)
-
-
-__all__ = [
-    "OdometryEstimator",
-    "OdometryFilterConfig",
-    "OdometryStats",
-    "clean_odometry",
-    "compose",
-    "compose_jacobians",
-    "bounded_step",
-    "increment_noise",
-    "resolve_error_model",
-    "relative",
-    "se3_exp",
-    "se3_interpolate",
-    "se3_log",
-]

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from convert.atomic import atomic_path
-from convert.errors import InputError
+from pipeline.core.atomic import atomic_path
+from pipeline.core.errors import InputError
 
 APP_ID = "uwbcal"
 RUN_KINDS = ("simulation", "euroc", "ntu-viral")

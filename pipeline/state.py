@@ -19,7 +19,7 @@ import numpy as np
 from scipy.linalg import qr
 from scipy.stats import chi2
 
-from .lie import exp_so3
+from .core.geometry import exp_so3
 
 
 @dataclass

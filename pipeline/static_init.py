@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from convert.errors import InputError
+from pipeline.core.errors import InputError
 
-from .lie import exp_so3
+from .core.geometry import exp_so3
 from .state import ImuState
 
 if TYPE_CHECKING:

@@ -18,10 +18,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.stats import chi2
 
-from convert.errors import InputError
+from pipeline.core.errors import InputError
 
-from .fim import DegenerateGeometryError
-from .lie import quat_slerp, quat_to_rot
+from .core.geometry import quat_slerp, quat_to_rot
+from .core.names import INIT_METHODS, REFINE_METHODS
 from .state import State, UpdateResult, Vec, ekf_update, probes, remove_probes
 from .uwb_init import InitResult, InitWindow, initialize_anchor
 from .uwb_model import jacobians, predict, range_variance
@@ -49,11 +49,11 @@ def anchor_var(anchor: Any) -> str:
 class UwbConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    init_method: Literal["auto", "lsi", "ri", "ri-robust"] = Field(
+    init_method: Literal[("auto", *INIT_METHODS)] = Field(
         "auto",
         description="auto: ri-robust on real recordings (NLOS is the rule there), ri (the paper's) on simulated",
     )
-    refine_method: Literal["ekf", "skf", "none"] = "skf"
+    refine_method: Literal[(*REFINE_METHODS, "none")] = "skf"
     sigma_range: float | None = Field(
         None, gt=0, description="range noise sigma [m]; default calibration or 0.1"
     )
@@ -617,85 +617,3 @@ class UwbUpdater:
             log.scalars(rl.uwb(a, "rejected"), t, arr["rejected"].astype(float))
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])
-
-
-# -----------------------------------------------------------------------------------------------------------------
-def init_rows(results: Mapping[Any, InitResult], stage: str = "init") -> list[dict]:
-    """Rows of anchors.csv (``anchor,method,stage,x,y,z,beta,gamma``) for the initialised anchors."""
-    return [
-        {
-            "anchor": str(a),
-            "method": r.method,
-            "stage": stage,
-            "x": float(r.x[0]),
-            "y": float(r.x[1]),
-            "z": float(r.x[2]),
-            "beta": float(r.x[3]),
-            "gamma": float(r.x[4]),
-        }
-        for a, r in results.items()
-        if r.ok
-    ]
-
-
-def init_summary(results: Mapping[Any, InitResult]) -> dict[str, dict]:
-    """Per anchor: status, estimate, sigmas, counts, residuals, FIM figures and warnings (for metrics.json)."""
-    out = {}
-    for a, r in results.items():
-        out[str(a)] = {
-            "method": r.method,
-            "status": r.status,
-            "estimate": [float(v) for v in r.x],
-            "sigma": [float(v) for v in np.sqrt(np.abs(np.diag(r.cov)))],
-            "iterations": r.iterations,
-            "n_used": r.n_used,
-            "n_rejected": r.n_rejected,
-            "residual_rms_m": r.residual_rms,
-            "residual_robust_sigma_m": r.residual_robust_sigma,
-            "fim": r.fim.summary() if r.fim is not None else None,
-            "warnings": list(r.warnings),
-        }
-    return out
-
-
-def log_init(log: RunLog | None, results: Mapping[Any, InitResult], t_ns: int) -> None:
-    """world/anchors/<id>/<method> points with 3-sigma ellipsoids, init/<method>/{cost,fim_logdet}, warnings."""
-    if log is None:
-        return
-    from . import runlog as rl
-
-    for a, r in results.items():
-        for msg in r.warnings:
-            log.text(msg, "WARN", t_ns)
-        if not r.ok:
-            continue
-        color = rl.COLORS.get(r.method)
-        log.points3d(
-            rl.anchor_world(a, r.method),
-            r.x[:3],
-            colors=[color] if color else None,
-            radii=0.15,
-            labels=[f"{a} {r.method}"],
-            t_ns=t_ns,
-        )
-        if np.all(np.isfinite(r.cov[:3, :3])):
-            log.ellipsoids(
-                rl.anchor_world(a, "cov"),
-                r.x[:3],
-                r.cov[None, :3, :3],
-                t_ns=t_ns,
-                colors=[color] if color else None,
-            )
-        if r.costs:
-            log.scalars(
-                rl.init(r.method, "cost"), np.full(len(r.costs), t_ns) + np.arange(len(r.costs)), r.costs
-            )
-        if r.fim is not None:
-            log.scalars(rl.init(r.method, "fim_logdet"), [t_ns], [r.fim.logdet])
-
-
-def check_results(results: Mapping[Any, InitResult]) -> None:
-    """Raise DegenerateGeometryError when an anchor was refused (for callers that prefer an exception)."""
-    refused = [r for r in results.values() if r.status == "refused"]
-    if refused:
-        raise DegenerateGeometryError("; ".join(m for r in refused for m in r.warnings if "refused" in m))

@@ -17,16 +17,14 @@ final cost wins.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from .core.names import INIT_METHODS
 from .fim import FimReport, assess_observability
-from .lie import exp_so3
 from .uwb_model import jacobians, range_variance, tag_positions
 
-METHODS_INIT = ("lsi", "ri", "ri-robust")
 _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
 _ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)
 OUTLIER_SIGMAS = 3.0
@@ -349,8 +347,8 @@ def initialize_anchor(
     many outliers) or "ok". ``correlation_block_s``: block length of the time-correlation check of the residuals
     (`noise_inflation`; None: off), whose kappa scales the range part of the covariance.
     """
-    if method not in METHODS_INIT:
-        raise ValueError(f"unknown init method {method!r}; one of {', '.join(METHODS_INIT)}")
+    if method not in INIT_METHODS:
+        raise ValueError(f"unknown init method {method!r}; one of {', '.join(INIT_METHODS)}")
     weighted = method != "lsi"
     robust = robust_loss if method == "ri-robust" else None
     w, warns = _clean(window, anchor)
@@ -480,104 +478,3 @@ def initialize_anchor(
             }
         )
     return res
-
-
-def lsi(window: InitWindow, **kw) -> InitResult:
-    return initialize_anchor(window, "lsi", **kw)
-
-
-def ri(window: InitWindow, **kw) -> InitResult:
-    return initialize_anchor(window, "ri", **kw)
-
-
-def ri_robust(window: InitWindow, **kw) -> InitResult:
-    return initialize_anchor(window, "ri-robust", **kw)
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# the ri-vs-lsi experiment (paper Fig. "init comparison")
-ANCHOR_RI_VS_LSI = np.array([10.0, 10.0, 10.0])
-
-
-def smooth_trajectory(
-    rng: np.random.Generator, t: np.ndarray, extent=(4.0, 4.0, 1.5), z0: float = 1.5, freq=(0.01, 0.08)
-):
-    """A smooth random 3-D flight (sum of sinusoids with frequencies in ``freq`` Hz) with yaw along the velocity
-    and small roll/pitch."""
-    p = np.zeros((len(t), 3))
-    for a, ext in enumerate(extent):
-        for _ in range(3):
-            f = rng.uniform(*freq)
-            p[:, a] += ext / 3 * np.sin(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))
-    p[:, 2] += z0
-    v = np.gradient(p, t, axis=0)
-    yaw = np.arctan2(v[:, 1], v[:, 0])
-    rp = 0.05 * np.sin(2 * np.pi * rng.uniform(0.05, 0.2, 2)[None, :] * t[:, None])
-    R = exp_so3(np.stack([rp[:, 0], rp[:, 1], np.zeros_like(t)], axis=1))
-    Rz = exp_so3(np.stack([np.zeros_like(t), np.zeros_like(t), yaw], axis=1))
-    return Rz @ R, p
-
-
-def simulate_window(
-    rng: np.random.Generator,
-    sigma_r: float,
-    *,
-    anchor: np.ndarray = ANCHOR_RI_VS_LSI,
-    gamma: float = 0.2,
-    sigma_d: float = 0.1,
-    duration_s: float = 60.0,
-    rate_hz: float = 10.0,
-    p_T: Sequence[float] = (0.1, 0.0, 0.05),
-) -> InitWindow:
-    """Ranges to one anchor from a random smooth flight; pose estimates with heteroscedastic, anisotropic errors.
-
-    The position error std at range k is sigma_r * f_k * a (f_k smooth in [0.2, 2], a per-axis anisotropy in
-    [0.3, 1.7]), the attitude error std 0.01 f_k rad; errors are drawn independently per range from the covariance
-    that is passed to the initialiser.
-    """
-    t = np.arange(0.0, duration_s, 1.0 / rate_hz)
-    R, p = smooth_trajectory(rng, t)
-    n = len(t)
-    f = 1.1 + 0.9 * np.sin(2 * np.pi * rng.uniform(0.02, 0.1) * t + rng.uniform(0, 2 * np.pi))
-    aniso = rng.uniform(0.3, 1.7, 3)
-    std = np.zeros((n, 6))
-    std[:, :3] = 0.01 * f[:, None]
-    std[:, 3:] = sigma_r * f[:, None] * aniso[None, :]
-    P = np.zeros((n, 6, 6))
-    P[:, np.arange(6), np.arange(6)] = std**2
-    err = rng.normal(size=(n, 6)) * std
-    R_hat = R @ exp_so3(err[:, :3])
-    p_hat = p + err[:, 3:]
-    pt = np.broadcast_to(np.asarray(p_T, float), (n, 3))
-    d = np.linalg.norm(p + np.einsum("nij,j->ni", R, np.asarray(p_T, float)) - anchor, axis=1) + gamma
-    d = d + rng.normal(0.0, sigma_d, n)
-    return InitWindow(d, pt, R_hat, p_hat, P, (t * 1e9).astype(np.int64))
-
-
-def ri_vs_lsi_sweep(
-    sigmas: Sequence[float],
-    runs: int = 50,
-    seed: int = 0,
-    methods: Sequence[str] = METHODS_INIT,
-    sigma_d: float = 0.1,
-    gamma_prior: tuple[float, float] | None = (0.0, 1.0),
-) -> dict:
-    """Anchor position error of each init method vs the localisation error sigma_r (seeded, reproducible).
-
-    Returns {"sigmas": (S,), "errors": {method: (S, runs)}, "gamma_errors": {...}}. Run r of sigma index s uses
-    the generator seeded (seed, s, r), identical across methods. The true gamma is 0.2 m; ``gamma_prior``
-    (mean, sigma) is the weak prior every method gets (without it the radial direction and gamma trade off and
-    far-away solutions appear at large sigma_r).
-    """
-    errors = {m: np.full((len(sigmas), runs), np.nan) for m in methods}
-    gerr = {m: np.full((len(sigmas), runs), np.nan) for m in methods}
-    for si, sr in enumerate(sigmas):
-        for r in range(runs):
-            w = simulate_window(np.random.default_rng([seed, si, r]), sr, sigma_d=sigma_d)
-            for m in methods:
-                res = initialize_anchor(
-                    w, m, sigma_range=sigma_d, gamma_prior=gamma_prior, n_perturbed=0, force=True
-                )
-                errors[m][si, r] = np.linalg.norm(res.x[:3] - ANCHOR_RI_VS_LSI)
-                gerr[m][si, r] = abs(res.x[4] - 0.2)
-    return {"sigmas": np.asarray(sigmas, float), "errors": errors, "gamma_errors": gerr}

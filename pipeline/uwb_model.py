@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .lie import skew
+from .core.geometry import skew
 
 
 @dataclass

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from convert.errors import InputError
+from pipeline.core.errors import InputError
 
 
 @dataclass(frozen=True)

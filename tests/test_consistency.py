@@ -19,8 +19,8 @@ import pytest
 from scipy.stats import chi2
 
 from convert.recording import RecordingReader, RecordingWriter
+from pipeline.core.geometry import exp_so3, log_so3, quat_to_rot, rot_to_quat
 from pipeline.estimator import TrajectoryRecord
-from pipeline.lie import exp_so3, log_so3, quat_to_rot, rot_to_quat
 from pipeline.msckf import MsckfEstimator, VioConfig, groundtruth_state
 from pipeline.odometry_filter import OdometryEstimator, OdometryFilterConfig
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from benchmarks.convert_bag import synthetic_image, write_euroc_bag
-from convert.errors import InputError
 from convert.euroc import EUROC_T_B_VICON, convert_euroc, read_groundtruth
 from convert.recording import RecordingReader
+from pipeline.core.errors import InputError
 
 
 def _micro(data_dir: Path) -> Path:

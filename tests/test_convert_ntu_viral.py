@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from benchmarks.convert_bag import synthetic_image
-from convert.errors import InputError
 from convert.ntu_viral import (
     PRISM_LEVER_ARM,
     UWB_RANGE_MSG,
@@ -20,6 +19,7 @@ from convert.ntu_viral import (
 )
 from convert.recording import RecordingReader
 from convert.sources import read_ranges_csv
+from pipeline.core.errors import InputError
 
 
 def _seq(data_dir: Path) -> Path:

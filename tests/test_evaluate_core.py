@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from convert.errors import InputError
 from evaluate import align as al
 from evaluate import consistency as cs
 from evaluate import metrics as mt
 from evaluate.association import associate, interpolate_positions, lever_point
-from pipeline.lie import exp_so3, quat_to_rot, rot_to_quat
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import exp_so3, quat_to_rot, rot_to_quat
 
 
 def _rand_rot(rng, n=None):

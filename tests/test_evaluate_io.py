@@ -9,12 +9,12 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from convert.errors import InputError
 from evaluate import diff as df_
 from evaluate import tables as tb
 from evaluate.export import GroundTruth, export_run, export_tum, format_stamps, load_run_trajectory
 from evaluate.metrics import prmse
-from pipeline.lie import exp_so3, quat_to_rot, rot_to_quat
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import exp_so3, quat_to_rot, rot_to_quat
 
 
 # -- tables --------------------------------------------------------------------------------------------------------

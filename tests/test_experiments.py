@@ -103,8 +103,8 @@ def test_anchor_nees_is_consistent_with_correctly_modelled_pose_noise(tmp_path):
 def test_experiment_overrides_are_parsed():
     import pytest
 
-    from convert.errors import InputError
     from evaluate.experiments import parse_overrides
+    from pipeline.core.errors import InputError
 
     assert parse_overrides("vio.max_clones=30; uwb.chi2_quantile=null;uwb.refine_method=ekf") == {
         "vio": {"max_clones": 30},

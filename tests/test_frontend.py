@@ -1,9 +1,10 @@
 import numpy as np
 import pytest
 
-from convert.errors import InputError
 from convert.recording import META_CALIBRATION, RecordingReader, RecordingWriter
 from pipeline.camera import Camera
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import exp_so3
 from pipeline.frontend import (
     FrontendConfig,
     KltFrontend,
@@ -12,7 +13,6 @@ from pipeline.frontend import (
     run_frontend,
     track_frames,
 )
-from pipeline.lie import exp_so3
 
 from support import T0
 

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
+from pipeline.core.geometry import exp_so3, skew
 from pipeline.imu import GRAVITY, ImuNoise, error_between, imu_intervals, propagate
-from pipeline.lie import exp_so3, skew
 from pipeline.state import ImuState
 
 NOISE = ImuNoise(1.7e-4, 2e-3, 1.9e-5, 3e-3, 200.0)

@@ -8,11 +8,11 @@ import pickle
 import numpy as np
 import pytest
 
-from convert.errors import InputError
 from convert.euroc import EUROC_CAMERAS, EUROC_IMU
 from convert.recording import META_CALIBRATION, META_TRUTH, RecordingReader, RecordingWriter
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import exp_so3, rot_to_quat
 from pipeline.imu import GRAVITY
-from pipeline.lie import exp_so3, rot_to_quat
 from pipeline.msckf import (
     FeatureDatabase,
     MsckfEstimator,

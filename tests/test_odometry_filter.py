@@ -3,21 +3,24 @@ import pickle
 import numpy as np
 import pytest
 
-from convert.errors import InputError
 from convert.recording import RecordingReader, RecordingWriter
-from pipeline.lie import exp_so3, log_so3, quat_to_rot, rot_to_quat, skew
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import (
+    compose,
+    exp_so3,
+    log_so3,
+    quat_to_rot,
+    relative,
+    rot_to_quat,
+    se3_interpolate,
+    skew,
+)
 from pipeline.odometry_filter import (
     OdometryEstimator,
     OdometryFilterConfig,
     OdometryStats,
     clean_odometry,
-    compose,
-    compose_jacobians,
     increment_noise,
-    relative,
-    se3_exp,
-    se3_interpolate,
-    se3_log,
 )
 from pipeline.state import Pose, ekf_update
 
@@ -102,42 +105,6 @@ def test_position_sigma_follows_random_walk_per_metre(tmp_path):
     est.run(rd, None, None)
     cov = est.history().arrays()["cov"][-1]
     assert cov[4, 4] > 2 * cov[3, 3]
-
-
-def test_compose_jacobians_finite_differences():
-    rng = np.random.default_rng(3)
-    R = exp_so3(rng.normal(size=3))
-    p = rng.normal(size=3)
-    dR = exp_so3(0.3 * rng.normal(size=3))
-    dp = rng.normal(size=3)
-    F, G = compose_jacobians(R, dR, dp)
-    R1, p1 = compose(R, p, dR, dp)
-    eps = 1e-6
-    for k in range(6):
-        dx = np.zeros(6)
-        dx[k] = eps
-        x = Pose(R, p).boxplus(dx)
-        Ra, pa = compose(x.R, x.p, dR, dp)
-        num = np.concatenate([log_so3(R1.T @ Ra), pa - p1]) / eps
-        assert np.allclose(num, F[:, k], atol=1e-5)
-        Rb, pb = compose(R, p, dR @ exp_so3(dx[0:3]), dp + dx[3:6])
-        num = np.concatenate([log_so3(R1.T @ Rb), pb - p1]) / eps
-        assert np.allclose(num, G[:, k], atol=1e-5)
-
-
-def test_se3_exp_log_round_trip_and_constant_twist_interpolation():
-    rng = np.random.default_rng(5)
-    xi = np.concatenate([0.8 * rng.normal(size=3), rng.normal(size=3)])
-    R, p = se3_exp(xi)
-    assert np.allclose(se3_log(R, p), xi, atol=1e-12)
-    # motion with a constant body twist: T(s) = T0 Exp(s xi); interpolation must be exact
-    R0, p0 = exp_so3(rng.normal(size=3)), rng.normal(size=3)
-    R1, p1 = compose(R0, p0, R, p)
-    for s in (0.0, 0.25, 0.5, 0.9, 1.0):
-        Rs, ps = compose(R0, p0, *se3_exp(s * xi))
-        Ri, pi = se3_interpolate(R0, p0, R1, p1, s)
-        assert _rot_err(Ri, Rs) < 1e-12
-        assert np.allclose(pi, ps, atol=1e-12)
 
 
 def test_range_stamps_are_interpolated(tmp_path):
@@ -276,21 +243,6 @@ def test_increment_noise_is_rate_independent():
     whole = increment_noise(cfg, dR, dp, 1.0)
     half = increment_noise(cfg, exp_so3(np.array([0.0, 0.0, 0.2])), dp / 2, 0.5)
     assert np.allclose(whole, 2 * half)
-
-
-@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-3, 0.5, 2.0, np.pi - 1e-3, np.pi - 1e-7])
-def test_fast_so3_helpers_match_lie(angle):
-    from pipeline.lie import jr_inv_so3, jr_so3
-    from pipeline.odometry_filter import _exp, _left_jacobian, _so3_log
-
-    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
-    w = angle * axis
-    R = exp_so3(w)
-    assert np.allclose(_exp(w), R, atol=1e-12)
-    assert np.allclose(exp_so3(_so3_log(R)), R, atol=1e-9)
-    assert np.allclose(_left_jacobian(w), jr_so3(-w), atol=1e-9)
-    if angle < 3.0:
-        assert np.allclose(_left_jacobian(w, inverse=True), jr_inv_so3(-w), atol=1e-9)
 
 
 # -- simulated odometry: drifts as the filter's drift model says -------------------------------------------------

@@ -11,6 +11,7 @@ import polars as pl
 import pytest
 
 from convert.ntu_viral import convert_ntu_viral
+from evaluate.evaluation import evaluate_stage
 from pipeline.config import load_config
 from pipeline.run import Pipeline
 
@@ -25,7 +26,7 @@ def test_default_run_matches_published_anchors(data_dir, tmp_path, seq, request)
         rec = tmp_path / f"{seq}.mcap"
         convert_ntu_viral(root / seq, rec)
     cfg = load_config(None, {"run": {"recording": str(rec), "log": False}})
-    pipe = Pipeline(cfg, tmp_path / "run")
+    pipe = Pipeline(cfg, tmp_path / "run", evaluate_stage)
     pipe.run(progress=lambda *_: None)
     resolved = pipe.dir.file("config.toml").read_text()
     assert 'init_method = "ri-robust"' in resolved and "init_window_s" in resolved

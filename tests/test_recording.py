@@ -7,7 +7,6 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from convert.errors import InputError
 from convert.recording import (
     META_CALIBRATION,
     TOPIC_CAM0,
@@ -20,6 +19,7 @@ from convert.recording import (
     RecordingReader,
     RecordingWriter,
 )
+from pipeline.core.errors import InputError
 
 from support import T0
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from convert.errors import InputError
 from pipeline import runlog as L
+from pipeline.core.errors import InputError
 
 from support import T0
 

@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 import pytest
 
-from convert.errors import InputError
 from convert.simulator import (
     SimConfig,
     camera_model,
@@ -17,7 +16,8 @@ from convert.simulator import (
     simulate_to_file,
 )
 from convert.trajectory import default_trajectory, load_groundtruth, load_trajectory
-from pipeline.lie import exp_so3, log_so3, quat_to_rot
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import exp_so3, log_so3, quat_to_rot
 
 NOISE_FREE_IMU = dict(
     gyro_noise_density=0.0, gyro_random_walk=0.0, acc_noise_density=0.0, acc_random_walk=0.0

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.lie import exp_so3, log_so3
+from pipeline.core.geometry import exp_so3, log_so3
 from pipeline.state import ImuState, Pose, State, Vec, ekf_update
 
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from evaluate.ri_vs_lsi import smooth_trajectory
+from pipeline.core.geometry import exp_so3, log_so3, rot_to_quat
 from pipeline.estimator import RangeMeasurement
-from pipeline.lie import exp_so3, log_so3, rot_to_quat
 from pipeline.state import Pose, State, Vec
 from pipeline.uwb_filter import (
     METHODS,
@@ -21,7 +22,6 @@ from pipeline.uwb_filter import (
     initialize_anchors,
     windows_from_trajectory,
 )
-from pipeline.uwb_init import smooth_trajectory
 
 ARMS = {(1, 0): np.array([0.2, 0.3, 0.0]), (1, 1): np.array([0.2, -0.3, 0.0])}
 CALIB = {
@@ -288,25 +288,24 @@ def test_windows_from_trajectory_interpolates():
 
 
 def test_log_and_summaries_write_an_rrd(tmp_path):
+    from evaluate.ri_vs_lsi import simulate_window
+    from pipeline.rundir import anchor_row, init_summary
     from pipeline.runlog import RunLog, read_rrd_summary
-    from pipeline.uwb_filter import init_rows, init_summary, log_init
-    from pipeline.uwb_init import simulate_window
 
     w = simulate_window(np.random.default_rng(0), 0.05)
     res = initialize_anchors(
         {5: w}, UwbConfig(init_method="lsi", n_perturbed_starts=0, estimate_beta=False), CALIB
     )
-    rows = init_rows(res)
-    assert rows[0]["anchor"] == "5" and rows[0]["method"] == "lsi" and rows[0]["beta"] == 1.0
-    summ = init_summary(res)
-    assert summ["5"]["fim"]["logdet"] > 0 and summ["5"]["n_used"] == len(w)
+    row = anchor_row(5, "lsi", "init", res[5].x)
+    assert row["anchor"] == "5" and row["method"] == "lsi" and float(row["beta"]) == 1.0
+    summ = init_summary(res[5])
+    assert summ["fim"]["logdet"] > 0 and summ["n_used"] == len(w)
     state = _state_with_anchor()
     upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
     for k in range(5):
         upd.update(state, RangeMeasurement(10 + k, 1, k % 2, 3, 6.0))
     path = tmp_path / "init.rrd"
     with RunLog(path, anchors=[3, 5]) as log:
-        log_init(log, res, 1_000)
         upd.log(log)
     assert path.is_file() and path.stat().st_size > 0
     assert read_rrd_summary(path) is not None

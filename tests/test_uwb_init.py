@@ -3,14 +3,11 @@
 import numpy as np
 import pytest
 
+from evaluate.ri_vs_lsi import ANCHOR_RI_VS_LSI, ri_vs_lsi_sweep, simulate_window, smooth_trajectory
 from pipeline.uwb_init import (
-    ANCHOR_RI_VS_LSI,
     InitWindow,
     initialize_anchor,
     multilateration,
-    ri_vs_lsi_sweep,
-    simulate_window,
-    smooth_trajectory,
     solve_from,
 )
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from pipeline.lie import exp_so3
+from pipeline.core.geometry import exp_so3
 from pipeline.uwb_model import jacobians, predict, range_variance
 
 

@@ -190,3 +190,88 @@ def quat_slerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
     w1 = np.where(small, s, np.sin(s * theta) / sin_t)
     q = w0 * q0 + w1 * q1
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# SE(3): poses (R, p), twists [w, u] (rotation first, like the error ordering)
+# ---------------------------------------------------------------------------------------------------------------
+def log_so3_one(R: np.ndarray) -> np.ndarray:
+    """SO(3) log of one matrix in scalar arithmetic (`log_so3` is vectorised and slower on one matrix)."""
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    if c < -0.99:  # near pi the axis needs the symmetric part
+        return log_so3(R)
+    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s = math.sqrt(v @ v)
+    theta = math.atan2(s, c)
+    return v * (theta / s if s > 1e-12 else 1.0 + theta * theta / 6.0)
+
+
+def exp_so3_rodrigues(w: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula in matrix form for one (3,) vector (the odometry filter's arithmetic)."""
+    th2 = float(w @ w)
+    K = skew(w)
+    if th2 < 1e-14:
+        return np.eye(3) + K + 0.5 * K @ K
+    th = math.sqrt(th2)
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th2) * (K @ K)
+
+
+def left_jacobian_so3(w: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """SO(3) left Jacobian V(w) (= Jr(-w)) or its inverse: the SE(3) translation map p = V u."""
+    th2 = float(w @ w)
+    K = skew(w)
+    th = math.sqrt(th2)
+    if inverse:
+        c = (
+            1.0 / 12.0 + th2 / 720.0
+            if th < 1e-4
+            else 1.0 / th2 - (1.0 + math.cos(th)) / (2.0 * th * math.sin(th))
+        )
+        return np.eye(3) - 0.5 * K + c * (K @ K)
+    if th < 1e-4:
+        a, b = 0.5 - th2 / 24.0, 1.0 / 6.0 - th2 / 120.0
+    else:
+        a, b = (1.0 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def se3_log(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Twist ``[w, u]`` with ``Exp([w, u]) = (R, p)`` (rotation first, like our error ordering)."""
+    w = log_so3_one(R)
+    return np.concatenate([w, left_jacobian_so3(w, inverse=True) @ p])
+
+
+def se3_exp(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    w, u = xi[0:3], xi[3:6]
+    return exp_so3_rodrigues(w), left_jacobian_so3(w) @ u
+
+
+def se3_interpolate(
+    R0: np.ndarray, p0: np.ndarray, R1: np.ndarray, p1: np.ndarray, s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``T0 Exp(s Log(T0^-1 T1))`` (constant-twist interpolation)."""
+    dR, dp = relative(R0, p0, R1, p1)
+    Rs, ps = se3_exp(s * se3_log(dR, dp))
+    return R0 @ Rs, p0 + R0 @ ps
+
+
+def relative(R0: np.ndarray, p0: np.ndarray, R1: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``T0^-1 T1``."""
+    return R0.T @ R1, R0.T @ (p1 - p0)
+
+
+def compose(R: np.ndarray, p: np.ndarray, dR: np.ndarray, dp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``T dT``."""
+    return R @ dR, p + R @ dp
+
+
+def compose_jacobians(R: np.ndarray, dR: np.ndarray, dp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Error Jacobians of ``T_new = T dT`` w.r.t. the pose error of T and the increment noise ``[n_theta, n_p]``
+    (``dR = dR_hat Exp(n_theta)``, ``dp = dp_hat + n_p``): ``dx_new = F dx + G n``."""
+    F = np.eye(6)
+    F[0:3, 0:3] = dR.T
+    F[3:6, 0:3] = -R @ skew(dp)
+    G = np.zeros((6, 6))
+    G[0:3, 0:3] = np.eye(3)
+    G[3:6, 3:6] = R
+    return F, G

@@ -1,0 +1,234 @@
+"""Anchor estimates of a run against the recording's anchor truth (simulated, surveyed or published).
+
+Reads ``anchors.csv`` (an anchor the run could not determine is a row with empty ``x,y,z``; its reason comes from
+an optional ``reason`` column, else from ``init.json``), the covariances (``anchor_states.json`` after refinement,
+else the chosen initialiser's ``cov`` in ``init.json``) and ``uwbcal.truth``. Produces the ``metrics.json`` parts:
+
+- ``anchors[<id>]``: ``estimate``, ``beta``, ``gamma``, ``method``, ``determined`` and, against truth,
+  ``error_m`` (3-D), ``error_horizontal_m``, ``error_xyz``, ``sigma_xyz`` (1σ from the covariance),
+  ``z_error_sigmas`` (|z error| / σz), ``nees_position`` (3 dof); undetermined anchors: ``determined: false``,
+  ``reason`` and no estimate or error.
+- ``anchor_truth``: ``kind``, ``reference``, ``n_truth``, ``n_estimated``, ``error_3d_m`` / ``error_horizontal_m``
+  ``{mean, max}``, ``inter_anchor_distance_error_m`` ``{pairs, mean_abs, max_abs, per_pair}`` (frame-free),
+  ``not_determined`` ``{id: reason}``, ``missing`` (truth anchors the run neither estimated nor declared).
+- ``nees_anchor_position``: ANEES of the anchor positions over the anchors with a covariance, with the χ² bounds
+  of a mean of that many 3-dof values (``consistency.chi2_bounds(n, 3)``).
+When the truth is not in the run's frame (``anchors_frame`` not odometry/world), only the frame-free distances
+are reported.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from convert.anchor_truth import POSE_FRAMES
+from convert.datasets import data_root
+from convert.recording import RecordingReader
+
+from .consistency import anchor_nees, chi2_bounds
+from .metrics import anchor_errors, inter_anchor_distance_errors
+
+
+@dataclass
+class AnchorReference:
+    anchors: dict[str, dict]  # id -> {"position": [x, y, z], "beta"?, "gamma"?}
+    kind: str  # simulated | surveyed | published
+    label: str  # for results.md / metrics.json "anchor_reference"
+    same_frame: bool  # absolute errors are meaningful (truth in the run's world frame)
+
+
+def reference_anchors(reader: RecordingReader) -> AnchorReference | None:
+    """``uwbcal.truth`` anchors; for NTU-VIRAL recordings converted without them, the published anchors of the
+    sequence's site from ``<data>/ntu_viral/published_anchors.csv`` (SLICT frame)."""
+    truth = reader.truth
+    if truth and truth.get("anchors"):
+        kind = str(truth.get("kind", "simulated"))
+        frame = str(truth.get("anchors_frame", "world"))
+        label = kind
+        if truth.get("anchors_file"):
+            label += f" ({Path(truth['anchors_file'].get('path', '')).name})"
+        return AnchorReference(
+            {str(k): v for k, v in truth["anchors"].items()}, kind, label, frame in POSE_FRAMES
+        )
+    src = reader.source
+    seq = str(src.get("sequence", ""))
+    if "ntu" in str(src.get("dataset", "")).lower() and seq:
+        import polars as pl
+
+        site = seq.split("_")[0]
+        path = data_root() / "ntu_viral" / "published_anchors.csv"
+        if path.is_file():
+            rows = pl.read_csv(path).filter(pl.col("site") == site)
+            if len(rows):
+                anchors = {
+                    str(r["anchor"]): {"position": [r["x"], r["y"], r["z"]]}
+                    for r in rows.iter_rows(named=True)
+                }
+                same = "/odometry" in reader.topics()
+                return AnchorReference(anchors, "published", f"published ({path.name}, site {site})", same)
+    return None
+
+
+@dataclass
+class RunAnchors:
+    estimates: dict[str, dict] = field(default_factory=dict)  # id -> position, beta, gamma, method
+    undetermined: dict[str, dict] = field(default_factory=dict)  # id -> {"reason", "method"}
+    states: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # id -> (x, P), p_a first
+
+
+def _number(text: str | None) -> float:
+    try:
+        return float(text) if text not in (None, "") else float("nan")
+    except ValueError:
+        return float("nan")
+
+
+def _key(s: str) -> tuple[int, str]:
+    return (len(s), s)
+
+
+def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
+    """The run's calibrated anchors (refine rows, else the chosen initialiser's), its undetermined anchors with
+    their reasons, and the covariance of each estimate where one was saved."""
+    run_dir = Path(run_dir)
+    out = RunAnchors()
+    path = run_dir / "anchors.csv"
+    rows = []
+    if path.is_file():
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    refine = [r for r in rows if r.get("stage") == "refine"]
+    init = [r for r in rows if r.get("stage") == "init" and r.get("method") == init_method]
+    init_json = run_dir / "init.json"
+    init_info = json.loads(init_json.read_text()) if init_json.is_file() else {}
+    chosen = init_info.get("methods", {}).get(init_info.get("chosen", init_method), {})
+    for r in (refine or init) + (init if refine else []):
+        aid = str(r["anchor"])
+        if aid in out.estimates or aid in out.undetermined:
+            continue
+        xyz = np.array([_number(r.get(c)) for c in ("x", "y", "z")])
+        if np.isfinite(xyz).all():
+            out.estimates[aid] = {
+                "position": xyz.tolist(),
+                "beta": _number(r.get("beta")),
+                "gamma": _number(r.get("gamma")),
+                "method": r.get("method", ""),
+            }
+        else:
+            out.undetermined[aid] = {"reason": r.get("reason") or "", "method": r.get("method", "")}
+    for aid, info in chosen.items():  # initialiser verdicts: refused / skipped anchors have no row at all
+        if (
+            aid not in out.estimates
+            and aid not in out.undetermined
+            and info.get("status") not in ("ok", "warning")
+        ):
+            out.undetermined[aid] = {"reason": "", "method": info.get("method", init_info.get("chosen", ""))}
+    for aid, u in out.undetermined.items():
+        if not u["reason"]:
+            info = chosen.get(aid, {})
+            parts = [info.get("reason") or info.get("status") or ""] + list(info.get("warnings", []))[:1]
+            u["reason"] = "; ".join(p for p in parts if p) or "not determined (no reason given by the run)"
+    states_path = run_dir / "anchor_states.json"
+    states = json.loads(states_path.read_text()) if states_path.is_file() else {}
+    for aid in out.estimates:
+        s = states.get(aid) if refine else None
+        if s is None and not refine and aid in chosen and chosen[aid].get("cov") is not None:
+            s = {"x": chosen[aid].get("x", chosen[aid].get("estimate")), "P": chosen[aid]["cov"]}
+        if s is not None and s.get("x") is not None and s.get("P") is not None:
+            x, P = np.asarray(s["x"], float), np.asarray(s["P"], float)
+            if P.ndim == 2 and P.shape[0] >= 3 and P.shape[0] == P.shape[1] and np.isfinite(P[:3, :3]).all():
+                out.states[aid] = (x, P)
+    return out
+
+
+def anchor_metrics(run: RunAnchors, ref: AnchorReference | None) -> tuple[dict, dict, list[str]]:
+    """(metrics["anchors"], the top-level anchor keys of metrics.json, warnings); see the module docstring."""
+    anchors: dict[str, dict] = {}
+    for aid, a in run.estimates.items():
+        anchors[aid] = {
+            "estimate": a["position"],
+            "beta": a["beta"],
+            "gamma": a["gamma"],
+            "method": a["method"],
+            "determined": True,
+        }
+        if aid in run.states:
+            P = run.states[aid][1]
+            anchors[aid]["sigma_xyz"] = np.sqrt(np.clip(np.diag(P)[:3], 0.0, None)).tolist()
+    for aid, u in run.undetermined.items():
+        anchors[aid] = {"determined": False, "reason": u["reason"], "method": u["method"]}
+    top: dict = {}
+    warns: list[str] = []
+    if ref is None:
+        return anchors, top, warns
+    truth = ref.anchors
+    summary: dict = {
+        "kind": ref.kind,
+        "reference": ref.label,
+        "n_truth": len(truth),
+        "n_estimated": sum(a in truth for a in run.estimates),
+        "not_determined": {
+            a: u["reason"] for a, u in sorted(run.undetermined.items(), key=lambda kv: _key(kv[0]))
+        },
+        "missing": sorted(set(truth) - set(run.estimates) - set(run.undetermined), key=_key),
+    }
+    dist = inter_anchor_distance_errors(run.estimates, truth)
+    if dist.per_pair:
+        summary["inter_anchor_distance_error_m"] = {
+            "pairs": len(dist.per_pair),
+            "mean_abs": dist.mean_abs_m,
+            "max_abs": dist.max_abs_m,
+            "per_pair": dist.per_pair,
+        }
+    if summary["missing"]:
+        warns.append(f"anchors not calibrated: {', '.join(summary['missing'])}")
+    if not ref.same_frame:
+        warns.append(
+            f"anchor truth ({ref.label}) is not in this run's frame: only inter-anchor distances are compared"
+        )
+        top["anchor_truth"] = summary
+        return anchors, top, warns
+    ae = anchor_errors(run.estimates, truth)
+    for aid, row in ae.per_anchor.items():
+        anchors[aid].update(row)
+        sig = anchors[aid].get("sigma_xyz")
+        if sig is not None and sig[2] > 0:
+            anchors[aid]["z_error_sigmas"] = abs(row["error_xyz"][2]) / sig[2]
+    if ae.per_anchor:
+        top["anchor_error_m"] = ae.mean_m
+        top["anchor_reference"] = ref.label
+        summary["error_3d_m"] = {"mean": ae.mean_m, "max": ae.max_m}
+        summary["error_horizontal_m"] = {"mean": ae.mean_horizontal_m, "max": ae.max_horizontal_m}
+    if np.isfinite(ae.mean_abs_beta):
+        top["beta_error"] = ae.mean_abs_beta
+    if np.isfinite(ae.mean_abs_gamma):
+        top["gamma_error"] = ae.mean_abs_gamma
+    vals = []
+    for aid, (x, P) in run.states.items():
+        if aid not in truth:
+            continue
+        p_true = np.asarray(truth[aid]["position"], float)
+        v = float(anchor_nees(x[:3], P[:3, :3], p_true))
+        if np.isfinite(v):
+            anchors[aid]["nees_position"] = v
+            vals.append(v)
+        t = truth[aid]
+        if (
+            ref.kind == "simulated" and len(x) == 5 and P.shape == (5, 5)
+        ):  # (p_a, beta, gamma) with known truth
+            full = np.r_[p_true, t.get("beta", 1.0), t.get("gamma", 0.0)]
+            anchors[aid]["nees"] = float(anchor_nees(x, P, full))
+    if vals:
+        top["nees_anchor_position"] = {
+            "mean": float(np.mean(vals)),
+            "dof": 3,
+            "n_runs": len(vals),
+            "bounds": list(chi2_bounds(len(vals), 3)),
+        }
+    top["anchor_truth"] = summary
+    return anchors, top, warns

@@ -1,0 +1,221 @@
+"""What every stage is given: the config, the run directory, the recording, and the helpers stages share.
+
+A stage reads the recording and the artefacts of the stages before it (never in-memory state), writes its own
+artefacts atomically (`rundir`) and its own rerun log; the context only resolves what all stages agree on
+(windows, pose source, the estimator, the reader the estimator consumes).
+"""
+
+from __future__ import annotations
+
+import logging
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from convert.recording import MergedReader, RecordingReader
+from pipeline.core.errors import InputError
+from pipeline.core.names import STAGE_NUMBER
+from pipeline.core.topics import (
+    TOPIC_CAM0,
+    TOPIC_FEATURES,
+    TOPIC_GT_POSE,
+    TOPIC_GT_POSITION,
+    TOPIC_IMU,
+    TOPIC_ODOM,
+    TOPIC_RANGE,
+)
+
+from .. import rundir as rd
+from .. import runlog as rl
+from ..config import PipelineConfig
+from ..estimator import Estimator
+from ..windows import Windows, split_windows
+
+_log = logging.getLogger(__name__)
+
+# the evaluation (a layer above the stages) handed to the evaluate stage: (run dir, align, open the stage's
+# rerun log) -> the results text
+Evaluator = Callable[[Path, str | None, Callable[[], "rl.RunLog"]], str]
+
+
+@dataclass
+class StageResult:
+    stage: str
+    summary: str
+    warnings: list[str] = field(default_factory=list)
+    wall_s: float = 0.0
+
+
+class StageContext:
+    def __init__(self, config: PipelineConfig, run_dir: Path, evaluator: Evaluator | None = None) -> None:
+        self.config = config
+        self.dir = rd.RunDir(run_dir)
+        self.recording = Path(config.run.recording)
+        self.evaluator = evaluator
+        self.stages = list(config.run.stages)  # this invocation's stages (Pipeline.run narrows it)
+        self.results_text = ""
+        self._reader: RecordingReader | None = None
+
+    @property
+    def reader(self) -> RecordingReader:
+        if self._reader is None:
+            self._reader = RecordingReader(self.recording)
+        return self._reader
+
+    def run_kind(self) -> str:
+        ds = str(self.reader.source.get("dataset", "simulation")).lower()
+        return "ntu-viral" if "ntu" in ds else ("euroc" if "euroc" in ds else "simulation")
+
+    def recording_id(self) -> str:
+        p = self.dir.file("recording_id.txt")
+        if not p.exists():
+            rd.write_text(p, uuid.uuid4().hex)
+        return p.read_text().strip()
+
+    def runlog(self, stage: str) -> rl.RunLog:
+        path = self.dir.stage_rrd(STAGE_NUMBER[stage], stage) if self.config.run.log else None
+        return rl.RunLog(
+            path,
+            recording_id=self.recording_id(),
+            run_kind=self.run_kind(),
+            enabled=self.config.run.log,
+            blueprint=False,
+        )
+
+    def windows(self) -> Windows:
+        topics = self.reader.topics()
+        if TOPIC_RANGE not in topics:
+            raise InputError(f"{self.recording}: no '{TOPIC_RANGE}' topic; UWB calibration needs ranges")
+        src = [t for t in (TOPIC_IMU, TOPIC_ODOM) if t in topics]
+        if not src:
+            raise InputError(f"{self.recording}: neither '{TOPIC_IMU}' nor '{TOPIC_ODOM}'; no pose source")
+        start = max(topics[TOPIC_RANGE].start_ns, min(topics[t].start_ns for t in src))
+        end = min(topics[TOPIC_RANGE].end_ns, max(topics[t].end_ns for t in src))
+        return split_windows(
+            start, end, self.config.run.init_window_s, self.config.run.refine_window_s, str(self.recording)
+        )
+
+    def resolve_auto(self) -> None:
+        """Recording-aware defaults, resolved before the config is written (so config.toml states them).
+
+        - ``uwb.init_method = "auto"``: ri-robust on real recordings, ri on simulated ones;
+        - odometry pose source: drift sigmas the recording declares (calibration ``odometry.noise``, e.g. the
+          simulator's odometry) for those the config does not set;
+        - windows, when not given and the poses come from an odometry with a *bounded* error (a SLAM output in
+          the world frame, calibration ``odometry.error_model = "bounded"``, e.g. NTU-VIRAL SLICT): the thirds
+          of the paper exist so that a drifting VIO is calibrated before it drifts; a bounded pose source does
+          not drift, and the anchors need most of the flight to be observed. Default: init over the first 2/3,
+          refine over the rest, no localisation segment.
+        """
+        from ..odometry_filter import apply_calibration_noise, resolve_error_model
+        from ..uwb_filter import auto_init_method
+
+        uwb = self.config.uwb
+        if uwb.init_method == "auto":
+            uwb.init_method = auto_init_method(self.reader.source.get("dataset"))  # type: ignore[assignment]
+        run = self.config.run
+        odometry = self.pose_source() == "odometry"
+        if odometry:
+            apply_calibration_noise(self.config.odometry, self.reader.calibration)
+        if run.init_window_s is None and run.refine_window_s is None and odometry:
+            model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
+            if model == "bounded":
+                win = self.windows()
+                span = (win.end_ns - win.start_ns) * 1e-9
+                run.init_window_s = round(span * 2.0 / 3.0, 3)
+                # refine to the end: the 1 s margin absorbs the rounding (split_windows clamps at the end)
+                run.refine_window_s = round(span - run.init_window_s + 1.0, 3)
+
+    def pose_source(self) -> str:
+        choice = self.config.run.pose_source
+        if choice != "auto":
+            return choice
+        topics = self.reader.topics()
+        has_vi = TOPIC_IMU in topics and (TOPIC_FEATURES in topics or TOPIC_CAM0 in topics)
+        return "msckf" if has_vi else "odometry"
+
+    def loose(self) -> bool:
+        """UWB stages on the VIO output instead of inside the MSCKF (``run.coupling = "loose"``)."""
+        return self.config.run.coupling == "loose" and self.pose_source() == "msckf"
+
+    def features_reader(self) -> RecordingReader:
+        """The reader the estimator consumes: the recording, with the frontend's tracks and (loose coupling) the
+        VIO output merged into it."""
+        extra = [
+            n for n in ("frontend.mcap",) + (("vio.mcap",) if self.loose() else ()) if self.dir.exists(n)
+        ]
+        if extra:
+            return MergedReader(self.reader, *(RecordingReader(self.dir.file(n)) for n in extra))
+        return self.reader
+
+    def make_estimator(self) -> Estimator:
+        if self.pose_source() == "msckf":
+            from ..msckf import MsckfEstimator
+
+            initial = cov = None
+            if not self.config.vio.init_from_groundtruth:  # real data without usable ground truth
+                from ..static_init import static_init_from_recording
+
+                res = static_init_from_recording(self.reader, start_ns=self.windows().start_ns)
+                _log.info("vio: static initialisation: %s", res)
+                initial, cov = res.state, res.P
+            return MsckfEstimator.from_recording(self.features_reader(), self.config.vio, initial, cov)
+        from ..odometry_filter import OdometryEstimator
+
+        return OdometryEstimator.from_recording(self.reader, self.config.odometry)
+
+    def assemble_trajectory(self) -> dict[str, np.ndarray]:
+        return rd.assemble_trajectory(self.dir, self.windows())
+
+    def anchor_errors(self, est: dict) -> str:
+        truth = (self.reader.truth or {}).get("anchors")
+        if not truth:
+            return ""
+        errs = [
+            np.linalg.norm(np.asarray(x)[:3] - np.asarray(truth[str(a)]["position"]))
+            for a, x in est.items()
+            if str(a) in truth
+        ]
+        return f"; mean anchor error {np.mean(errs):.3f} m" if errs else ""
+
+    # -- rerun logging shared by stages ----------------------------------------------------------------------------
+    def log_groundtruth(self, log: rl.RunLog) -> None:
+        if not log.enabled:
+            return
+        topics = self.reader.topics()
+        if TOPIC_GT_POSE in topics:
+            gt = self.reader.read_poses(TOPIC_GT_POSE)
+            step = max(1, len(gt.t_ns) // 4000)
+            log.trajectory(rl.GT, gt.t_ns[::step], gt.p[::step], gt.q_xyzw[::step])
+        elif TOPIC_GT_POSITION in topics:
+            gt = self.reader.read_positions(TOPIC_GT_POSITION)
+            log.trajectory(rl.GT, gt.t_ns, gt.p)
+        self.log_truth_anchors(log)
+
+    def log_truth_anchors(self, log: rl.RunLog) -> None:
+        truth = (self.reader.truth or {}).get("anchors") or {}
+        for a, t in truth.items():
+            log.points3d(
+                rl.anchor_world(a, "truth"),
+                np.asarray(t["position"])[None],
+                labels=[f"{a} truth"],
+                static=True,
+            )
+
+    def log_trajectory(self, log: rl.RunLog, what: str, hist: dict[str, np.ndarray]) -> None:
+        if not log.enabled or not len(hist.get("t_ns", [])):
+            return
+        entity = rl.VIO if what == "vio" else f"{rl.WORLD}/{what}"
+        log.trajectory(entity, hist["t_ns"], hist["p"], hist["q_xyzw"])
+        step = max(1, len(hist["t_ns"]) // 200)
+        log.ellipsoid_series(
+            f"{entity}/cov", hist["t_ns"][::step], hist["p"][::step], hist["cov"][::step, 3:6, 3:6]
+        )
+        log.scalars(
+            f"{rl.SIGMA}/{what}_position",
+            hist["t_ns"],
+            np.sqrt(np.maximum(np.trace(hist["cov"][:, 3:6, 3:6], axis1=1, axis2=2), 0.0)),
+        )

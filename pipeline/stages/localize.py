@@ -1,0 +1,36 @@
+"""Stage `localize` (paper stage 3): UWB-aided localisation with the refined anchors frozen."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import rundir as rd
+from .context import StageContext, StageResult
+
+
+def run(ctx: StageContext) -> StageResult:
+    from ..uwb_filter import UwbUpdater
+
+    win = ctx.windows()
+    if win.refine_end_ns >= win.end_ns:
+        return StageResult("localize", "no data left after refinement; skipped")
+    est = ctx.dir.load_pickle("checkpoint_refine.pkl", "localize")
+    states = ctx.dir.load_json("anchor_states.json")
+    anchors = {rd.anchor_key(a): np.asarray(s["x"]) for a, s in states.items()}
+    inflation = {rd.anchor_key(a): float(s.get("noise_inflation", 1.0)) for a, s in states.items()}
+    updater = UwbUpdater.from_config(
+        ctx.config.uwb, ctx.reader.calibration, mode="frozen", anchors=anchors, inflation=inflation
+    )
+    with ctx.runlog("localize") as log:
+        log.stage("localize", win.refine_end_ns)
+        est.run(ctx.features_reader(), win.refine_end_ns, win.end_ns, on_range=updater, log=log)
+        updater.log(log)
+        hist = est.history().arrays()
+        seg = hist["t_ns"] >= win.refine_end_ns
+        part = {k: v[seg] for k, v in hist.items()}
+        ctx.dir.save_npz("localize.npz", **part)
+        rd.write_odometry(ctx.dir, "localize.mcap", part)
+        traj = ctx.assemble_trajectory()
+        ctx.log_trajectory(log, "estimate", traj)
+    c = updater.counts
+    return StageResult("localize", f"frozen anchors: {c['accepted']} range updates, {c['rejected']} rejected")
