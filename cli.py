@@ -217,12 +217,55 @@ def convert_tabular(
     typer.echo(run(poses, ranges, output, antennas=antennas, anchors_truth=anchors_truth))
 
 
+@convert_app.command("bag")
+@_guard
+def convert_bag(
+    path: Annotated[Path, typer.Argument(help="ROS 1 .bag, ROS 2 .db3 / .mcap, or a ROS 2 bag folder")],
+    output: Output,
+    imu: Annotated[str | None, typer.Option(help="IMU topic (sensor_msgs/Imu).")] = None,
+    cam0: Annotated[str | None, typer.Option(help="First camera topic (Image / CompressedImage).")] = None,
+    cam1: Annotated[str | None, typer.Option(help="Second camera topic.")] = None,
+    uwb: Annotated[
+        list[str] | None, typer.Option(help="UWB range topic (repeatable); default: every UWB type found.")
+    ] = None,
+    odometry: Annotated[str | None, typer.Option(help="External odometry topic (nav_msgs/Odometry).")] = None,
+    groundtruth: Annotated[str | None, typer.Option(help="Ground-truth pose or position topic.")] = None,
+    antennas: Annotated[Path | None, typer.Option(help="Antenna lever-arm yaml.")] = None,
+    calibration: Annotated[
+        Path | None, typer.Option(help="Calibration yaml (imu, cameras, uwb, groundtruth, odometry).")
+    ] = None,
+) -> None:
+    """Convert any ROS 1 / ROS 2 bag (topics found by message type unless given)."""
+    from convert.bag import convert_bag as run
+
+    typer.echo(
+        run(
+            path,
+            output,
+            imu=imu,
+            cam0=cam0,
+            cam1=cam1,
+            uwb=uwb,
+            odometry=odometry,
+            groundtruth=groundtruth,
+            antennas=antennas,
+            calibration=calibration,
+        )
+    )
+
+
 @app.command()
 @_guard
-def info(recording: Annotated[Path, typer.Argument(help="A .mcap recording")]) -> None:
-    """Topics, counts, rates, duration, calibration and problems found."""
+def info(
+    recording: Annotated[Path, typer.Argument(help="A .mcap recording, or a ROS bag (what would be mapped)")],
+) -> None:
+    """Topics, counts, rates, duration, calibration and problems found (of a bag: the topic map)."""
+    from convert.bag import bag_info, is_bag
     from convert.info import recording_info
 
+    if is_bag(recording):
+        typer.echo(bag_info(recording))
+        return
     typer.echo(recording_info(recording).render())
 
 
@@ -273,9 +316,9 @@ def evaluate(
 def export(
     run_dir: Annotated[Path, typer.Argument(help="A run directory")],
     output: Output,
-    fmt: Annotated[str, typer.Option("--format", help="Only 'tum'.")] = "tum",
+    fmt: Annotated[str, typer.Option("--format", help="tum, anchors-yaml or anchors-json.")] = "tum",
 ) -> None:
-    """Export estimate.tum and groundtruth.tum (at the estimate's stamps)."""
+    """Export estimate.tum (+ groundtruth.tum at its stamps), or the anchors with covariance (yaml / json)."""
     from evaluate.export import export_run
 
     typer.echo(export_run(run_dir, output, fmt=fmt))

@@ -58,6 +58,12 @@ class InfoReport:
             )
             for f in src.get("files", []):
                 lines.append(f"           {f.get('path')}  sha256 {str(f.get('sha256', '?'))[:16]}")
+            for topic, acc in sorted((src.get("messages") or {}).items()):
+                role = acc.get("role") or "not mapped"
+                lines.append(
+                    f"  bag {topic} ({acc.get('type')}): {acc.get('count')} -> {role}, "
+                    f"{acc.get('converted')} converted, {acc.get('dropped')} dropped"
+                )
         lines += [
             "",
             f"{'topic':<24} {'type':<34} {'count':>8} {'rate Hz':>9} {'start s':>9} {'end s':>9} {'dur s':>8}",

@@ -8,7 +8,6 @@ decodes columns of many messages at once; the round-trip and independent-decoder
 
 from __future__ import annotations
 
-import re
 import struct
 from functools import cache
 from typing import Any
@@ -59,8 +58,10 @@ def typestore() -> Typestore:
 def schema_text(msgtype: str) -> str:
     """The ros2msg schema (main definition followed by every dependency) for MCAP."""
     text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
-    # name dependencies in full ("MSG: std_msgs/msg/Header"), as ROS 2 tooling does
-    return re.sub(r"^MSG: ([^/\s]+)/([^/\s]+)$", r"MSG: \1/msg/\2", text, flags=re.MULTILINE)
+    # dependencies named as the fields name them ("std_msgs/Header header" ... "MSG: std_msgs/Header"), as
+    # rosbag2's MCAP storage writes them: rerun's MCAP importer resolves a field only against that exact name
+    # (with "MSG: std_msgs/msg/Header" it keeps the channel as raw bytes); Foxglove and mcap_ros2 read both.
+    return text
 
 
 _CDR_LE = b"\x00\x01\x00\x00"  # CDR encapsulation header, little endian

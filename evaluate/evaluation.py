@@ -223,5 +223,6 @@ def evaluate_stage(run_dir: Path, align: str | None, open_log: Callable[[], RunL
                 ("nees_orientation", 3, f"{rl.FILTER}/nees_orientation"),
             ):
                 log.scalars(entity, series["t_ns"], series[key])
-                log.constant(f"{entity}_bounds", series["t_ns"], np.array(chi2_bounds(1, dof)), ["lo", "hi"])
+                bounds = np.array(chi2_bounds(1, dof))
+                log.constant(f"{entity}_bounds", series["t_ns"], bounds, ["χ² 2.5 %", "χ² 97.5 %"])
     return text

@@ -1,4 +1,5 @@
-"""Export a run's estimate and its ground truth as TUM files (``uwbcal export RUN --format tum -o DIR``).
+"""Export a run's estimate and its ground truth as TUM files (``uwbcal export RUN --format tum -o DIR``); the
+anchors formats live in `evaluate.anchors_export`.
 
 ``DIR/estimate.tum`` holds the estimate at the stamps where ground truth exists; ``DIR/groundtruth.tum`` the ground
 truth interpolated at those same stamps. When the ground truth is of a point on the body (lever arm, e.g. the
@@ -186,12 +187,29 @@ def export_tum(
     return est_path, gt_path, c
 
 
+FORMATS = ("tum", "anchors-yaml", "anchors-json")
+
+
 def export_run(run_dir: str | Path, output: str | Path, fmt: str = "tum") -> str:
-    """``uwbcal export``: write the TUM pair of a run directory; returns a one-paragraph summary."""
+    """``uwbcal export``: the TUM pair of a run (the estimate alone when the recording has no ground truth), or
+    its anchors (`evaluate.anchors_export`); returns a one-paragraph summary."""
+    if fmt not in FORMATS:
+        raise InputError(f"--format {fmt}: unsupported; choose one of {', '.join(FORMATS)}")
     if fmt != "tum":
-        raise InputError(f"--format {fmt}: unsupported; only 'tum' is available")
+        from .anchors_export import export_anchors
+
+        return export_anchors(run_dir, output, fmt)
     tr = load_run_trajectory(run_dir)
-    gt = load_ground_truth(run_recording_path(run_dir))
+    try:
+        gt = load_ground_truth(run_recording_path(run_dir))
+    except InputError as exc:
+        if "no ground truth" not in str(exc):
+            raise
+        est_path = Path(output) / "estimate.tum"
+        write_text_atomic(est_path, tum_text(tr.t_ns, tr.p, tr.q_xyzw))
+        return (
+            f"wrote {est_path}: {len(tr.t_ns)} poses (the recording has no ground truth: the estimate alone)"
+        )
     est_path, gt_path, c = export_tum(tr.t_ns, tr.p, tr.q_xyzw, gt, output)
     lines = [
         f"wrote {est_path} and {gt_path}: {len(c.t_ns)} poses "

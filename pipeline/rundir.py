@@ -82,7 +82,9 @@ class RunDir:
         from .runlog import merge_run_logs
 
         parts = sorted((self.path / LOGS).glob("*.rrd")) if (self.path / LOGS).is_dir() else []
-        return merge_run_logs(parts, self.path / RRD, run_kind) if parts else None
+        return (
+            merge_run_logs(parts, self.path / RRD, run_kind, name=self.path.resolve().name) if parts else None
+        )
 
 
 def write_text(path: Path, text: str) -> None:

@@ -11,6 +11,7 @@ A disabled `RunLog` (path None or enabled False, i.e. `--no-log`) returns from e
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import re
 import shutil
@@ -110,7 +111,56 @@ COLORS = {
     "gate": (150, 150, 150),
     "rejected": (255, 60, 60),
     "features": (255, 230, 80),
+    "world/estimate": (240, 110, 190),  # the UWB-aided trajectory (the anchor estimate itself is "estimate")
 }
+
+
+# 3-D markers of the initialisers (distinct shapes, explained by the legend instead of per-point labels)
+MARKERS = {"lsi": "box", "ri": "sphere", "ri-robust": "cross"}
+LEGEND = "legend"
+NIS_UWB = "filter/nis_uwb"
+VIO_NIS = "filter/vio"
+
+
+def legend_markdown(methods: Sequence[str] = ("lsi", "ri", "ri-robust")) -> str:
+    shape = {"box": "box", "sphere": "sphere", "cross": "cross"}
+    rows = [
+        "| marker | what |",
+        "|---|---|",
+        "| white sphere | true (simulated) or surveyed anchor |",
+        *(
+            f"| {_colour_name(m)} {shape[MARKERS.get(m, 'sphere')]} | {m.upper()} initialisation |"
+            for m in methods
+        ),
+        "| green sphere + wireframe | refined estimate with its 3σ ellipsoid (over time) |",
+        "| green / blue / pink lines | ground truth / VIO / UWB-aided trajectories |",
+    ]
+    return "\n".join(rows)
+
+
+def _colour_name(method: str) -> str:
+    return {"lsi": "orange", "ri": "blue", "ri-robust": "purple"}.get(method, "grey")
+
+
+def moving_nis(
+    t_ns: Any, nis: Any, dof: int = 1, window: int = 50
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Trailing mean of `window` NIS values (time-sorted) and the 95 % two-sided bounds of such a mean,
+    χ²(0.025, window·dof)/window and χ²(0.975, window·dof)/window."""
+    from scipy.stats import chi2
+
+    t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+    v = np.asarray(nis, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(v)
+    t, v = t[ok], v[ok]
+    o = np.argsort(t, kind="stable")
+    t, v = t[o], v[o]
+    if len(v) < window:
+        return t[:0], v[:0], float("nan"), float("nan")
+    c = np.concatenate([[0.0], np.cumsum(v)])
+    avg = (c[window:] - c[:-window]) / window
+    n = window * dof
+    return t[window - 1 :], avg, float(chi2.ppf(0.025, n) / window), float(chi2.ppf(0.975, n) / window)
 
 
 def _ts(t_ns: Any) -> np.ndarray:
@@ -196,8 +246,13 @@ class RunLog:
         enabled: bool = True,
         anchors: Iterable[object] = (),
         blueprint: bool = True,
+        time_origin_ns: int | None = None,
     ) -> None:
         self.path = Path(path) if path is not None else None
+        # sensor_time: real stamps (timestamp) by default; seconds from this origin (duration) when given, e.g. the
+        # start of a simulated recording (whose stamps start near the epoch and would read 1970-01-01)
+        self.time_origin_ns = time_origin_ns
+        self._seen: set[str] = set()
         self._send_blueprint = blueprint  # stage parts of a run leave it to merge_run_logs
         self.run_kind = run_kind if run_kind in RUN_KINDS else "simulation"
         self._anchors: dict[str, None] = {_part(a): None for a in anchors}
@@ -258,18 +313,26 @@ class RunLog:
         self.close(keep=False)
 
     # -- time --------------------------------------------------------------------------------------------------
+    def _time_kw(self, t_ns: Any) -> dict:
+        """``timestamp=`` (real stamps) or ``duration=`` (seconds from the time origin) for sensor_time."""
+        t = np.asarray(t_ns, dtype=np.int64)
+        if self.time_origin_ns is None:
+            return {"timestamp": t.astype("datetime64[ns]")}
+        return {"duration": (t - np.int64(self.time_origin_ns)).astype("timedelta64[ns]")}
+
     def _indexes(self, t_ns: np.ndarray) -> list:
         rr = self._rr
-        idx = [rr.TimeColumn(T_SENSOR, timestamp=_ts(t_ns))]
+        idx = [rr.TimeColumn(T_SENSOR, **self._time_kw(np.asarray(t_ns, dtype=np.int64).reshape(-1)))]
         if self._stage is not None:
             idx.append(rr.TimeColumn(T_STAGE, sequence=np.full(len(t_ns), self._stage, dtype=np.int64)))
         return idx
 
     def _set_time(self, t_ns: int | None) -> None:
         if t_ns is not None:
-            self._rec.set_time(T_SENSOR, timestamp=np.datetime64(int(t_ns), "ns"))
+            self._rec.set_time(T_SENSOR, **{k: v[()] for k, v in self._time_kw(int(t_ns)).items()})
 
     def _note(self, entity: str) -> None:
+        self._seen.add(entity)
         parts = entity.split("/")
         if len(parts) >= 3 and parts[0] in ("uwb", "anchors"):
             self._anchors.setdefault(parts[1], None)
@@ -379,7 +442,7 @@ class RunLog:
         if len(t) == 0:
             return
         if color is None:
-            color = COLORS.get(entity.rsplit("/", 1)[-1], COLORS["vio"])
+            color = COLORS.get(entity, COLORS.get(entity.rsplit("/", 1)[-1], COLORS["vio"]))
         strip = rr.LineStrips3D([p], colors=[color], radii=rr.Radius.ui_points(1.5))
         if static_strip:
             self._rec.log(f"{entity}/trajectory", strip, static=True)
@@ -496,29 +559,119 @@ class RunLog:
             rr.Points2D(uv, class_ids=(ids % 65535).astype(np.uint16), radii=rr.Radius.ui_points(radii)),
         )
 
+    # -- anchors: initialiser markers, estimate, legend, consistency series ------------------------------------------
+    def initialiser(
+        self, anchor: object, method: str, p: Any, t_ns: int | None = None, static: bool = True
+    ) -> None:
+        """One initialiser's anchor estimate as its own marker (no label; `legend` says which is which):
+        LSI a box, RI a sphere, RI-robust a cross, each in the method's colour."""
+        if self._rec is None:
+            return
+        rr = self._rr
+        entity = anchor_world(anchor, method)
+        self._note(entity)
+        self._set_time(t_ns)
+        c = np.asarray(p, dtype=np.float64).reshape(3)
+        color = COLORS.get(method, COLORS["none"])
+        marker = MARKERS.get(method, "sphere")
+        if marker == "box":
+            arch = rr.Boxes3D(centers=[c], half_sizes=[[0.12] * 3], colors=[color], fill_mode="Solid")
+        elif marker == "cross":
+            e = 0.18 * np.eye(3)
+            arch = rr.LineStrips3D(
+                [[c - v, c + v] for v in e], colors=[color], radii=rr.Radius.ui_points(3.0)
+            )
+        else:
+            arch = rr.Points3D([c], colors=[color], radii=[0.12])
+        self._rec.log(entity, arch, static=static)
+
+    def point_series(self, entity: str, t_ns: Any, p: Any, color: Any = None, radius: float = 0.1) -> None:
+        """A point moving over time (e.g. an anchor estimate over refinement), column-wise."""
+        if self._rec is None:
+            return
+        rr = self._rr
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        if len(t) == 0:
+            return
+        self._note(entity)
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+        self._rec.send_columns(entity, indexes=self._indexes(t), columns=rr.Points3D.columns(positions=p))
+        self._rec.log(
+            entity, rr.Points3D.from_fields(colors=[color or COLORS["estimate"]], radii=[radius]), static=True
+        )
+
+    def legend(self, methods: Sequence[str] = ("lsi", "ri", "ri-robust")) -> None:
+        """A static markdown legend of the 3-D view's anchor markers (entity `legend`)."""
+        if self._rec is None:
+            return
+        self._note(LEGEND)
+        self._rec.log(
+            LEGEND, self._rr.TextDocument(legend_markdown(methods), media_type="text/markdown"), static=True
+        )
+
+    def residual_band(self, anchor: object, t_ns: Any, residual: Any, nis: Any, n_sigma: float = 3.0) -> None:
+        """±n·σ of the range innovation beside the residual: σ = |r| / sqrt(NIS) (NIS = r²/S), at `uwb/<id>/band`."""
+        if self._rec is None:
+            return
+        r = np.asarray(residual, dtype=np.float64).reshape(-1)
+        nis = np.asarray(nis, dtype=np.float64).reshape(-1)
+        ok = np.isfinite(r) & np.isfinite(nis) & (nis > 0)
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)[ok]
+        sig = n_sigma * np.abs(r[ok]) / np.sqrt(nis[ok])
+        entity = uwb(anchor, "band")
+        self.scalars(entity, t, np.c_[sig, -sig])
+        self.series_static_style(entity, [f"+{n_sigma:g}σ", f"-{n_sigma:g}σ"], [COLORS["gate"]] * 2)
+
+    def nis_average(self, entity: str, t_ns: Any, nis: Any, dof: int = 1, window: int = 50) -> None:
+        """Moving average of NIS over `window` updates with the two-sided 95 % χ² bounds of that average."""
+        if self._rec is None:
+            return
+        t, avg, lo, hi = moving_nis(t_ns, nis, dof, window)
+        if len(t) == 0:
+            return
+        self.scalars(entity, t, avg, names=[f"NIS avg of {window}"])
+        self.constant(f"{entity}_bounds", t, [lo, hi], names=["χ² 2.5 %", "χ² 97.5 %"])
+
     # -- blueprint -------------------------------------------------------------------------------------------------
     def anchors(self) -> list[str]:
         return list(self._anchors)
 
     def blueprint(self):
-        return make_blueprint(
-            self.run_kind, self.anchors(), camera=self._has_camera or self.run_kind != "ntu-viral"
-        )
+        return make_blueprint(self.run_kind, self.anchors(), camera=self._has_camera, present=self._seen)
 
 
-def make_blueprint(run_kind: str, anchors: Sequence[str], *, camera: bool = True):
-    """The layout a run opens on: 3-D world (+ camera) left; residual/NIS per anchor, consistency, β/γ, log right."""
+def _present(present: set[str] | None, prefix: str) -> bool:
+    """Whether any logged entity is `prefix` or below it (everything counts as present when unknown)."""
+    if present is None:
+        return True
+    return any(e == prefix or e.startswith(prefix + "/") for e in present)
+
+
+def make_blueprint(
+    run_kind: str, anchors: Sequence[str], *, camera: bool = True, present: set[str] | None = None
+):
+    """The layout a run opens on, built from what the run logged (`present`: entity paths; None = all):
+
+    left, the 3-D world (anchors with markers per initialiser, trajectories, 3σ ellipsoids), the camera only when
+    the run has camera data, and the marker legend; right, per-anchor range residual (±3σ band) and NIS tabs,
+    NEES and NIS side by side each with its χ² band, σ / β / γ / VIO / init tabs, and the stage log."""
     import rerun.blueprint as rrb
 
-    left: list = [rrb.Spatial3DView(origin=WORLD, name="world")]
+    has = functools.partial(_present, present)
+    left: list = [rrb.Spatial3DView(origin=WORLD, name="world: trajectories, anchors, 3σ ellipsoids")]
+    shares = [6]
     if camera:
         left.append(rrb.Spatial2DView(origin=CAM, name="cam0"))
+        shares.append(3)
+    if has(LEGEND):
+        left.append(rrb.TextDocumentView(origin=LEGEND, name="legend"))
+        shares.append(3)
     per_anchor = [
         rrb.Vertical(
             rrb.TimeSeriesView(
                 origin=f"uwb/{a}",
-                contents=[f"+ uwb/{a}/residual/**", f"+ uwb/{a}/rejected/**"],
-                name=f"{a}: range residual [m]",
+                contents=[f"+ uwb/{a}/residual/**", f"+ uwb/{a}/band/**", f"+ uwb/{a}/rejected/**"],
+                name=f"{a}: range residual ±3σ [m]",
             ),
             rrb.TimeSeriesView(
                 origin=f"uwb/{a}", contents=[f"+ uwb/{a}/nis/**", f"+ uwb/{a}/nis_gate/**"], name=f"{a}: NIS"
@@ -529,31 +682,79 @@ def make_blueprint(run_kind: str, anchors: Sequence[str], *, camera: bool = True
     ]
     if not per_anchor:
         per_anchor = [rrb.TimeSeriesView(origin="uwb", name="uwb")]
-    consistency = [rrb.TimeSeriesView(origin=FILTER, name="NEES / sigma")]
-    if run_kind == "ntu-viral":  # no anchor truth: σ instead of NEES first
-        consistency = [
-            rrb.TimeSeriesView(origin=SIGMA, name="sigma"),
-            rrb.TimeSeriesView(origin=FILTER, name="filter"),
-        ]
+    nees = []
+    if has(NEES_POSE):
+        nees.append(
+            rrb.TimeSeriesView(
+                origin=FILTER,
+                contents=[f"+ {NEES_POSE}/**", f"+ {NEES_POSE}_bounds/**"],
+                name="NEES pose (6 dof)",
+            )
+        )
+    if has(f"{FILTER}/nees_position"):
+        nees.append(
+            rrb.TimeSeriesView(
+                origin=FILTER,
+                contents=[
+                    f"+ {FILTER}/nees_position/**",
+                    f"+ {FILTER}/nees_position_bounds/**",
+                    f"+ {FILTER}/nees_orientation/**",
+                ],
+                name="NEES position, orientation (3 dof)",
+            )
+        )
+    checks = []
+    if nees:
+        checks.append(rrb.Tabs(*nees, name="NEES") if len(nees) > 1 else nees[0])
+    if has(NIS_UWB):
+        checks.append(
+            rrb.TimeSeriesView(
+                origin=FILTER,
+                contents=[f"+ {NIS_UWB}/**", f"+ {NIS_UWB}_bounds/**"],
+                name="NIS of the UWB updates",
+            )
+        )
+    series = []
+    if has(SIGMA):  # metres and degrees on their own axes
+        rot = sorted(
+            {e for e in (present or ()) if e.startswith(SIGMA + "/") and ("deg" in e or "theta" in e)}
+        )
+        series.append(
+            rrb.TimeSeriesView(
+                origin=SIGMA, contents=[f"+ {SIGMA}/**", *(f"- {e}/**" for e in rot)], name="σ position [m]"
+            )
+        )
+        if rot:
+            series.append(
+                rrb.TimeSeriesView(
+                    origin=SIGMA, contents=[f"+ {e}/**" for e in rot], name="σ orientation [deg]"
+                )
+            )
     if anchors:
-        params = [
+        series += [
             rrb.TimeSeriesView(
-                origin="anchors", contents=[f"+ anchors/{a}/beta/**" for a in anchors], name="beta"
+                origin="anchors", contents=[f"+ anchors/{a}/beta/**" for a in anchors], name="β"
             ),
             rrb.TimeSeriesView(
-                origin="anchors", contents=[f"+ anchors/{a}/gamma/**" for a in anchors], name="gamma [m]"
+                origin="anchors", contents=[f"+ anchors/{a}/gamma/**" for a in anchors], name="γ [m]"
             ),
         ]
-    else:
-        params = [rrb.TimeSeriesView(origin="anchors", name="beta / gamma")]
-    params.append(rrb.TimeSeriesView(origin="init", name="init cost / FIM"))
-    right = rrb.Vertical(
-        rrb.Tabs(*per_anchor, name="UWB residuals"),
-        rrb.Tabs(*consistency, *params, name="consistency"),
-        rrb.TextLogView(origin=LOG, name="log"),
-        row_shares=[2, 2, 1],
-    )
-    left_col = rrb.Vertical(*left, row_shares=[3, 2]) if len(left) > 1 else left[0]
+    if has(VIO_NIS):
+        series.append(rrb.TimeSeriesView(origin=VIO_NIS, name="VIO updates"))
+    if has("init"):
+        series.append(rrb.TimeSeriesView(origin="init", name="init cost / FIM"))
+    rows: list = [rrb.Tabs(*per_anchor, name="UWB residuals")]
+    row_shares = [3]
+    if checks:
+        rows.append(rrb.Horizontal(*checks) if len(checks) > 1 else checks[0])
+        row_shares.append(2)
+    if series:
+        rows.append(rrb.Tabs(*series, name="σ, β, γ"))
+        row_shares.append(2)
+    rows.append(rrb.TextLogView(origin=LOG, name="log"))
+    row_shares.append(1)
+    right = rrb.Vertical(*rows, row_shares=row_shares)
+    left_col = rrb.Vertical(*left, row_shares=shares) if len(left) > 1 else left[0]
     return rrb.Blueprint(
         rrb.Horizontal(left_col, right, column_shares=[3, 2]),
         rrb.BlueprintPanel(state="collapsed"),
@@ -563,12 +764,14 @@ def make_blueprint(run_kind: str, anchors: Sequence[str], *, camera: bool = True
 
 
 def merge_run_logs(
-    parts: Sequence[Path | str], target: Path | str, run_kind: str | None = None
+    parts: Sequence[Path | str], target: Path | str, run_kind: str | None = None, name: str | None = None
 ) -> Path | None:
     """Merge per-stage .rrd files into one recording (`target`, atomic) with ONE blueprint built from all of them.
 
     `rerun rrd merge` would keep every stage's blueprint (each knowing only its own stage's anchors); here the
     recordings' chunks are re-sent into one stream and the blueprint is rebuilt from the merged entity tree.
+    The recording is named `name` (default: the run directory's name), so that runs opened side by side
+    (`uwbcal view A B`) are told apart in the viewer.
     """
     import rerun as rr
     from rerun.chunk import RrdReader
@@ -588,9 +791,7 @@ def merge_run_logs(
     probe = RunLog(None, run_kind=run_kind or "simulation")
     for ch in chunks:
         probe._note(ch.entity_path.lstrip("/"))
-    bp = make_blueprint(
-        probe.run_kind, probe.anchors(), camera=probe._has_camera or probe.run_kind != "ntu-viral"
-    )
+    bp = probe.blueprint()
     # Data: rerun's own merge (re-sending chunks through a new stream lost temporal transform/point chunks).
     # Blueprint: one blueprint-only part, merged last, so the merged run opens on the layout of every stage.
     import subprocess
@@ -602,6 +803,7 @@ def merge_run_logs(
         rec = rr.RecordingStream(first.application_id, recording_id=first.recording_id, send_properties=False)
         try:
             rec.save(bp_part, default_blueprint=bp)
+            rec.send_recording_name(name or target.resolve().parent.name)
             rec.flush()
         finally:
             rec.disconnect()

@@ -603,7 +603,8 @@ class UwbUpdater:
         return {a: rec.arrays() for a, rec in self.records.items()}
 
     def log(self, log: RunLog | None) -> None:
-        """Column-wise series per anchor: uwb/<id>/{residual,nis,rejected}, anchors/<id>/{beta,gamma}."""
+        """Column-wise series per anchor: uwb/<id>/{residual,band,nis,nis_gate,rejected}, anchors/<id>/{beta,gamma};
+        filter/nis_uwb: the moving-average NIS of all anchors with its χ² band."""
         if log is None:
             return
         from . import runlog as rl
@@ -614,6 +615,17 @@ class UwbUpdater:
             log.scalars(rl.uwb(a, "nis"), t, arr["nis"])
             if self.chi2_quantile is not None and len(t):
                 log.constant(rl.uwb(a, "nis_gate"), t, float(chi2.ppf(self.chi2_quantile, 1)), ["gate"])
-            log.scalars(rl.uwb(a, "rejected"), t, arr["rejected"].astype(float))
+            rej = arr["rejected"].astype(bool)  # the gated-out ranges as red points at their residual
+            log.scalars(rl.uwb(a, "rejected"), t[rej], arr["residual"][rej])
+            if rej.any():
+                log.series_static_style(
+                    rl.uwb(a, "rejected"), ["rejected"], [rl.COLORS["rejected"]], points=True
+                )
+            log.residual_band(a, t, arr["residual"], arr["nis"])
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])
+        arrs = [arr for arr in self.arrays().values() if len(arr["t_ns"])]
+        if arrs:  # the NIS of the accepted updates, all anchors pooled, as a moving average with its χ² band
+            keep = ~np.concatenate([arr["rejected"] for arr in arrs]).astype(bool)
+            t_all = np.concatenate([arr["t_ns"] for arr in arrs])
+            log.nis_average(rl.NIS_UWB, t_all[keep], np.concatenate([arr["nis"] for arr in arrs])[keep])

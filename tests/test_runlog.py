@@ -113,16 +113,18 @@ def test_full_run_roundtrip(tmp_path: Path) -> None:
     # blueprint: one, with per-anchor views and the fixed views
     assert s.blueprints == 1
     for name in (
-        "world",
+        "world: trajectories, anchors, 3σ ellipsoids",
         "cam0",
         "a0: NIS",
-        "7: range residual [m]",
+        "7: range residual ±3σ [m]",
         "log",
-        "NEES / sigma",
-        "beta",
-        "gamma [m]",
+        "NEES pose (6 dof)",
+        "σ position [m]",
+        "β",
+        "γ [m]",
     ):
         assert name in s.blueprint_names, name
+    assert "NIS of the UWB updates" not in s.blueprint_names  # not logged in this run: no empty view
 
 
 def test_sensor_time_is_exact_ns_and_stage_index(tmp_path: Path) -> None:
@@ -220,8 +222,11 @@ def test_merge_run_logs_one_blueprint_with_all_anchors(tmp_path: Path) -> None:
     assert s.recording_ids == ["R"] and s.blueprints == 1
     assert s.rows[L.uwb("a0", "residual")] == 5 and s.rows[L.uwb("a1", "residual")] == 5
     assert s.rows[L.LOG_STAGES] == 2
-    assert {"a0: NIS", "a1: NIS", "sigma"} <= set(s.blueprint_names)
-    assert "cam0" not in s.blueprint_names  # ntu-viral without camera data
+    assert {"a0: NIS", "a1: NIS"} <= set(s.blueprint_names)
+    assert "cam0" not in s.blueprint_names  # without camera data
+    assert (
+        "σ position [m]" not in s.blueprint_names and "NEES pose (6 dof)" not in s.blueprint_names
+    )  # nothing logged there
     with pytest.raises(InputError, match="nope.rrd: missing"):
         L.merge_run_logs([tmp_path / "nope.rrd"], tmp_path / "x.rrd")
 
@@ -272,3 +277,42 @@ def test_viewer_command(tmp_path: Path) -> None:
 def test_read_summary_missing_file(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="none.rrd: missing"):
         L.read_rrd_summary(tmp_path / "none.rrd")
+
+
+def _time_column(path: Path, entity: str):
+    from rerun.chunk import RrdReader
+
+    r = RrdReader(path)
+    for st in r.recordings():
+        for ch in r.stream(store=st).to_chunks():
+            if ch.entity_path.lstrip("/") == entity and not ch.is_static:
+                return ch.to_record_batch().column(L.T_SENSOR)
+    raise AssertionError(entity)
+
+
+def test_time_origin_gives_seconds_from_start(tmp_path: Path) -> None:
+    t = T0 + np.array([0, 1_500_000_000], np.int64)
+    with L.RunLog(tmp_path / "sim.rrd", time_origin_ns=T0) as log:
+        log.scalars("x", t, [1.0, 2.0])
+        log.points3d("p", [[0.0, 0.0, 0.0]], t_ns=int(t[1]))
+    with L.RunLog(tmp_path / "real.rrd") as log:
+        log.scalars("x", t, [1.0, 2.0])
+    sim, real = _time_column(tmp_path / "sim.rrd", "x"), _time_column(tmp_path / "real.rrd", "x")
+    assert str(sim.type) == "duration[ns]" and sim.cast("int64").to_pylist() == [0, 1_500_000_000]
+    assert str(real.type).startswith("timestamp") and real.cast("int64").to_pylist() == t.tolist()
+    assert _time_column(tmp_path / "sim.rrd", "p").cast("int64").to_pylist() == [1_500_000_000]
+
+
+def test_moving_nis_band_holds_95_percent_of_consistent_averages() -> None:
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(5)
+    nis = rng.chisquare(1, 20_000)
+    t = np.arange(len(nis), dtype=np.int64)[::-1]  # any order: sorted by time inside
+    tt, avg, lo, hi = L.moving_nis(t, nis[::-1], dof=1, window=50)
+    assert len(avg) == len(nis) - 49 and np.all(np.diff(tt) > 0)
+    assert lo == pytest.approx(chi2.ppf(0.025, 50) / 50) and hi == pytest.approx(chi2.ppf(0.975, 50) / 50)
+    np.testing.assert_allclose(avg[0], nis[:50].mean())
+    inside = np.mean((avg >= lo) & (avg <= hi))
+    assert 0.93 < inside < 0.97
+    assert 0.5 < np.mean(4 * avg > hi)  # a 4x over-confident filter leaves the band

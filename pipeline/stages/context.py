@@ -83,7 +83,15 @@ class StageContext:
             run_kind=self.run_kind(),
             enabled=self.config.run.log,
             blueprint=False,
+            time_origin_ns=self.time_origin(),
         )
+
+    def time_origin(self) -> int | None:
+        """Simulated recordings: the replay's time axis in seconds from the recording's start (same origin for every
+        stage and every run of the recording); real data (a surveyed anchor truth included): its own stamps."""
+        truth = self.reader.truth
+        simulated = truth is not None and truth.get("kind", "simulated") == "simulated"
+        return self.reader.time_span()[0] if simulated else None
 
     def windows(self) -> Windows:
         topics = self.reader.topics()
@@ -201,7 +209,7 @@ class StageContext:
             log.points3d(
                 rl.anchor_world(a, "truth"),
                 np.asarray(t["position"])[None],
-                labels=[f"{a} truth"],
+                labels=[str(a)],
                 static=True,
             )
 

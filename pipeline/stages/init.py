@@ -38,11 +38,16 @@ def run(ctx: StageContext) -> StageResult:
     with ctx.runlog("init") as log:
         log.stage("init", win.start_ns)
         ctx.log_truth_anchors(log)
+        log.legend(list(results))
         for m, res in results.items():
             for a, r in res.items():
                 if not r.ok:
                     continue
-                log.points3d(rl.anchor_world(a, m), r.x[None, :3], labels=[f"{a} {m}"], static=True)
+                log.initialiser(a, m, r.x[:3])
+                if m == chosen and np.all(np.isfinite(r.cov[:3, :3])):  # 3σ, then updated over refinement
+                    log.ellipsoids(
+                        rl.anchor_world(a, "cov"), r.x[:3], r.cov[None, :3, :3], t_ns=win.init_end_ns
+                    )
                 if r.costs:
                     t = np.linspace(win.start_ns, win.init_end_ns, len(r.costs)).astype(np.int64)
                     log.scalars(rl.init(m, "cost") + f"/{a}", t, np.asarray(r.costs))

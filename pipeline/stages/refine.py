@@ -28,7 +28,13 @@ def run(ctx: StageContext) -> StageResult:
                 log.ellipsoid_series(
                     rl.anchor_world(a, "cov"), arr["t_ns"], arr["x"][:, :3], arr["cov"][:, :3, :3]
                 )
-                log.scalars(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
+                log.point_series(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
+        for n in est.state.names:  # at the end of refinement: the covariance anchor_states.json holds
+            if n.startswith("anchor/"):
+                a, x = n.split("/", 1)[1], est.state.value(n).x
+                log.ellipsoids(
+                    rl.anchor_world(a, "cov"), x[:3], est.state.cov(n)[None, :3, :3], t_ns=win.refine_end_ns
+                )
     ctx.dir.save_pickle("checkpoint_refine.pkl", est)
     hist = est.history().arrays()
     seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)

@@ -1,0 +1,626 @@
+"""Any ROS bag -> recording: ROS 1 ``.bag``, ROS 2 ``.db3`` or ``.mcap`` (file or bag folder), via rosbags' AnyReader.
+
+Topics are given (``--imu``, ``--cam0``, ``--cam1``, ``--uwb`` ..., ``--odometry``, ``--groundtruth``) or found by
+message type (`detect_topics`). Each mapped topic is decoded and written with the recording's typed writers:
+
+| role | bag types | recording |
+|---|---|---|
+| imu | sensor_msgs/Imu | /imu |
+| cam0, cam1 | sensor_msgs/Image (mono8, 8UC1, rgb8, bgr8, rgba8, bgra8, mono16), CompressedImage | /cam0/image_raw, /cam1/image_raw (mono8) |
+| uwb | the types of `convert.uwb_msgs` | /uwb/range |
+| odometry | nav_msgs/Odometry | /odometry (with its pose covariance) |
+| groundtruth | PoseStamped, PoseWithCovarianceStamped, TransformStamped, Odometry / PointStamped | /groundtruth/pose / position |
+
+Every message of the bag is accounted for in ``uwbcal.source``: ``messages`` per bag topic (type, count, converted,
+dropped) and ``dropped`` with a reason and count (unmapped topics, undecodable messages, duplicate stamps, invalid
+ranges). Calibration: ``--calibration`` YAML in the layout of ``uwbcal.calibration`` (imu, cameras, uwb,
+groundtruth, odometry), ``--antennas`` the antenna yaml (lever arms, ranging bias) of `convert.sources`.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.errors import InputError
+from pipeline.core.progress import progress
+
+from . import uwb_msgs
+from .recording import (
+    META_CALIBRATION,
+    META_SOURCE,
+    TOPIC_CAM0,
+    TOPIC_CAM1,
+    TOPIC_GT_POSE,
+    TOPIC_GT_POSITION,
+    TOPIC_IMU,
+    TOPIC_ODOM,
+    TOPIC_RANGE,
+    RangeData,
+    RecordingReader,
+    RecordingWriter,
+)
+from .sources import (
+    MAX_RANGE_M,
+    Drops,
+    Hasher,
+    anchors_note,
+    clean_ranges,
+    default_tags,
+    load_yaml,
+    parse_antennas,
+    source_metadata,
+    summary,
+    uwb_calibration,
+    write_ranges,
+)
+
+IMU_TYPES = ("sensor_msgs/msg/Imu",)
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+ODOM_TYPES = ("nav_msgs/msg/Odometry",)
+GT_POSE_TYPES = (
+    "geometry_msgs/msg/PoseStamped",
+    "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "geometry_msgs/msg/TransformStamped",
+    "nav_msgs/msg/Odometry",
+)
+GT_POSITION_TYPES = ("geometry_msgs/msg/PointStamped",)
+GT_NAME_HINTS = ("groundtruth", "ground_truth", "gt", "vicon", "leica", "mocap", "optitrack", "qualisys")
+CALIBRATION_KEYS = ("imu", "cameras", "uwb", "groundtruth", "odometry")
+ROLES = ("imu", "cam0", "cam1", "uwb", "odometry", "groundtruth")
+
+
+def norm_type(msgtype: str) -> str:
+    """``pkg/Name`` (ROS 1) -> ``pkg/msg/Name``: one spelling for both bag versions."""
+    return uwb_msgs.ros2_name(msgtype)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# opening
+# ---------------------------------------------------------------------------------------------------------------
+def bag_format(path: Path) -> str:
+    """rosbag1, rosbag2-sqlite3 or rosbag2-mcap; InputError for anything else."""
+    if not path.exists():
+        raise InputError(f"{path}: not found")
+    if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            raise InputError(
+                f"{path}: a folder without metadata.yaml is not a ROS 2 bag; give the bag folder"
+            )
+        files = sorted(p.suffix for p in path.iterdir())
+        return "rosbag2-mcap" if ".mcap" in files else "rosbag2-sqlite3"
+    kind = {".bag": "rosbag1", ".db3": "rosbag2-sqlite3", ".mcap": "rosbag2-mcap"}.get(path.suffix)
+    if kind is None:
+        raise InputError(f"{path}: not a ROS bag (.bag, .db3, .mcap or a ROS 2 bag folder)")
+    if kind == "rosbag2-mcap" and _is_recording(path):
+        raise InputError(f"{path}: already a uwbcal recording; use it directly (uwbcal info / uwbcal run)")
+    return kind
+
+
+def _is_recording(path: Path) -> bool:
+    try:
+        return bool(RecordingReader(path).metadata(META_SOURCE))
+    except Exception:  # noqa: BLE001 (anything unreadable is left to the bag reader's own error)
+        return False
+
+
+def _bag_error(path: Path, exc: BaseException) -> InputError:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return InputError(
+        f"{path}: unreadable ROS bag ({text[:200]}); the file is truncated, corrupt or not a bag — "
+        "re-export it (rosbag reindex for ROS 1)"
+    )
+
+
+class BagReader:
+    """AnyReader opened on one bag, with a decoder per connection (see `decoder_for`)."""
+
+    def __init__(self, path: str | Path) -> None:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = Path(path)
+        self.format = bag_format(self.path)
+        try:
+            self.reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+            self.reader.open()
+        except Exception as exc:  # noqa: BLE001 (rosbags raises many kinds for a bad file)
+            raise _bag_error(self.path, exc) from None
+        self.ros1 = not self.reader.is2
+        self._decoders: dict[int, Callable[[bytes], Any] | str] = {}
+
+    def close(self) -> None:
+        if self.reader.stack:
+            self.reader.close()
+
+    def __enter__(self) -> BagReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def connections(self):
+        return self.reader.connections
+
+    def topics(self) -> dict[str, tuple[str, int]]:
+        """bag topic -> (message type as pkg/msg/Name, message count)."""
+        out: dict[str, tuple[str, int]] = {}
+        for c in self.connections:
+            t, n = out.get(c.topic, (norm_type(c.msgtype), 0))
+            out[c.topic] = (t, n + c.msgcount)
+        return out
+
+    def decoder_for(self, conn, raw: bytes | memoryview) -> Callable[[bytes], Any] | str:
+        """A function raw -> message object for ``conn``, or a string saying why the type cannot be decoded.
+
+        ROS 1 bags and ROS 2 bags with definitions decode with the bag's own definitions; a ROS 2 bag without
+        them with ROS 2 Humble's types, or for the UWB types the shipped variant that decodes ``raw`` exactly."""
+        if conn.id in self._decoders:
+            return self._decoders[conn.id]
+        store = self.reader.typestore
+        name = conn.msgtype
+        dec: Callable[[bytes], Any] | str
+        if self.ros1:
+            dec = lambda b, s=store, n=name: s.deserialize_ros1(bytes(b), n)  # noqa: E731
+        elif conn.msgdef.data and name in store.fielddefs:
+            dec = lambda b, s=store, n=name: s.deserialize_cdr(bytes(b), n)  # noqa: E731
+        else:
+            dec = "no message definition in the bag and none shipped for this type"
+            for variant in uwb_msgs.definition_variants(name) if uwb_msgs.is_uwb_type(name) else ["current"]:
+                vs = uwb_msgs.variant_typestore(variant, name)
+                if name in vs.fielddefs and uwb_msgs.decodes_exactly(vs, raw, name) is not None:
+                    dec = lambda b, s=vs, n=name: s.deserialize_cdr(bytes(b), n)  # noqa: E731
+                    break
+            else:
+                if uwb_msgs.is_uwb_type(name):
+                    dec = "matches none of the shipped definitions of this type"
+        self._decoders[conn.id] = dec
+        return dec
+
+    def messages(self, connections):
+        try:
+            yield from self.reader.messages(connections=connections)
+        except Exception as exc:  # noqa: BLE001
+            raise _bag_error(self.path, exc) from None
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# topic map
+# ---------------------------------------------------------------------------------------------------------------
+@dataclass
+class TopicMap:
+    """Which bag topic plays which role; ``notes`` say how each was chosen."""
+
+    imu: str | None = None
+    cam0: str | None = None
+    cam1: str | None = None
+    uwb: list[str] = field(default_factory=list)
+    odometry: str | None = None
+    groundtruth: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+    def roles(self) -> dict[str, str]:
+        """bag topic -> role."""
+        out = {t: r for r in ("imu", "cam0", "cam1", "odometry", "groundtruth") if (t := getattr(self, r))}
+        out.update({t: "uwb" for t in self.uwb})
+        return out
+
+
+def _camera_rank(topic: str) -> tuple[int, str]:
+    t = topic.lower()
+    first = any(k in t for k in ("cam0", "left", "infra1"))
+    second = any(k in t for k in ("cam1", "right", "infra2"))
+    return (0 if first else 2 if second else 1, topic)
+
+
+def _gt_named(topic: str) -> bool:
+    """A ground-truth topic name: a token 'gt' or a word like groundtruth, vicon, leica in it."""
+    low = topic.lower()
+    return "gt" in re.split(r"[/_\-.]", low) or any(h in low for h in GT_NAME_HINTS if h != "gt")
+
+
+def detect_topics(topics: dict[str, tuple[str, int]], given: dict[str, Any] | None = None) -> TopicMap:
+    """Map bag topics to roles: given ones first (checked to exist with a usable type), the rest by type."""
+    given = given or {}
+    m = TopicMap()
+
+    def check(role: str, topic: str, types: Sequence[str] | None) -> str:
+        if topic not in topics:
+            have = ", ".join(f"{t} ({ty})" for t, (ty, _) in sorted(topics.items())) or "no topics"
+            raise InputError(f"--{role} {topic}: no such topic in the bag (found: {have})")
+        ty = topics[topic][0]
+        ok = uwb_msgs.is_uwb_type(ty) if types is None else ty in types
+        if not ok:
+            raise InputError(f"--{role} {topic}: type {ty} cannot be used as {role}")
+        m.notes.append(f"{role}: {topic} ({ty}, given)")
+        return topic
+
+    by_type: dict[str, list[str]] = {}
+    for t, (ty, _) in topics.items():
+        by_type.setdefault(ty, []).append(t)
+
+    def pick(role: str, types: Sequence[str], cands: list[str] | None = None) -> str | None:
+        cands = cands if cands is not None else sorted(t for ty in types for t in by_type.get(ty, []))
+        if not cands:
+            return None
+        best = max(cands, key=lambda t: (topics[t][1], t))
+        if len(cands) > 1:
+            m.notes.append(f"{role}: {best} (most messages of {', '.join(cands)}; choose with --{role})")
+        else:
+            m.notes.append(f"{role}: {best} ({topics[best][0]}, by type)")
+        return best
+
+    m.imu = check("imu", given["imu"], IMU_TYPES) if given.get("imu") else pick("imu", IMU_TYPES)
+    cams = sorted((t for ty in IMAGE_TYPES for t in by_type.get(ty, [])), key=_camera_rank)
+    for role in ("cam0", "cam1"):
+        if given.get(role):
+            setattr(m, role, check(role, given[role], IMAGE_TYPES))
+    if not given.get("cam0") and not given.get("cam1"):
+        for role, t in zip(("cam0", "cam1"), cams, strict=False):
+            setattr(m, role, t)
+            m.notes.append(f"{role}: {t} ({topics[t][0]}, by type and name)")
+    if given.get("uwb"):
+        m.uwb = [check("uwb", t, None) for t in given["uwb"]]
+    else:
+        for t in sorted(topics):
+            ty = topics[t][0]
+            if not uwb_msgs.is_uwb_type(ty):
+                continue
+            if uwb_msgs.base_name(ty) == "Range" and "uwb" not in t.lower():
+                m.notes.append(
+                    f"uwb: {t} (sensor_msgs/Range) not taken: name has no 'uwb'; give it with --uwb"
+                )
+                continue
+            m.uwb.append(t)
+            m.notes.append(f"uwb: {t} ({ty}, by type)")
+    gt_hint = [t for t in topics if _gt_named(t)]
+    if given.get("groundtruth"):
+        m.groundtruth = check("groundtruth", given["groundtruth"], GT_POSE_TYPES + GT_POSITION_TYPES)
+    else:
+        cands = sorted(t for t in gt_hint if topics[t][0] in GT_POSE_TYPES + GT_POSITION_TYPES)
+        m.groundtruth = pick("groundtruth", (), cands)
+    if given.get("odometry"):
+        m.odometry = check("odometry", given["odometry"], ODOM_TYPES)
+    else:
+        cands = sorted(t for t in by_type.get(ODOM_TYPES[0], []) if t != m.groundtruth)
+        m.odometry = pick("odometry", ODOM_TYPES, cands)
+    return m
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# per-role writers (message object -> recording)
+# ---------------------------------------------------------------------------------------------------------------
+class Skip(Exception):
+    """Drop this message with the reason in the text (counted per bag topic)."""
+
+
+def _stamp(m: Any, bag_t: int) -> int:
+    t = uwb_msgs.message_stamp(m)
+    return t if t is not None else int(bag_t)
+
+
+def _vec(v: Any) -> tuple[float, float, float]:
+    return float(v.x), float(v.y), float(v.z)
+
+
+def _quat(q: Any) -> tuple[float, float, float, float]:
+    out = np.array([q.x, q.y, q.z, q.w], float)
+    n = np.linalg.norm(out)
+    if not np.isfinite(n) or abs(n - 1.0) > 1e-2:
+        raise Skip(f"non-unit quaternion (|q| = {n:.4g})")
+    return tuple((out / n).tolist())
+
+
+def image_mono8(m: Any) -> np.ndarray:
+    """sensor_msgs/Image or CompressedImage -> HxW uint8."""
+    import cv2
+
+    if hasattr(m, "format"):  # CompressedImage
+        img = cv2.imdecode(np.asarray(m.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise Skip(f"compressed image ({m.format!r}) does not decode")
+        return img
+    h, w, enc, step = int(m.height), int(m.width), str(m.encoding), int(m.step)
+    data = np.asarray(m.data, np.uint8)
+    ch = {"mono8": 1, "8UC1": 1, "rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono16": 2, "16UC1": 2}.get(
+        enc
+    )
+    if ch is None:
+        raise Skip(f"image encoding {enc!r} not supported")
+    if step < w * ch or data.size < h * step:
+        raise Skip(f"image data {data.size} bytes for {h}x{w} {enc} (step {step})")
+    rows = data[: h * step].reshape(h, step)[:, : w * ch]
+    if ch == 2:
+        px = rows.copy().view(">u2" if m.is_bigendian else "<u2").reshape(h, w)
+        return (px >> 8).astype(np.uint8)
+    px = rows.reshape(h, w, ch)
+    if ch == 1:
+        return np.ascontiguousarray(px[:, :, 0])
+    code = {"rgb8": cv2.COLOR_RGB2GRAY, "bgr8": cv2.COLOR_BGR2GRAY, "rgba8": cv2.COLOR_RGBA2GRAY}.get(
+        enc, cv2.COLOR_BGRA2GRAY
+    )
+    return cv2.cvtColor(np.ascontiguousarray(px), code)
+
+
+def _pose_of(m: Any) -> tuple[tuple, tuple]:
+    if hasattr(m, "transform"):
+        return _vec(m.transform.translation), _quat(m.transform.rotation)
+    pose = m.pose.pose if hasattr(m.pose, "pose") else m.pose
+    return _vec(pose.position), _quat(pose.orientation)
+
+
+@dataclass
+class RangeBuffer:
+    """Ranges of every UWB topic, cleaned and written at the end (sorted, duplicates dropped)."""
+
+    t: list[int] = field(default_factory=list)
+    tag: list[int] = field(default_factory=list)
+    antenna: list[int] = field(default_factory=list)
+    anchor: list[int] = field(default_factory=list)
+    d: list[float] = field(default_factory=list)
+
+    def add(self, r: uwb_msgs.Ranges, bag_t: int) -> None:
+        t = r.stamp_ns if r.stamp_ns is not None else int(bag_t)
+        n = len(r.distance)
+        self.t += [t] * n
+        self.tag += r.tag
+        self.antenna += r.antenna
+        self.anchor += r.anchor
+        self.d += r.distance
+
+    def data(self) -> RangeData:
+        return RangeData(
+            np.asarray(self.t, np.int64),
+            np.asarray(self.tag, np.int64),
+            np.asarray(self.antenna, np.int64),
+            np.asarray(self.anchor, np.int64),
+            np.asarray(self.d, float),
+        )
+
+
+class Converter:
+    """Writes one decoded message of a role; raises Skip to drop it with a reason."""
+
+    def __init__(self, writer: RecordingWriter) -> None:
+        self.w = writer
+        self.ranges = RangeBuffer()
+        self.last: dict[str, int] = {}
+        self.stamp_sources: dict[str, Counter] = {}
+        self.zero_cov = 0
+
+    def _once(self, topic: str, t: int) -> None:
+        if self.last.get(topic) == t:
+            raise Skip("duplicate stamp (kept the first)")
+        self.last[topic] = t
+
+    def __call__(self, role: str, bag_topic: str, msgtype: str, m: Any, bag_t: int) -> None:
+        if role == "uwb":
+            try:
+                r = uwb_msgs.decoder(msgtype)(m)
+            except (uwb_msgs.Undecodable, AttributeError, TypeError, ValueError) as exc:
+                raise Skip(str(exc)) from None
+            if not r.distance:
+                raise Skip("frame without ranges (no nodes)")
+            src = "header" if r.stamp_ns is not None else "bag time"
+            self.stamp_sources.setdefault(bag_topic, Counter())[src] += 1
+            self.ranges.add(r, bag_t)
+            return
+        t = _stamp(m, bag_t)
+        if role == "imu":
+            self._once(TOPIC_IMU, t)
+            gyro, acc = _vec(m.angular_velocity), _vec(m.linear_acceleration)
+            if not np.isfinite(gyro + acc).all():
+                raise Skip("non-finite IMU sample")
+            self.w.write_imu(t, gyro, acc, topic=TOPIC_IMU)
+        elif role in ("cam0", "cam1"):
+            topic = TOPIC_CAM0 if role == "cam0" else TOPIC_CAM1
+            self._once(topic, t)
+            self.w.write_image(topic, t, image_mono8(m), frame_id=role)
+        elif role == "odometry":
+            self._once(TOPIC_ODOM, t)
+            p, q = _pose_of(m)
+            cov = np.asarray(m.pose.covariance, float).reshape(6, 6)
+            self.zero_cov += int(not cov.any())
+            self.w.write_odometry(t, p, q, cov6=cov, topic=TOPIC_ODOM)
+        elif role == "groundtruth":
+            if msgtype in GT_POSITION_TYPES:
+                self._once(TOPIC_GT_POSITION, t)
+                self.w.write_position(t, _vec(m.point), topic=TOPIC_GT_POSITION)
+            else:
+                self._once(TOPIC_GT_POSE, t)
+                p, q = _pose_of(m)
+                self.w.write_pose(t, p, q, topic=TOPIC_GT_POSE)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# calibration
+# ---------------------------------------------------------------------------------------------------------------
+def load_calibration(path: Path | None) -> dict:
+    """``--calibration``: a YAML mapping with any of imu, cameras, uwb, groundtruth, odometry."""
+    if path is None:
+        return {}
+    data = load_yaml(path, "calibration yaml")
+    unknown = sorted(set(data) - set(CALIBRATION_KEYS))
+    if unknown:
+        raise InputError(
+            f"{path}: unknown key(s) {', '.join(unknown)}; expected {', '.join(CALIBRATION_KEYS)} "
+            "(the layout of uwbcal.calibration)"
+        )
+    for k, v in data.items():
+        if not isinstance(v, dict):
+            raise InputError(f"{path}: '{k}' must be a mapping, got {type(v).__name__}")
+    return data
+
+
+def _uwb_section(r: RangeData, antennas: Path | None, given: dict | None, drops: Drops) -> dict:
+    if given is not None and antennas is None:
+        return given
+    if antennas is None:
+        drops.note("no --antennas: zero antenna lever arms, gamma prior 0 +- 0.3 m")
+        return uwb_calibration(default_tags(r.tag, r.antenna), {})
+    tags, bias = parse_antennas(antennas)
+    for t in np.unique(r.tag).tolist():
+        if str(t) not in tags:
+            drops.note(f"tag {t} has ranges but no antenna_offset in {antennas}")
+    out = uwb_calibration(tags, bias)
+    if given:
+        out = {**given, **out}
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# conversion
+# ---------------------------------------------------------------------------------------------------------------
+def convert_bag(
+    path: str | Path,
+    output: str | Path,
+    *,
+    imu: str | None = None,
+    cam0: str | None = None,
+    cam1: str | None = None,
+    uwb: Sequence[str] | None = None,
+    odometry: str | None = None,
+    groundtruth: str | None = None,
+    antennas: str | Path | None = None,
+    calibration: str | Path | None = None,
+    max_range: float = MAX_RANGE_M,
+) -> str:
+    """Convert a ROS 1 / ROS 2 bag into one recording; returns a human summary."""
+    path = Path(path)
+    ant = Path(antennas) if antennas is not None else None
+    if ant is not None and not ant.is_file():
+        raise InputError(f"{ant}: antenna yaml not found")
+    cal = load_calibration(Path(calibration) if calibration is not None else None)
+    drops = Drops()
+    given = {"imu": imu, "cam0": cam0, "cam1": cam1, "uwb": list(uwb or []), "odometry": odometry}
+    given["groundtruth"] = groundtruth
+    with BagReader(path) as bag:
+        topics = bag.topics()
+        tmap = detect_topics(topics, given)
+        roles = tmap.roles()
+        if not roles:
+            have = ", ".join(f"{t} ({ty})" for t, (ty, _) in sorted(topics.items())) or "no topics"
+            raise InputError(
+                f"{path}: no topic of a known type (found: {have}); name them with --imu/--uwb/..."
+            )
+        accounts = {
+            t: {"type": ty, "count": n, "role": roles.get(t), "converted": 0, "dropped": 0}
+            for t, (ty, n) in topics.items()
+        }
+        for t, (ty, n) in sorted(topics.items()):
+            if t not in roles:
+                drops.add(t, f"topic not mapped (type {ty})", n)
+                accounts[t]["dropped"] = n
+        use = [c for c in bag.connections if c.topic in roles]
+        files = [path] if path.is_file() else sorted(p for p in path.iterdir() if p.is_file())
+        hasher = Hasher(files + ([ant] if ant else []) + ([Path(calibration)] if calibration else []))
+        with RecordingWriter(output) as w:
+            conv = Converter(w)
+            total = sum(c.msgcount for c in use)
+            with progress(f"bag {path.name}", total) as advance:
+                for conn, bag_t, raw in bag.messages(use):
+                    acc = accounts[conn.topic]
+                    role = roles[conn.topic]
+                    advance(1)
+                    dec = bag.decoder_for(conn, raw)
+                    if isinstance(dec, str):
+                        acc["dropped"] += 1
+                        drops.add(conn.topic, f"undecodable: {norm_type(conn.msgtype)} {dec}", 1)
+                        continue
+                    try:
+                        m = dec(raw)
+                        conv(role, conn.topic, norm_type(conn.msgtype), m, bag_t)
+                    except Skip as exc:
+                        acc["dropped"] += 1
+                        drops.add(conn.topic, str(exc), 1, f"bag t={bag_t}")
+                        continue
+                    except Exception as exc:  # noqa: BLE001 (a corrupt message: drop it, say which)
+                        acc["dropped"] += 1
+                        drops.add(
+                            conn.topic, f"undecodable message ({type(exc).__name__})", 1, f"bag t={bag_t}"
+                        )
+                        continue
+                    acc["converted"] += 1
+            raw_ranges = conv.ranges.data()
+            ranges = (
+                clean_ranges(raw_ranges, TOPIC_RANGE, drops, max_range) if len(raw_ranges) else raw_ranges
+            )
+            write_ranges(w, ranges, TOPIC_RANGE)
+            if len(ranges):
+                drops.note(f"{len(raw_ranges)} ranges decoded; " + anchors_note(ranges))
+            for t, c in conv.stamp_sources.items():
+                drops.note(f"{t}: stamps from " + ", ".join(f"{k} ({v})" for k, v in sorted(c.items())))
+            if conv.zero_cov:
+                drops.note(f"{TOPIC_ODOM}: {conv.zero_cov} messages with an all-zero pose covariance")
+            counts = dict(w.counts)
+            if not counts:
+                raise InputError(f"{path}: nothing converted ({', '.join(roles)} had no usable message)")
+            calib = {k: v for k, v in cal.items() if k != "uwb"}
+            if len(raw_ranges) or cal.get("uwb") is not None:
+                calib["uwb"] = _uwb_section(ranges, ant, cal.get("uwb"), drops)
+            if not cal:
+                drops.note("no --calibration: IMU noise, camera intrinsics and extrinsics unknown")
+            for n in tmap.notes:
+                drops.note("topic " + n)
+            w.set_metadata(META_CALIBRATION, calib)
+            w.set_metadata(
+                META_SOURCE,
+                source_metadata(
+                    "bag",
+                    path.stem,
+                    hasher.result(),
+                    drops,
+                    format=bag.format,
+                    topic_map={t: r for t, r in sorted(roles.items())},
+                    messages=accounts,
+                    ranges={"decoded": len(raw_ranges), "written": len(ranges)},
+                ),
+            )
+    return summary(output, counts, drops, f"{bag.format} {path.name}")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# info on a bag (before converting)
+# ---------------------------------------------------------------------------------------------------------------
+def bag_info(path: str | Path, given: dict[str, Any] | None = None) -> str:
+    """What a bag holds, which role each topic would take, and what would not be mapped."""
+    path = Path(path)
+    with BagReader(path) as bag:
+        topics = bag.topics()
+        tmap = detect_topics(topics, given)
+        roles = tmap.roles()
+        defs = {c.topic: bool(c.msgdef.data) or bag.ros1 for c in bag.connections}
+        span = (bag.reader.start_time, bag.reader.end_time) if topics else (0, 0)
+    lines = [
+        f"bag        {path} ({bag.format})",
+        f"duration   {(span[1] - span[0]) * 1e-9:.3f} s",
+        "",
+        f"{'topic':<32} {'type':<44} {'count':>8}  maps to",
+    ]
+    for t, (ty, n) in sorted(topics.items()):
+        role = roles.get(t)
+        what = role if role else "not mapped"
+        if not defs.get(t, True):
+            what += " (no definition in the bag: shipped one used)" if role == "uwb" else ""
+        lines.append(f"{t:<32} {ty:<44} {n:>8}  {what}")
+    lines += ["", *(f"  {n}" for n in tmap.notes)]
+    unmapped = [t for t in topics if t not in roles]
+    lines.append(f"not mapped: {', '.join(sorted(unmapped)) if unmapped else 'nothing'}")
+    return "\n".join(lines)
+
+
+def is_bag(path: str | Path) -> bool:
+    """True for a path `bag_info` reads (a .bag, .db3, ROS 2 bag folder, or an .mcap that is not a recording)."""
+    p = Path(path)
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file()
+    if p.suffix in (".bag", ".db3"):
+        return True
+    return p.suffix == ".mcap" and p.is_file() and not _is_recording(p)
