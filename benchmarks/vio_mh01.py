@@ -116,6 +116,7 @@ def run_one(args: tuple[int, bool, float | None, str]) -> dict:
     seed, fej, duration, workdir = args
     from convert.recording import RecordingReader
     from pipeline.core.geometry import log_so3, quat_slerp, quat_to_rot
+    from pipeline.driver import run_estimator
     from pipeline.msckf import MsckfEstimator, VioConfig
 
     path = Path(workdir) / f"mh01_{seed}_{duration}.mcap"
@@ -125,7 +126,7 @@ def run_one(args: tuple[int, bool, float | None, str]) -> dict:
     reader = RecordingReader(path)
     est = MsckfEstimator.from_recording(reader, VioConfig(fej=fej))
     t0 = time.perf_counter()
-    est.run(reader, None, None)
+    run_estimator(est, reader, None, None)
     wall = time.perf_counter() - t0
     h = est.history().arrays()
     gt = reader.read_poses("/groundtruth/pose")

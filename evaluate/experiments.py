@@ -97,8 +97,9 @@ def table1_job(p: dict) -> dict:
 
     from convert.simulator import SimConfig, simulate_to_file
     from pipeline.config import load_config
+    from pipeline.driver import run_estimator
     from pipeline.run import Pipeline
-    from pipeline.state import Vec, remove_probes
+    from pipeline.state import Kind, Vec, remove_probes
     from pipeline.uwb_filter import UwbUpdater, anchor_var
 
     from .export import compare, load_ground_truth
@@ -132,10 +133,10 @@ def table1_job(p: dict) -> dict:
                 remove_probes(est.state)
                 for a, t in truth.items():
                     x0 = np.r_[np.asarray(t["position"]) + sigma_i * offsets[a], 1.0, 0.0]
-                    est.state.add(anchor_var(int(a)), Vec(x0), P0)
+                    est.state.add(anchor_var(int(a)), Vec(x0), P0, kind=Kind.ANCHOR, key=int(a))
                 ucfg = cfg.uwb.model_copy(update={"sigma_scale": sigma_u, "refine_method": method})
                 upd = UwbUpdater.from_config(ucfg, cal)
-                est.run(pipe.ctx.reader, win.init_end_ns, win.refine_end_ns, on_range=upd)
+                run_estimator(est, pipe.ctx.reader, win.init_end_ns, win.refine_end_ns, on_range=upd)
                 h = est.history().arrays()
                 seg = (h["t_ns"] >= win.init_end_ns) & (h["t_ns"] < win.refine_end_ns)
                 c = compare(h["t_ns"][seg], h["p"][seg], h["q_xyzw"][seg], gt)

@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from .core.geometry import rot_to_quat
 
 if TYPE_CHECKING:
-    from convert.recording import RecordingReader
+    from convert.recording import RangeData, RecordingReader
 
     from .runlog import RunLog
     from .state import State
@@ -65,8 +65,24 @@ class TrajectoryRecord:
         }
 
 
+@dataclass
+class Span:
+    """What an estimator's `open` hands the driver: the stretch of the recording to process."""
+
+    source: str  # the recording, for messages
+    end_ns: int
+    frames: Iterable[Any]  # the estimator's own measurements in time order (first item: t_ns): camera frames
+    # (MSCKF), odometry messages (odometry filter)
+    ranges: RangeData | None  # the ranges of the span, in time order
+    first_record: int  # len(history()) at the start: the driver logs the span's part of the history
+
+
 class Estimator(Protocol):
-    """Everything the stages use of a pose source (MSCKF VIO, external-odometry filter)."""
+    """Everything the stages and the driver use of a pose source (MSCKF VIO, external-odometry filter).
+
+    The estimator is fed: `open` reads what it propagates with (IMU, odometry) and initialises; the driver then
+    merges `Span.frames` and `Span.ranges` in time order and calls `process_frame` / `process_range` (a frame
+    first when both have the same stamp), then `close` and, with a log, `log_span`."""
 
     state: State
     t_ns: int
@@ -78,20 +94,24 @@ class Estimator(Protocol):
     @property
     def warnings(self) -> list[str]: ...
 
+    def open(
+        self, reader: RecordingReader, start_ns: int | None, end_ns: int | None, *, trace: bool
+    ) -> Span: ...
+
+    def propagate_to(self, t_ns: int) -> None: ...
+
+    def process_frame(self, frame: Any) -> None: ...
+
+    def process_range(self, m: RangeMeasurement, on_range: RangeHandler | None) -> None: ...
+
+    def close(self, span: Span) -> None: ...
+
+    def log_span(self, log: RunLog, span: Span) -> None: ...
+
+    def history(self) -> TrajectoryRecord: ...
+
     def start_probes(self, period_s: float) -> None: ...
 
     def add_probe(self) -> None: ...
 
     def stop_probes(self, remove: bool = True) -> None: ...
-
-    def run(
-        self,
-        reader: RecordingReader,
-        start_ns: int | None,
-        end_ns: int | None,
-        *,
-        on_range: RangeHandler | None = None,
-        log: RunLog | None = None,
-    ) -> None: ...
-
-    def history(self) -> TrajectoryRecord: ...

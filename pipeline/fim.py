@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .uwb_model import jacobians, range_variance, tag_positions
+from .core.uwb_model import jacobians, range_variance, tag_positions
 
 PARAM_NAMES = ("x", "y", "z", "beta", "gamma")
 

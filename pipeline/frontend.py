@@ -423,18 +423,11 @@ def track_frames(
         ids, uv = frontend.process(t_ns, img, right)
         st.wall_s += time.perf_counter() - t0
         if log is not None and (st.frames - 1) % every == 0:
-            _safe(log, "image", "cam0/image", t_ns, img)
-            _safe(log, "tracks", "cam0/tracks", t_ns, uv, ids)
+            log.image("cam0/image", t_ns, img)
+            log.tracks("cam0/tracks", t_ns, uv, ids)
         yield t_ns, ids, uv
     st.frames_missing += _count_missing(np.unique(np.asarray(stamps, np.int64)))
     frontend.finish()
-
-
-def _safe(log, method: str, *args) -> None:
-    try:
-        getattr(log, method)(*args)
-    except Exception as exc:  # logging never breaks the stage
-        _log.warning("runlog.%s failed: %s", method, exc)
 
 
 def _image_stream(

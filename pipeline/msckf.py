@@ -1,8 +1,10 @@
 """MSCKF visual-inertial odometry with first-estimate Jacobians (FEJ).
 
-State: variable ``"imu"`` (ImuState) plus stochastic clones ``"clone/<t_ns>"`` (Pose of the IMU at each camera
-frame). Per camera frame: propagate to the frame, clone, update with the selected feature tracks, marginalise the
-oldest clone when the window is full.
+State: the navigation variable ``"imu"`` (ImuState, ``Kind.NAV``) plus stochastic clones ``"clone/<t_ns>"``
+(``Kind.CLONE``: the pose of the IMU at each camera frame). The estimator is fed by `driver.run_estimator`
+(`open` reads the IMU, `process_frame` per camera frame, `process_range` per UWB range). Per camera frame:
+propagate to the frame, clone, update with the selected feature tracks, marginalise the oldest clone when the
+window is full.
 
 Feature selection (OpenVINS style): a track is used once, when it is lost (not seen in the current frame) or
 when the oldest clone is about to be marginalised and the track has an observation in it; in both cases with at
@@ -18,11 +20,7 @@ more rows than clone columns, and one ``ekf_update``.
 
 from __future__ import annotations
 
-import ctypes
-import glob
 import logging
-import os
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -35,9 +33,9 @@ from pipeline.core.errors import InputError
 from .camera import Camera
 from .core.geometry import quat_slerp, quat_to_rot, skew
 from .core.topics import TOPIC_FEATURES, TOPIC_GT_IMU_BIAS, TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE
-from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
+from .estimator import RangeHandler, RangeMeasurement, Span, TrajectoryRecord
 from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
-from .state import ImuState, Pose, State, add_probe, ekf_update, remove_probes
+from .state import ImuState, Kind, Pose, State, add_probe, ekf_update, remove_probes
 
 if TYPE_CHECKING:
     from convert.recording import RecordingReader
@@ -374,7 +372,6 @@ class MsckfEstimator:
         self.initial = initial
         self.initialized = False
         self.db = FeatureDatabase()
-        self.clones: list[int] = []
         self.stats = VioStats()
         self._history = TrajectoryRecord()
         self._chi2 = chi2.ppf(config.chi2_quantile, np.maximum(np.arange(2 * config.max_clones + 8), 1))
@@ -416,13 +413,18 @@ class MsckfEstimator:
         P0 = (
             self.initial_cov if self.initial is not None and self.initial_cov is not None else np.diag(sig**2)
         )
-        self.state.add("imu", x0, P0)
+        self.state.add("imu", x0, P0, kind=Kind.NAV)
         self.t_ns = int(t0_ns)
         self.initialized = True
 
     @property
     def warnings(self) -> list[str]:
         return self.stats.warnings()
+
+    @property
+    def clones(self) -> list[int]:
+        """Stamps of the clone window, oldest first."""
+        return [t for t, _ in self.state.clones]
 
     def history(self) -> TrajectoryRecord:
         return self._history
@@ -465,11 +467,7 @@ class MsckfEstimator:
             else:
                 dt, w, a = imu_intervals(imu_t, gyro, acc, self.t_ns, t1)
                 prop = propagate(x, dt, w, a, self.noise, self.state.fej("imu"))
-            sl = self.state.slice("imu")
-            P = self.state.P
-            P[sl, :] = prop.Phi @ P[sl, :]
-            P[:, sl] = P[:, sl] @ prop.Phi.T
-            P[sl, sl] += prop.Q
+            self.state.propagate("imu", prop.Phi, prop.Q)
             self.state.set_value("imu", prop.state)
             self.state.set_fej("imu", prop.state)
             self.t_ns = t1
@@ -481,18 +479,19 @@ class MsckfEstimator:
         self._history.append(self.t_ns, x.R, x.p, P6)
 
     # -- zero-velocity update ----------------------------------------------------------------------------------
-    def _zupt_model(self, gyro: np.ndarray, acc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _zupt_model(
+        self, gyro: np.ndarray, acc: np.ndarray, x: ImuState, fej_R: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per-sample residuals (n, 6) of the IMU at rest, their Jacobian (6, 15) and noise variances (6,).
 
         At rest ``w_m = b_g + n_g`` and ``a_m = b_a - R^T g + n_a``; with ``R = R_hat Exp(dtheta)`` the
         residual ``[w_m - b_g_hat, a_m - b_a_hat + R_hat^T g]`` is ``[dbg, dba - [R^T g]x dtheta] + n``. The
         orientation column is taken at the first estimate (FEJ): it has no component along the global yaw.
         """
-        x = self.state.value("imu")
         r = np.concatenate([gyro - x.bg, acc - x.ba + x.R.T @ GRAVITY], axis=1)
         H = np.zeros((6, 15))
         H[0:3, 9:12] = np.eye(3)
-        H[3:6, 0:3] = -skew(self.state.fej("imu").R.T @ GRAVITY)
+        H[3:6, 0:3] = -skew(fej_R.T @ GRAVITY)
         H[3:6, 12:15] = np.eye(3)
         k = self.config.zupt_noise_inflation**2 * self.noise.rate_hz  # sigma^2 / dt per sample, inflated
         var = np.repeat([k * self.noise.sigma_g**2, k * self.noise.sigma_a**2], 3)
@@ -504,7 +503,8 @@ class MsckfEstimator:
     def _detect_static(
         self, t_ns: int, ids: np.ndarray, uv: np.ndarray, imu_t: np.ndarray, gyro: np.ndarray, acc: np.ndarray
     ) -> bool:
-        """Zero velocity over (t_state, t_ns]? All of:
+        """Zero velocity over (t_ref, t_ns]? (t_ref: the last frame, `_zupt_reference`; the tests use the state
+        there.) All of:
 
         - the estimated speed is small and v = 0 passes a chi-squared test with the state covariance (a slow
           constant velocity looks like rest to the IMU);
@@ -514,27 +514,26 @@ class MsckfEstimator:
           do not replace it), so that a slow drift accumulates disparity instead of hiding below the noise.
 
         The disparity test alone is not enough: with 1 px noise and tracks ~10 m away, slow flight (a few cm/s)
-        passes it (simulated MH_01: false ZUPTs and position ANEES 9.7). The IMU test rejects rotor vibration of
-        a MAV standing on the ground (|acc| std ~0.3 m/s^2, far above the white-noise model), so there the ZUPT
-        only fires in the quieter intervals.
+        passes it (false ZUPTs; docs/results/measurements.md). The IMU test rejects rotor vibration of a MAV
+        standing on the ground (far above the white-noise model), so there the ZUPT only fires in the quieter
+        intervals.
         """
         cfg = self.config
-        x = self.state.value("imu")
+        t_ref, x, fej_R, P_imu = self._zupt_ref
         if float(np.linalg.norm(x.v)) > cfg.zupt_max_velocity:
             return False
-        im = self.state.slice("imu")
-        v_cov = self.state.P[im, im][6:9, 6:9] + cfg.zupt_sigma_v**2 * np.eye(3)
+        v_cov = P_imu[6:9, 6:9] + cfg.zupt_sigma_v**2 * np.eye(3)
         if float(x.v @ np.linalg.solve(v_cov, x.v)) > chi2.ppf(cfg.zupt_chi2_quantile, 3):
             return False
-        sl = self._imu_samples(self.t_ns, t_ns, imu_t)
+        sl = self._imu_samples(t_ref, t_ns, imu_t)
         n = sl.stop - sl.start
         if n < 2:
             return False
-        r, H, var = self._zupt_model(gyro[sl], acc[sl])
+        r, H, var = self._zupt_model(gyro[sl], acc[sl], x, fej_R)
         # stacked test without the 6n x 6n matrix: the sample mean carries the state uncertainty, the
         # deviations from it are white: chi2 = sum |r_i - r_mean|^2_R + r_mean^T (H P H^T + R / n)^-1 r_mean
         rm = r.mean(axis=0)
-        S = H @ self.state.P[im, im] @ H.T + np.diag(var / n)
+        S = H @ P_imu @ H.T + np.diag(var / n)
         stat = float((((r - rm) ** 2) / var).sum() + rm @ np.linalg.solve(S, rm))
         if stat > chi2.ppf(cfg.zupt_chi2_quantile, 6 * n):
             return False
@@ -555,7 +554,7 @@ class MsckfEstimator:
         Rz = np.full(3, self.config.zupt_sigma_v**2)
         if self.config.zupt_imu:
             sl = self._imu_samples(t0, t1, imu_t)
-            r, H, var = self._zupt_model(gyro[sl], acc[sl])
+            r, H, var = self._zupt_model(gyro[sl], acc[sl], self.state.value("imu"), self.state.fej("imu").R)
             Hz = np.vstack([H, Hz])
             rz = np.concatenate([r.mean(axis=0), rz])
             Rz = np.concatenate([var / len(r), Rz])
@@ -569,8 +568,7 @@ class MsckfEstimator:
         x = self.state.value("imu")
         J = np.zeros((6, 15))
         J[:, :6] = np.eye(6)
-        self.state.augment(_clone_name(t_ns), Pose(x.R, x.p), {"imu": J})
-        self.clones.append(t_ns)
+        self.state.augment(_clone_name(t_ns), Pose(x.R, x.p), {"imu": J}, kind=Kind.CLONE, key=int(t_ns))
         ok = np.isfinite(uv).all(axis=1)
         if not ok.all():
             ids, uv = ids[ok], uv[ok]
@@ -589,7 +587,6 @@ class MsckfEstimator:
         self.db.keep(~drop)
         if oldest is not None:
             self.state.remove(_clone_name(oldest))
-            self.clones.pop(0)
             self.db.keep(self.db.t != oldest)
 
     def _update(self, rows: np.ndarray, t_ns: int, trace: dict | None) -> None:
@@ -675,20 +672,10 @@ class MsckfEstimator:
         if pts is not None and len(pts):
             trace["points"].append(pts[:50])
 
-    # -- main loop ---------------------------------------------------------------------------------------------
-    def run(
-        self,
-        reader: RecordingReader,
-        start_ns: int | None,
-        end_ns: int | None,
-        *,
-        on_range: RangeHandler | None = None,
-        log: RunLog | None = None,
-    ) -> None:
-        with single_blas_thread():
-            self._run(reader, start_ns, end_ns, on_range, log)
-
-    def _run(self, reader, start_ns, end_ns, on_range, log) -> None:
+    # -- fed by the driver (pipeline/driver.py) -------------------------------------------------------------------
+    def open(self, reader: RecordingReader, start_ns: int | None, end_ns: int | None, *, trace: bool) -> Span:
+        """Read and check the IMU of ``[start_ns, end_ns)`` (with a margin), initialise on the first call; the
+        span's frames are the camera feature frames, its ranges those from the state time on."""
         src = str(getattr(reader, "path", self.source))
         topics = reader.topics()
         if TOPIC_IMU not in topics:
@@ -710,80 +697,85 @@ class MsckfEstimator:
             i0 = int(np.searchsorted(imu.t_ns, start))
             if i0 >= len(imu.t_ns) or imu.t_ns[i0] >= end:
                 raise InputError(f"{src}: {TOPIC_IMU}: no IMU sample in [{start}, {end}); nothing to run on")
-            t0 = int(imu.t_ns[i0])
-            self._initialize(reader, t0)
-        ranges = None
-        if TOPIC_RANGE in topics:
-            rd = reader.read_ranges(TOPIC_RANGE, self.t_ns, end)
-            if len(rd):
-                ranges = rd
+            self._initialize(reader, int(imu.t_ns[i0]))
+        self._imu = (imu.t_ns, imu.gyro, imu.acc)
+        self._first_imu = first_imu
+        self._frame_trace = (
+            {k: [] for k in ("t", "used", "rejected", "nis", "points", "zupt")} if trace else None
+        )
+        self._zupt_reference()
         f_start = start_ns if first_run else start
         frames = reader.iter_features(TOPIC_FEATURES, f_start, end) if TOPIC_FEATURES in topics else iter(())
-        first_record = len(self._history)
-        trace = {k: [] for k in ("t", "used", "rejected", "nis", "points", "zupt")} if log else None
-        ri = 0
-        nr = len(ranges) if ranges is not None else 0
-        args = (imu.t_ns, imu.gyro, imu.acc)
+        ranges = reader.read_ranges(TOPIC_RANGE, self.t_ns, end) if TOPIC_RANGE in topics else None
+        return Span(
+            src, end, frames, ranges if ranges is not None and len(ranges) else None, len(self._history)
+        )
 
-        def ranges_until(t_lim: int) -> None:
-            nonlocal ri
-            while ri < nr and ranges.t_ns[ri] <= t_lim:
-                t = int(ranges.t_ns[ri])
-                if t >= self.t_ns:
-                    self._propagate_to(t, *args)
-                    if on_range is not None:
-                        on_range(
-                            self,
-                            RangeMeasurement(
-                                t,
-                                int(ranges.tag[ri]),
-                                int(ranges.antenna[ri]),
-                                int(ranges.anchor[ri]),
-                                float(ranges.distance[ri]),
-                            ),
-                        )
-                    self._record()  # after the handler: the pose including its update
-                ri += 1
+    def propagate_to(self, t_ns: int) -> None:
+        """IMU propagation of the state to ``t_ns`` (no-op when the state is there already)."""
+        self._propagate_to(t_ns, *self._imu)
 
-        for t_ns, ids, uv in frames:
-            if t_ns < self.t_ns or (self.clones and t_ns <= self.clones[-1]):
-                if t_ns < first_imu:
-                    self.stats.frames_before_imu += 1
-                continue
-            t_prev = self.t_ns
-            static = self.config.zupt and self._detect_static(t_ns, ids, uv, *args)
-            self._static = (t_prev, t_ns) if static and self.config.zupt_imu else None
-            ranges_until(t_ns - 1)
-            self._propagate_to(t_ns, *args)
-            if static:  # no clone: a static frame adds no parallax, only degenerate feature updates
-                self.stats.frames += 1
-                if not np.isfinite(uv).all(axis=1).any():
-                    self.stats.frames_without_features += 1
-                self._zupt(t_prev, t_ns, *args)
-                if trace is not None:
-                    trace["zupt"].append(t_ns)
-            else:
-                self._camera_frame(t_ns, ids, uv, trace)
-            self._static = None
-            if not static or self._last_frame is None:
-                ok = np.isfinite(uv).all(axis=1) if len(uv) else np.zeros(0, bool)
-                self._last_frame = (ids[ok], uv[ok])
-            self._record()
-            self._maybe_probe()
-        ranges_until(end - 1)
+    def process_range(self, m: RangeMeasurement, on_range: RangeHandler | None) -> None:
+        """A range at or after the state time: propagate to its stamp, let ``on_range`` update, record the pose."""
+        if m.t_ns < self.t_ns:
+            return
+        self.propagate_to(m.t_ns)
+        if on_range is not None:
+            on_range(self, m)
+        self._record()  # after the handler: the pose including its update
+
+    def process_frame(self, frame: tuple[int, np.ndarray, np.ndarray]) -> None:
+        """A camera frame: ZUPT when the interval since the last frame was static, else clone + MSCKF update."""
+        t_ns, ids, uv = frame
+        if t_ns < self.t_ns or (self.clones and t_ns <= self.clones[-1]):
+            if t_ns < self._first_imu:
+                self.stats.frames_before_imu += 1
+            return
+        args = self._imu
+        t_prev = self._zupt_ref[0]  # the previous frame: ranges since then moved the state time
+        static = self.config.zupt and self._detect_static(t_ns, ids, uv, *args)
+        self._static = (t_prev, t_ns) if static and self.config.zupt_imu else None
+        self.propagate_to(t_ns)
+        if static:  # no clone: a static frame adds no parallax, only degenerate feature updates
+            self.stats.frames += 1
+            if not np.isfinite(uv).all(axis=1).any():
+                self.stats.frames_without_features += 1
+            self._zupt(t_prev, t_ns, *args)
+            if self._frame_trace is not None:
+                self._frame_trace["zupt"].append(t_ns)
+        else:
+            self._camera_frame(t_ns, ids, uv, self._frame_trace)
+        self._static = None
+        if not static or self._last_frame is None:
+            ok = np.isfinite(uv).all(axis=1) if len(uv) else np.zeros(0, bool)
+            self._last_frame = (ids[ok], uv[ok])
+        self._record()
+        self._maybe_probe()
+        self._zupt_reference()
+
+    def close(self, span: Span) -> None:
+        """End of a span: report, drop the span's IMU data (the estimator is pickled between stages)."""
         if self.stats.zupt_updates:
             _log.info(
                 "%s: %d zero-velocity update(s) over %.1f s",
-                src,
+                span.source,
                 self.stats.zupt_updates,
                 self.stats.zupt_time_s,
             )
         if self.stats.frames_before_imu:
             _log.warning(
-                "%s: %d camera frame(s) before the IMU start skipped", src, self.stats.frames_before_imu
+                "%s: %d camera frame(s) before the IMU start skipped",
+                span.source,
+                self.stats.frames_before_imu,
             )
-        if log and trace is not None:
-            self._log(log, trace, first_record)
+        self._imu = None
+
+    def _zupt_reference(self) -> None:
+        """The state the next frame's zero-velocity test is about: time, velocity and IMU covariance at the last
+        frame (or the span start); ranges between two frames do not enter the test."""
+        im = self.state.slice("imu")
+        x = self.state.value("imu")  # values are replaced, never changed in place: a reference is a snapshot
+        self._zupt_ref = (self.t_ns, x, self.state.fej("imu").R, self.state.P[im, im].copy())
 
     def _check_imu(self, t: np.ndarray, gyro: np.ndarray, acc: np.ndarray, src: str) -> None:
         bad = ~(np.isfinite(gyro).all(axis=1) & np.isfinite(acc).all(axis=1))
@@ -811,82 +803,28 @@ class MsckfEstimator:
                 )
             _log.warning("%s: %d IMU gap(s) > %.3f s", src, int(big.sum()), self.config.imu_gap_warn_s)
 
-    def _log(self, log: RunLog, trace: dict, first: int) -> None:
-        """Column-wise rerun logging of this run's part of the history and the per-update trace."""
+    def log_span(self, log: RunLog, span: Span) -> None:
+        """The MSCKF's own series of the span (the driver logs the trajectory): features used / rejected, NIS,
+        ZUPTs, the last triangulated points and the clone window."""
         from . import runlog as rl
 
-        h = self._history.arrays()
-        t, p, q, cov = (h[k][first:] for k in ("t_ns", "p", "q_xyzw", "cov"))
-        if len(t):
-            sig3 = 3.0 * np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0))
-            _call(log, "trajectory", rl.VIO, t, p, q)
-            _call(log, "ellipsoid_series", rl.VIO_COV, t[::10], p[::10], cov[::10, 3:6, 3:6])
-            _call(log, "scalars", f"{rl.SIGMA}/vio_p3sigma", t, sig3[:, 3:6], ["x", "y", "z"])
-            _call(
-                log,
-                "scalars",
-                f"{rl.SIGMA}/vio_theta3sigma_deg",
-                t,
-                np.degrees(sig3[:, 0:3]),
-                ["x", "y", "z"],
-            )
+        trace = self._frame_trace
+        if trace is None:
+            return
         if trace["t"]:
             tt = np.asarray(trace["t"], np.int64)
             cols = np.column_stack([trace["used"], trace["rejected"]]).astype(float)
-            _call(log, "scalars", f"{rl.FILTER}/vio/features", tt, cols, ["used", "rejected_chi2"])
-            _call(log, "scalars", f"{rl.FILTER}/vio/nis_sum", tt, np.asarray(trace["nis"], float))
+            log.scalars(f"{rl.FILTER}/vio/features", tt, cols, ["used", "rejected_chi2"])
+            log.scalars(f"{rl.FILTER}/vio/nis_sum", tt, np.asarray(trace["nis"], float))
         if trace["zupt"]:
             tz = np.asarray(trace["zupt"], np.int64)
-            _call(log, "scalars", f"{rl.FILTER}/vio/zupt", tz, np.ones(len(tz)))
+            log.scalars(f"{rl.FILTER}/vio/zupt", tz, np.ones(len(tz)))
         if trace["points"]:
-            _call(
-                log,
-                "points3d",
-                rl.FEATURES,
-                np.concatenate(trace["points"][-100:]),
-                None,
-                0.03,
-                None,
-                self.t_ns,
-            )
-        clones = np.stack([self.state.value(_clone_name(c)).p for c in self.clones]) if self.clones else None
-        if clones is not None:
-            _call(log, "points3d", f"{rl.VIO}/clones", clones, None, 0.05, None, self.t_ns)
-
-
-@contextmanager
-def single_blas_thread():
-    """Run the filter's many small LAPACK calls on one OpenBLAS thread (this thread only).
-
-    Multi-threaded OpenBLAS on small matrices (QR of ~500 x 70) is 10-100x slower on a loaded 2-core
-    machine than one thread. Uses OpenBLAS' thread-local setter of the libraries bundled with numpy/scipy;
-    a no-op when they are not found. (threadpoolctl would do the same but is not a dependency.)
-    """
-    setters = []
-    for mod in ("numpy", "scipy"):
-        try:
-            base = os.path.dirname(__import__(mod).__file__)
-            for so in glob.glob(os.path.join(base, os.pardir, f"{mod}.libs", "*openblas*.so*")):
-                fn = ctypes.CDLL(so).openblas_set_num_threads_local
-                fn.restype, fn.argtypes = ctypes.c_int, [ctypes.c_int]
-                setters.append(fn)
-        except (OSError, AttributeError, ImportError, TypeError):
-            continue
-    prev = [fn(1) for fn in setters]
-    try:
-        yield
-    finally:
-        for fn, n in zip(setters, prev, strict=True):
-            fn(max(n, 1))
-
-
-def _call(log, method: str, *args) -> None:
-    fn = getattr(log, method, None)
-    if fn is not None:
-        try:
-            fn(*args)
-        except Exception as exc:  # logging must never break the filter
-            _log.warning("runlog.%s(%s) failed: %s", method, args[0], exc)
+            log.points3d(rl.FEATURES, np.concatenate(trace["points"][-100:]), None, 0.03, None, self.t_ns)
+        if self.clones:
+            clones = np.stack([self.state.value(_clone_name(c)).p for c in self.clones])
+            log.points3d(f"{rl.VIO}/clones", clones, None, 0.05, None, self.t_ns)
+        self._frame_trace = None
 
 
 __all__ = [

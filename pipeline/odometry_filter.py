@@ -1,7 +1,7 @@
 """Pose-only error-state filter driven by an external odometry (``/odometry``, nav_msgs/Odometry).
 
 For users whose poses come from another estimator (NTU-VIRAL SLICT lidar odometry, OpenVINS, a TUM file), the
-odometry is turned into relative increments ``dT_k = T_{k-1}^-1 T_k`` that drive the filter state ``"imu"``, a
+odometry is turned into relative increments ``dT_k = T_{k-1}^-1 T_k`` that drive the filter state ``"pose"``, a
 `Pose` with error ``[dtheta, dp]`` (``R = R_hat Exp(dtheta)``, ``p = p_hat + dp``). Without other updates the
 estimate equals the odometry and its covariance grows like the odometry's drift; after a UWB update
 (``on_range`` calling `ekf_update`) the following increments are applied to the corrected pose.
@@ -17,8 +17,8 @@ noise is isotropic, so its frame does not matter.
 
 That ``drift`` model fits dead-reckoning odometry (VIO, wheel or lidar odometry without a map), whose error
 grows without bound. A SLAM output expressed in the world frame of the calibration (NTU-VIRAL SLICT: the anchors
-are published in its frame) has a *bounded* error: it stays near the message covariance (SLICT vs the Leica
-prism: 3 cm RMS, correlation ~5-10 s), while the drift model lets the filter believe it grows to metres. The
+are published in its frame) has a *bounded* error: it stays near the message covariance (measured on SLICT:
+docs/results/measurements.md), while the drift model lets the filter believe it grows to metres. The
 ``bounded`` model treats the odometry's error as a first-order Gauss-Markov process around the odometry,
 with stationary covariance P_ss (the message covariance, else the initial sigmas) and correlation time tau:
 world-frame errors decay as e_k+1 = phi e_k + w, phi = exp(-dt / tau), Q = (1 - phi^2) P_ss. An estimate
@@ -50,8 +50,9 @@ from .core.geometry import (
     se3_interpolate,
 )
 from .core.noise import NOISE_KEYS, OdometryFilterConfig, increment_noise
-from .estimator import RangeHandler, RangeMeasurement, TrajectoryRecord
-from .state import Pose, State
+from .core.topics import TOPIC_RANGE
+from .estimator import RangeHandler, RangeMeasurement, Span, TrajectoryRecord
+from .state import Kind, Pose, State
 
 if TYPE_CHECKING:
     from convert.recording import RecordingReader
@@ -60,7 +61,7 @@ if TYPE_CHECKING:
 
 _log = logging.getLogger(__name__)
 
-IMU = "imu"
+POSE = "pose"  # the navigation variable
 # nav_msgs/Odometry pose covariance order (x, y, z, rx, ry, rz) -> ours (dtheta, dp)
 _ROS_TO_OURS = np.r_[3:6, 0:3]
 
@@ -215,7 +216,7 @@ def fit_drift_noise(traj: dict[str, np.ndarray]) -> dict[str, float]:
 # the estimator
 # ---------------------------------------------------------------------------------------------------------------
 class OdometryEstimator:
-    """External-odometry pose source (Estimator protocol); state variable ``"imu"`` is a `Pose`."""
+    """External-odometry pose source (Estimator protocol); its navigation variable ``"pose"`` is a `Pose`."""
 
     keeps_probes = False  # the anchors' initial covariance comes without pose cross-terms
 
@@ -233,11 +234,7 @@ class OdometryEstimator:
         self.t_ns = -1
         self.initialized = False
         self.stats = OdometryStats()
-        # history as columns; `history()` converts (rot_to_quat per record would dominate the run time)
-        self._h_t: list[int] = []
-        self._h_R: list[np.ndarray] = []
-        self._h_p: list[np.ndarray] = []
-        self._h_cov: list[np.ndarray] = []
+        self._history = TrajectoryRecord()
         # odometry pose at self.t_ns (raw or interpolated): increments are taken from here
         self._R_ref = np.eye(3)
         self._p_ref = np.zeros(3)
@@ -262,7 +259,7 @@ class OdometryEstimator:
         return self.stats.warnings()
 
     def history(self) -> TrajectoryRecord:
-        return TrajectoryRecord(list(self._h_t), list(self._h_p), list(self._h_R), list(self._h_cov))
+        return self._history
 
     def start_probes(self, period_s: float) -> None:
         """No probes (``keeps_probes`` is False)."""
@@ -275,7 +272,7 @@ class OdometryEstimator:
 
     @property
     def pose(self) -> Pose:
-        return self.state.value(IMU)
+        return self.state.value(POSE)
 
     # -- filter steps ----------------------------------------------------------------------------------------------
     def _config_P0(self) -> np.ndarray:
@@ -296,7 +293,7 @@ class OdometryEstimator:
             P0 = np.asarray(cov_ros, float)[np.ix_(_ROS_TO_OURS, _ROS_TO_OURS)]
         else:
             P0 = self._config_P0()
-        self.state.add(IMU, Pose(R, p), P0)
+        self.state.add(POSE, Pose(R, p), P0, kind=Kind.NAV)
         self._R_ref, self._p_ref = np.array(R, float), np.array(p, float)
         self.t_ns = int(t_ns)
         self.initialized = True
@@ -306,60 +303,39 @@ class OdometryEstimator:
     ) -> None:
         """Apply the odometry increment from the reference pose to ``(R_odom, p_odom)`` at ``t_ns``
         (``cov_ros``: that message's covariance, used by the bounded model)."""
-        x = self.state.value(IMU)
+        x = self.state.value(POSE)
         if self.error_model == "bounded":
             if cov_ros is not None:
                 self._P_ss = self._stationary(cov_ros)
             P_ss = self._P_ss if self._P_ss is not None else self._config_P0()
             phi = math.exp(-max(t_ns - self.t_ns, 0) * 1e-9 / self.correlation_time_s)
             R_new, p_new, F = bounded_step(self._R_ref, self._p_ref, x.R, x.p, R_odom, p_odom, phi)
-            self._propagate(F, (1.0 - phi * phi) * P_ss)
-            self.state.set_value(IMU, Pose(R_new, p_new))
+            self.state.propagate(POSE, F, (1.0 - phi * phi) * P_ss, symmetrize=True)
+            self.state.set_value(POSE, Pose(R_new, p_new))
             self._R_ref, self._p_ref = np.array(R_odom, float), np.array(p_odom, float)
             self.t_ns = int(t_ns)
             return
         dR, dp = relative(self._R_ref, self._p_ref, R_odom, p_odom)
         F, G = compose_jacobians(x.R, dR, dp)
         Q = G @ increment_noise(self.config, dR, dp, (t_ns - self.t_ns) * 1e-9) @ G.T
-        self._propagate(F, Q)
+        self.state.propagate(POSE, F, Q, symmetrize=True)
         R_new, p_new = compose(x.R, x.p, dR, dp)
-        self.state.set_value(IMU, Pose(R_new, p_new))
+        self.state.set_value(POSE, Pose(R_new, p_new))
         self._R_ref, self._p_ref = np.array(R_odom, float), np.array(p_odom, float)
         self.t_ns = int(t_ns)
 
-    def _propagate(self, F: np.ndarray, Q: np.ndarray) -> None:
-        sl = self.state.slice(IMU)
-        P = self.state.P
-        P[sl, :] = F @ P[sl, :]
-        P[:, sl] = P[:, sl] @ F.T
-        P[sl, sl] += Q
-        self.state.P = 0.5 * (P + P.T)
-
     def _record(self) -> None:
-        x = self.state.value(IMU)
-        sl = self.state.slice(IMU)
-        row = (x.R.copy(), x.p.copy(), self.state.P[sl, sl].copy())
-        if self._h_t and self.t_ns <= self._h_t[-1]:
-            if self.t_ns == self._h_t[-1]:  # same instant again (range at an odometry stamp): keep newest
-                self._h_R[-1], self._h_p[-1], self._h_cov[-1] = row
-            return
-        self._h_t.append(self.t_ns)
-        self._h_R.append(row[0])
-        self._h_p.append(row[1])
-        self._h_cov.append(row[2])
+        x = self.state.value(POSE)
+        self._history.append(self.t_ns, x.R, x.p, self.state.cov(POSE))
 
-    # -- main loop -------------------------------------------------------------------------------------------------
-    def run(
-        self,
-        reader: RecordingReader,
-        start_ns: int | None,
-        end_ns: int | None,
-        *,
-        on_range: RangeHandler | None = None,
-        log: RunLog | None = None,
-    ) -> None:
-        from convert.recording import TOPIC_RANGE
-
+    # -- fed by the driver (pipeline/driver.py) -------------------------------------------------------------------
+    def open(
+        self, reader: RecordingReader, start_ns: int | None, end_ns: int | None, *, trace: bool
+    ) -> Span | None:
+        """Read and clean the odometry from the state time on (no end: the message after ``end_ns`` interpolates
+        ranges just before it), initialise on the first call; the span's frames are the messages after the state
+        time and before ``end_ns``, its ranges all of ``[start_ns, end_ns)`` (those outside the odometry are
+        counted, not silently lost). None: nothing to do."""
         c = self.config
         src = str(getattr(reader, "path", self.source))
         topics = reader.topics()
@@ -371,14 +347,13 @@ class OdometryEstimator:
             start = max(start, self.t_ns)
         end = end_ns if end_ns is not None else info.end_ns + 1
         if end <= start:
-            return
-        # read from the state time on (no end: the message after `end` interpolates ranges just before it)
+            return None
         od = reader.read_odometry(c.topic, self.t_ns if self.initialized else start, None)
         stats = OdometryStats()
         t, Rs, ps, covs = clean_odometry(od.t_ns, od.p, od.q_xyzw, od.cov, src, c.topic, stats)
         for k in ("duplicates", "out_of_order"):
             setattr(self.stats, k, getattr(self.stats, k) + getattr(stats, k))
-        first_record = len(self._h_t)
+        first_record = len(self._history)
         first_run = not self.initialized
         if first_run:
             i0 = int(np.searchsorted(t, start))
@@ -387,75 +362,60 @@ class OdometryEstimator:
             self.initialize(int(t[i0]), Rs[i0], ps[i0], covs[i0])
             self.stats.messages += 1
             self._record()
-        # messages strictly after the state time and before `end`
+        self._odom = (t, Rs, ps)
         i = int(np.searchsorted(t, self.t_ns, side="right"))
         i_end = int(np.searchsorted(t, end, side="left"))
+        frames = ((int(t[k]), Rs[k], ps[k], covs[k]) for k in range(i, i_end))
         ranges = None
         if TOPIC_RANGE in topics:
-            # all ranges of [start_ns, end_ns): those outside the odometry span are counted, not silently lost
             r_lo = start_ns if start_ns is not None else (None if first_run else self.t_ns + 1)
             rd = reader.read_ranges(TOPIC_RANGE, r_lo, end_ns)
             ranges = rd if len(rd) else None
-        nr = len(ranges) if ranges is not None else 0
-        j = 0
-        gap_ns = int(c.gap_warn_s * 1e9)
-        while i < i_end or j < nr:
-            t_r = int(ranges.t_ns[j]) if j < nr else None
-            if i < i_end and (t_r is None or int(t[i]) <= t_r):
-                if t[i] - self.t_ns > gap_ns:
-                    self.stats.gaps += 1
-                    self.stats.max_gap_s = max(self.stats.max_gap_s, (t[i] - self.t_ns) * 1e-9)
-                self.advance(int(t[i]), Rs[i], ps[i], covs[i])
-                self.stats.messages += 1
-                self._record()
-                i += 1
-                continue
-            j += 1
-            self.stats.ranges += 1
-            if t_r < self.t_ns:
-                self.stats.ranges_before_odometry += 1
-                continue
-            if t_r > self.t_ns:
-                k = int(np.searchsorted(t, t_r, side="left"))  # next odometry at or after the range
-                if k >= len(t):
-                    self.stats.ranges_after_odometry += 1
-                    continue
-                if t[k] - self.t_ns > gap_ns:
-                    self.stats.ranges_in_gaps += 1
-                s = (t_r - self.t_ns) / float(t[k] - self.t_ns)
-                R_i, p_i = se3_interpolate(self._R_ref, self._p_ref, Rs[k], ps[k], s)
-                self.advance(t_r, R_i, p_i)
-            self._record()
-            if on_range is not None:
-                rm = RangeMeasurement(
-                    t_r,
-                    int(ranges.tag[j - 1]),
-                    int(ranges.antenna[j - 1]),
-                    int(ranges.anchor[j - 1]),
-                    float(ranges.distance[j - 1]),
-                )
-                on_range(self, rm)
-        for w in self.stats.warnings():
-            _log.warning("%s: %s", src, w)
-        if log is not None:
-            self._log(log, first_record)
+        return Span(src, end, frames, ranges, first_record)
 
-    def _log(self, log: RunLog, first: int) -> None:
-        from . import runlog as rl
+    def process_frame(self, frame: tuple[int, np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """One odometry message: the increment from the reference pose, recorded."""
+        t_ns, R, p, cov = frame
+        if t_ns - self.t_ns > int(self.config.gap_warn_s * 1e9):
+            self.stats.gaps += 1
+            self.stats.max_gap_s = max(self.stats.max_gap_s, (t_ns - self.t_ns) * 1e-9)
+        self.advance(t_ns, R, p, cov)
+        self.stats.messages += 1
+        self._record()
 
-        h = self.history().arrays()
-        tt, p, q, cov = (h[k][first:] for k in ("t_ns", "p", "q_xyzw", "cov"))
-        if not len(tt):
+    def propagate_to(self, t_ns: int) -> bool:
+        """The odometry interpolated to ``t_ns`` (SE(3), between the reference and the next message) applied as
+        an increment; False when ``t_ns`` is outside the odometry (after its last message)."""
+        if t_ns <= self.t_ns:
+            return True
+        t, Rs, ps = self._odom
+        k = int(np.searchsorted(t, t_ns, side="left"))  # next odometry at or after t_ns
+        if k >= len(t):
+            return False
+        if t[k] - self.t_ns > int(self.config.gap_warn_s * 1e9):
+            self.stats.ranges_in_gaps += 1
+        s = (t_ns - self.t_ns) / float(t[k] - self.t_ns)
+        R_i, p_i = se3_interpolate(self._R_ref, self._p_ref, Rs[k], ps[k], s)
+        self.advance(t_ns, R_i, p_i)
+        return True
+
+    def process_range(self, m: RangeMeasurement, on_range: RangeHandler | None) -> None:
+        """A range inside the odometry's span: the pose at its stamp is recorded, then ``on_range`` updates."""
+        self.stats.ranges += 1
+        if m.t_ns < self.t_ns:
+            self.stats.ranges_before_odometry += 1
             return
-        sig3 = 3.0 * np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0))
-        step = max(1, len(tt) // 500)
-        for method, args in (
-            ("trajectory", (rl.VIO, tt, p, q)),
-            ("ellipsoid_series", (rl.VIO_COV, tt[::step], p[::step], cov[::step, 3:6, 3:6])),
-            ("scalars", (f"{rl.SIGMA}/vio_p3sigma", tt, sig3[:, 3:6], ["x", "y", "z"])),
-            ("scalars", (f"{rl.SIGMA}/vio_theta3sigma_deg", tt, np.degrees(sig3[:, 0:3]), ["x", "y", "z"])),
-        ):
-            try:
-                getattr(log, method)(*args)
-            except Exception as exc:  # logging never breaks the filter
-                _log.warning("runlog.%s failed: %s", method, exc)
+        if not self.propagate_to(m.t_ns):
+            self.stats.ranges_after_odometry += 1
+            return
+        self._record()
+        if on_range is not None:
+            on_range(self, m)
+
+    def close(self, span: Span) -> None:
+        for w in self.stats.warnings():
+            _log.warning("%s: %s", span.source, w)
+        self._odom = None
+
+    def log_span(self, log: RunLog, span: Span) -> None:
+        """Nothing beyond the trajectory the driver logs."""

@@ -11,9 +11,11 @@ past poses kept so that a later initialisation knows their cross-covariances), w
 from __future__ import annotations
 
 import dataclasses
+import enum
 import functools
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.linalg import qr
@@ -97,33 +99,94 @@ class UpdateResult:
     gate: float | None = None
 
 
-class State:
-    """Named error-state variables with one joint covariance ``P``."""
+class Kind(enum.Enum):
+    """What a state variable is; stages and updaters ask the state for its variables by kind, never by name."""
 
-    def __init__(self, use_fej: bool = True) -> None:
+    NAV = (
+        "nav"  # the variable poses come from: ImuState (MSCKF) or Pose (odometry filter); columns 0:6 = pose
+    )
+    CLONE = "clone"  # MSCKF stochastic clone of the pose at a camera frame (key: t_ns)
+    PROBE = "probe"  # considered pose of the initialisation window (key: t_ns)
+    ANCHOR = "anchor"  # UWB anchor [p_a, beta, gamma] (key: anchor id)
+    OTHER = "other"
+
+
+@dataclass(frozen=True)
+class VarInfo:
+    kind: Kind
+    key: Any = None
+
+
+class State:
+    """Named error-state variables with one joint covariance ``P``.
+
+    The covariance lives in a preallocated buffer whose capacity doubles when it is full; a variable occupies a
+    block of it (its *slot*). Removing a variable zeroes its slot and frees it for the next variable of the same
+    dimension (the MSCKF's clone window: one clone leaves, the next takes its slot), so adding and removing a
+    clone touches only that clone's rows and columns, never the whole matrix. A free slot is a block of zero
+    rows and columns: it takes part in no product that changes another variable. ``P`` is the view of the slots
+    in use (up to the last one); the order of the slots is not the order of ``names``.
+    """
+
+    def __init__(self, use_fej: bool = True, capacity: int = 32) -> None:
         self.use_fej = use_fej
-        self.P = np.zeros((0, 0))
+        self._buf = np.zeros((capacity, capacity))
+        self._n = 0  # end of the last slot in use
+        self._free: list[slice] = []  # zeroed slots below _n
         self._names: list[str] = []
         self._values: dict[str, Value] = {}
         self._fej: dict[str, Value] = {}
         self._slices: dict[str, slice] = {}
+        self._info: dict[str, VarInfo] = {}
+        self._nav: str | None = None
         # Schmidt (considered) variables: zero gain in every update, cross-covariances tracked
         self.considered: set[str] = set()
+
+    # -- the covariance ------------------------------------------------------------------------------------
+    @property
+    def P(self) -> np.ndarray:
+        """The joint covariance (a view of the buffer: in-place changes are changes of the state)."""
+        return self._buf[: self._n, : self._n]
+
+    @P.setter
+    def P(self, value: np.ndarray) -> None:
+        value = np.asarray(value, float)
+        if value.shape != (self._n, self._n):
+            raise ValueError(f"covariance of shape {value.shape}; the state has size {self._n}")
+        self._buf[: self._n, : self._n] = value
+
+    @property
+    def size(self) -> int:
+        return self._n
+
+    def propagate(self, name: str, Phi: np.ndarray, Q: np.ndarray, *, symmetrize: bool = False) -> None:
+        """``x_name <- Phi x_name + w``, w ~ N(0, Q): rows and columns of ``name`` times Phi, plus Q on its block
+        (the cross-covariances with every other variable follow). ``symmetrize``: re-symmetrise all of P."""
+        sl = self._slices[name]
+        P = self.P
+        P[sl, :] = Phi @ P[sl, :]
+        P[:, sl] = P[:, sl] @ Phi.T
+        P[sl, sl] += Q
+        if symmetrize:
+            np.multiply(P + P.T, 0.5, out=P)
 
     # -- bookkeeping -------------------------------------------------------------------------------------
     @property
     def names(self) -> list[str]:
         return list(self._names)
 
-    @property
-    def size(self) -> int:
-        return self.P.shape[0]
-
     def __contains__(self, name: str) -> bool:
         return name in self._values
 
     def slice(self, name: str) -> slice:
         return self._slices[name]
+
+    def index(self, names: Iterable[str]) -> np.ndarray:
+        """The rows of P of ``names`` (in that order)."""
+        names = list(names)
+        if not names:
+            return np.zeros(0, int)
+        return np.concatenate([np.arange(self._slices[n].start, self._slices[n].stop) for n in names])
 
     def dim(self, name: str) -> int:
         return self._values[name].dim
@@ -145,37 +208,82 @@ class State:
     def cov(self, name: str, other: str | None = None) -> np.ndarray:
         return self.P[self._slices[name], self._slices[other or name]]
 
-    def _reindex(self) -> None:
-        start = 0
-        self._slices = {}
-        for n in self._names:
-            d = self._values[n].dim
-            self._slices[n] = slice(start, start + d)
-            start += d
+    # -- typed views ---------------------------------------------------------------------------------------
+    def kind(self, name: str) -> Kind:
+        return self._info[name].kind
 
-    def _index(self, names: Iterable[str]) -> np.ndarray:
-        return np.concatenate([np.arange(self._slices[n].start, self._slices[n].stop) for n in names])
+    def key(self, name: str) -> Any:
+        return self._info[name].key
+
+    def of_kind(self, kind: Kind) -> list[tuple[Any, str]]:
+        """(key, name) of the variables of ``kind``, in the order they were added."""
+        return [(self._info[n].key, n) for n in self._names if self._info[n].kind is kind]
+
+    @property
+    def nav(self) -> str:
+        """Name of the navigation variable (the pose source's own state; its columns 0:6 are the pose)."""
+        if self._nav is None:
+            raise KeyError("the state has no navigation variable (add one with kind=Kind.NAV)")
+        return self._nav
+
+    @property
+    def clones(self) -> list[tuple[int, str]]:
+        """(t_ns, name) of the MSCKF clones in time order."""
+        return sorted(self.of_kind(Kind.CLONE))
+
+    @property
+    def probes(self) -> list[tuple[int, str]]:
+        """(t_ns, name) of the pose probes in time order."""
+        return sorted(self.of_kind(Kind.PROBE))
+
+    @property
+    def anchors(self) -> dict[Any, str]:
+        """anchor id -> name of its variable."""
+        return dict(self.of_kind(Kind.ANCHOR))
 
     # -- adding and removing variables ---------------------------------------------------------------------
-    def add(self, name: str, value: Value, P_block: np.ndarray) -> None:
+    def add(
+        self, name: str, value: Value, P_block: np.ndarray, *, kind: Kind = Kind.OTHER, key: Any = None
+    ) -> None:
         """Add an independent variable with covariance ``P_block``."""
-        self._append(name, value, np.asarray(P_block, float), np.zeros((value.dim, self.size)))
+        self._append(name, value, np.asarray(P_block, float), None, VarInfo(kind, key))
 
-    def _append(self, name: str, value: Value, P_new: np.ndarray, cross: np.ndarray) -> None:
+    def _slot(self, d: int) -> slice:
+        """A free slot of dimension ``d`` (first fit), else a new one at the end (the buffer grows by doubling)."""
+        for i, sl in enumerate(self._free):
+            if sl.stop - sl.start == d:
+                return self._free.pop(i)
+        n = self._n
+        if n + d > self._buf.shape[0]:
+            cap = max(2 * self._buf.shape[0], n + d)
+            buf = np.zeros((cap, cap))
+            buf[:n, :n] = self._buf[:n, :n]
+            self._buf = buf
+        self._n = n + d
+        return slice(n, n + d)
+
+    def _append(
+        self, name: str, value: Value, P_new: np.ndarray, cross: np.ndarray | None, info: VarInfo
+    ) -> None:
+        """``cross``: (d, size) cross-covariance with the current slots (None: independent)."""
         if name in self._values:
             raise KeyError(f"state variable {name!r} exists already")
-        n = self.size
-        d = value.dim
-        P = np.zeros((n + d, n + d))
-        P[:n, :n] = self.P
-        P[n:, :n] = cross
-        P[:n, n:] = cross.T
-        P[n:, n:] = 0.5 * (P_new + P_new.T)
-        self.P = P
+        n_old = self._n
+        sl = self._slot(value.dim)
+        P = self.P
+        if cross is not None:
+            P[sl, :n_old] = cross
+            P[:n_old, sl] = cross.T
+        P[sl, sl] = 0.5 * (P_new + P_new.T)
         self._names.append(name)
         self._values[name] = value
         self._fej[name] = dataclasses.replace(value)  # __post_init__ copies the arrays
-        self._reindex()
+        self._slices[name] = sl
+        self._info[name] = info
+        if info.kind is Kind.NAV:
+            if self._nav is not None:
+                raise KeyError(f"state variable {name!r}: the state has a navigation variable already")
+            self._nav = name
 
     def augment(
         self,
@@ -185,6 +293,8 @@ class State:
         Q: np.ndarray | None = None,
         *,
         considered: bool = False,
+        kind: Kind = Kind.OTHER,
+        key: Any = None,
     ) -> None:
         """Add ``name`` = f(existing) (+ noise Q) with Jacobians ``J[var]``: P_new = J P J^T + Q, cross = J P.
         ``considered``: a Schmidt variable of the state (see ``State.considered``)."""
@@ -196,7 +306,7 @@ class State:
             P_new += JP[:, self._slices[var]] @ Jb.T
         if Q is not None:
             P_new = P_new + Q
-        self._append(name, value, P_new, JP)
+        self._append(name, value, P_new, JP, VarInfo(kind, key))
         if considered:
             self.considered.add(name)
 
@@ -210,6 +320,8 @@ class State:
         R: np.ndarray,
         *,
         update_rest: bool = True,
+        kind: Kind = Kind.OTHER,
+        key: Any = None,
     ) -> UpdateResult | None:
         """OpenVINS-style initialisation of a new variable from linearised measurements.
 
@@ -246,7 +358,7 @@ class State:
             S1 = S1 + HoP[:, self._slices[k]] @ v[:d].T
         P_new = H1inv @ S1 @ H1inv.T
         cross = -H1inv @ HoP
-        self._append(name, value, P_new, cross)
+        self._append(name, value, P_new, cross, VarInfo(kind, key))
         if update_rest and m > d:
             H_rest = {k: v[d:] for k, v in Ho.items()}
             H_rest[name] = Hn[d:]
@@ -254,15 +366,26 @@ class State:
         return None
 
     def remove(self, name: str) -> None:
-        """Marginalise a variable: drop its rows and columns."""
-        sl = self._slices[name]
-        keep = np.r_[0 : sl.start, sl.stop : self.size]
-        self.P = self.P[np.ix_(keep, keep)]
+        """Marginalise a variable: zero its rows and columns and free its slot."""
+        sl = self._slices.pop(name)
+        P = self.P
+        P[sl, :] = 0.0
+        P[:, sl] = 0.0
+        self._free.append(sl)
+        # slots at the end shrink the view instead of staying free
+        while True:
+            last = next((f for f in self._free if f.stop == self._n), None)
+            if last is None:
+                break
+            self._free.remove(last)
+            self._n = last.start
         self.considered.discard(name)
         self._names.remove(name)
         del self._values[name]
         del self._fej[name]
-        self._reindex()
+        del self._info[name]
+        if self._nav == name:
+            self._nav = None
 
     def boxplus(self, dx: np.ndarray, names: Iterable[str] | None = None) -> None:
         for n in names if names is not None else self._names:
@@ -271,29 +394,22 @@ class State:
                 self._values[n] = self._values[n].boxplus(dx[sl])
 
 
-PROBE_PREFIX = "probe/"
-
-
-def add_probe(state: State, t_ns: int, pose_var: str = "imu") -> str:
-    """Keep the pose of ``pose_var`` at ``t_ns`` as a considered (Schmidt) variable ``probe/<t_ns>``: its value
-    stays the filtered estimate of that time, its cross-covariances with the state stay exact (the paper's window
-    states X_I, for the covariance initialisation of the anchors). Returns the name."""
-    name = f"{PROBE_PREFIX}{int(t_ns)}"
+def add_probe(state: State, t_ns: int) -> str:
+    """Keep the pose of the navigation variable at ``t_ns`` as a considered (Schmidt) variable ``probe/<t_ns>``:
+    its value stays the filtered estimate of that time, its cross-covariances with the state stay exact (the
+    paper's window states X_I, for the covariance initialisation of the anchors). Returns the name."""
+    name = f"probe/{int(t_ns)}"
     if name not in state:
-        x = state.value(pose_var)
-        J = np.zeros((6, state.dim(pose_var)))
+        nav = state.nav
+        x = state.value(nav)
+        J = np.zeros((6, state.dim(nav)))
         J[:, :6] = np.eye(6)
-        state.augment(name, Pose(x.R, x.p), {pose_var: J}, considered=True)
+        state.augment(name, Pose(x.R, x.p), {nav: J}, considered=True, kind=Kind.PROBE, key=int(t_ns))
     return name
 
 
-def probes(state: State) -> list[tuple[int, str]]:
-    """(t_ns, name) of the state's pose probes in time order."""
-    return sorted((int(n[len(PROBE_PREFIX) :]), n) for n in state.names if n.startswith(PROBE_PREFIX))
-
-
 def remove_probes(state: State) -> None:
-    for _, n in probes(state):
+    for _, n in state.probes:
         state.remove(n)
 
 
@@ -367,19 +483,19 @@ def ekf_update(
             S = S / wt
             cho = cho / np.sqrt(wt)
     schmidt = list(schmidt)
-    schmidt += [v for v in getattr(state, "considered", ()) if v not in schmidt]
+    schmidt += [v for v in state.considered if v not in schmidt]
     # Joseph form: P+ = (I - K H) P (I - K H)^T + K R K^T, written with PHt to avoid forming I - KH.
     if not schmidt:
         K = np.linalg.solve(cho.T, np.linalg.solve(cho, PHt.T)).T  # K = P H^T S^-1
         KHP = K @ PHt.T
         P = state.P - KHP - KHP.T + K @ S @ K.T
-        state.P = 0.5 * (P + P.T)
+        np.multiply(P + P.T, 0.5, out=state.P)  # symmetric, written into the state's buffer
         state.boxplus(K @ r)
         return UpdateResult(True, nis, m, gate)
     # Schmidt: only the estimated rows e of K are non-zero, so only rows and columns e of P change
     # (P_ee - (KHP)_ee - (KHP)_ee^T + K_e S K_e^T, P_ec - (KHP)_ec); the considered block stays as it is.
     mask = np.ones(n, bool)
-    mask[state._index(schmidt)] = False
+    mask[state.index(schmidt)] = False
     e = np.flatnonzero(mask)
     K_e = np.linalg.solve(cho.T, np.linalg.solve(cho, PHt[e].T)).T
     KHP = K_e @ PHt.T  # (n_e, n)
@@ -394,3 +510,19 @@ def ekf_update(
     dx[e] = K_e @ r
     state.boxplus(dx)
     return UpdateResult(True, nis, m, gate)
+
+
+def schmidt_update(
+    state: State,
+    H: Mapping[str, np.ndarray],
+    r: np.ndarray,
+    R: np.ndarray | float,
+    *,
+    estimated: Iterable[str],
+    **options,
+) -> UpdateResult:
+    """The Schmidt-Kalman update (the paper's SKF): only the ``estimated`` variables get a gain, every other
+    variable is considered (its estimate and own covariance stay, its cross-covariances follow). A named view of
+    the one update: `ekf_update` with ``schmidt`` = the rest of the state; ``options`` as there."""
+    est = set(estimated)
+    return ekf_update(state, H, r, R, schmidt=[n for n in state.names if n not in est], **options)

@@ -22,9 +22,9 @@ from pipeline.core.errors import InputError
 
 from .core.geometry import quat_slerp, quat_to_rot
 from .core.names import INIT_METHODS, REFINE_METHODS
-from .state import State, UpdateResult, Vec, ekf_update, probes, remove_probes
+from .core.uwb_model import jacobians, range_model, range_variance
+from .state import Kind, State, UpdateResult, Vec, ekf_update, remove_probes, schmidt_update
 from .uwb_init import InitResult, InitWindow, initialize_anchor
-from .uwb_model import jacobians, predict, range_variance
 
 if TYPE_CHECKING:
     from .estimator import RangeMeasurement
@@ -60,8 +60,6 @@ class UwbConfig(BaseModel):
     sigma_scale: float = Field(
         1.0, gt=0, description="assumed / nominal noise ratio (sigma_U of paper Table 1)"
     )
-    init_window_s: float | None = Field(None, gt=0, description="see run.init_window_s (that one wins)")
-    refine_window_s: float | None = Field(None, gt=0, description="see run.refine_window_s (that one wins)")
     chi2_quantile: float | None = Field(
         0.95, gt=0, lt=1, description="NIS gate of range updates (update_loss gate); None: off"
     )
@@ -270,7 +268,7 @@ def anchor_init_covariance(
     sigma_range: float,
     gamma_prior: tuple[float, float] | None,
     beta_prior: tuple[float, float],
-    pose_var: str = "imu",
+    pose_var: str | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """(J, Q) such that x~_U = sum_v J[v] e_v + n, n ~ N(0, Q) independent of the filter state.
 
@@ -293,7 +291,7 @@ def anchor_init_covariance(
       the world frame ([R dtheta, dp]) up to now, Cov(e_j, e_k) = P_min(j,k), Cov(e_k, e_now) = P_k, increments
       clipped to PSD; the part correlated with the current pose enters J[pose_var], the rest Q. Exact for a
       pose-only random-walk filter (the odometry filter); for the MSCKF it ignores how its updates decorrelate past
-      from present errors (anchor ANEES after refinement 24-28 instead of 5.5 with probes, `anchor-nees`).
+      from present errors (over-confident anchors after refinement; docs/results/measurements.md).
     """
     w = result.window
     x = result.x
@@ -328,11 +326,11 @@ def anchor_init_covariance(
     HW[:, 0:3] = np.einsum("nj,nij->ni", J.H_I[:, 0:3], w.R)  # H_theta R_k^T
     B = -La[:, :, None] * HW[:, None, :]  # (n,5,6)
     t_k = w.t_ns if w.t_ns is not None else np.arange(n)
-    pr = probes(state)
+    pr = state.probes
     if pr and w.t_ns is not None:
         Jd, cov = _probe_map(state, B, np.asarray(t_k, np.int64), pr)
     else:
-        Jd, cov = _random_walk_map(state, B, w, t_k, pose_var)
+        Jd, cov = _random_walk_map(state, B, w, t_k, pose_var or state.nav)
     # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
     cov += result.noise_inflation * sigma_range**2 * (La.T @ La)
     if not est_beta:
@@ -402,11 +400,12 @@ def add_anchor_to_state(
     sigma_range: float,
     gamma_prior: tuple[float, float] | None,
     beta_prior: tuple[float, float] = (1.0, 0.05),
-    pose_var: str = "imu",
+    pose_var: str | None = None,
 ) -> None:
     """Add ``anchor/<id>`` = result.x with covariance and cross-covariances (see `anchor_init_covariance`)."""
     if not result.ok:
         raise ValueError(f"anchor {anchor}: initialisation {result.status}; not added to the state")
+    pose_var = pose_var or state.nav
     P_now = state.cov(pose_var)[0:6, 0:6]
     if not np.all(np.isfinite(P_now)):
         raise FloatingPointError(f"anchor {anchor}: the filter's pose covariance has NaN/inf")
@@ -418,7 +417,7 @@ def add_anchor_to_state(
         beta_prior=beta_prior,
         pose_var=pose_var,
     )
-    state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q)
+    state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
 
 
 def add_initialised_anchors(
@@ -482,7 +481,7 @@ class UwbUpdater:
         sigma_range: float = 0.1,
         chi2_quantile: float | None = 0.95,
         anchors: Mapping[Any, np.ndarray] | None = None,
-        pose_var: str = "imu",
+        pose_var: str | None = None,
         inflation: Mapping[Any, float] | None = None,
         robust: tuple[str, float] | None = None,
     ) -> None:
@@ -538,28 +537,29 @@ class UwbUpdater:
         else:
             self.counts["skipped"] += 1
             return None
-        pose = state.value(self.pose_var)
+        pose_var = self.pose_var or state.nav
+        pose = state.value(pose_var)
         # Jacobians at the first estimates of pose and anchor (FEJ: a range at a camera stamp comes after that
         # frame's update, when the pose estimate already differs from its propagated first estimate)
-        pose_lin = state.fej(self.pose_var)
+        pose_lin = state.fej(pose_var)
         p_T = _lever_arm(self.arms, meas.tag, meas.antenna)
         J = jacobians(pose_lin.R, pose_lin.p, p_T, x_lin)
         same = (
             pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
         ) and (x_lin is x_cur or np.array_equal(x_lin, x_cur))
-        h = J.h[0] if same else predict(pose.R, pose.p, p_T, x_cur)[0]
+        h = J.h[0] if same else range_model(pose.R, pose.p, p_T, x_cur)[0]
         r = float(meas.distance - h)
         R0 = (self.sigma * x_cur[3]) ** 2
         R = self.inflation.get(meas.anchor, 1.0) * R0
         robust = None
         if self.robust is not None:  # scale in sigmas of the per-sample noise, as at init
             robust = (self.robust[0], self.robust[1] / (self.sigma * x_cur[3]))
-        H_imu = np.zeros((1, state.dim(self.pose_var)))
+        H_imu = np.zeros((1, state.dim(pose_var)))
         H_imu[:, 0:6] = J.H_I
         res: UpdateResult | None = None
         if self.mode == "none":
             # record only: NIS of the would-be joint update
-            Hs = {self.pose_var: H_imu, **({name: J.H_U} if in_state else {})}
+            Hs = {pose_var: H_imu, **({name: J.H_U} if in_state else {})}
             S = R
             for a, Ha in Hs.items():
                 for b, Hb in Hs.items():
@@ -567,24 +567,15 @@ class UwbUpdater:
             res = UpdateResult(True, r * r / S, 1, None)
             self.counts["recorded"] += 1
         else:
-            if self.mode == "frozen":
-                H = {self.pose_var: H_imu}
-                schmidt = [n for n in state.names if n.startswith("anchor/")]
+            options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
+            anchors = [n for _, n in state.of_kind(Kind.ANCHOR)]
+            if self.mode == "frozen":  # the anchors considered: the range corrects the pose only
+                res = ekf_update(state, {pose_var: H_imu}, np.array([r]), R, schmidt=anchors, **options)
+            elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
+                H = {pose_var: H_imu, name: J.H_U}
+                res = schmidt_update(state, H, np.array([r]), R, estimated=anchors, **options)
             else:
-                H = {self.pose_var: H_imu, name: J.H_U}
-                schmidt = (
-                    [n for n in state.names if not n.startswith("anchor/")] if self.mode == "skf" else []
-                )
-            res = ekf_update(
-                state,
-                H,
-                np.array([r]),
-                R,
-                schmidt=schmidt,
-                chi2_gate=self.chi2_quantile,
-                robust=robust,
-                robust_R=R0,
-            )
+                res = ekf_update(state, {pose_var: H_imu, name: J.H_U}, np.array([r]), R, **options)
             self.counts["accepted" if res.accepted else "rejected"] += 1
         rec = self.records.setdefault(meas.anchor, AnchorRecord())
         rec.t_ns.append(int(meas.t_ns))

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .core.names import INIT_METHODS
+from .core.uwb_model import jacobians, range_variance, tag_positions
 from .fim import FimReport, assess_observability
-from .uwb_model import jacobians, range_variance, tag_positions
 
 _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
 _ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)
@@ -179,7 +179,10 @@ def _priors(n: int, gamma_prior, beta_prior) -> list[tuple[int, float, float]]:
     return out
 
 
-def _evaluate(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c, beta_prior=None):
+def ri_cost(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c, beta_prior=None):
+    """The initialisation cost at ``theta``: sum_k loss(r_k / s_k) + priors with r_k = d_k - range_model(...);
+    RI (``weighted``): s_k^2 = `range_variance` (the pose covariance propagated into the range), LSI: s_k^2 the
+    range noise. Returns (cost, H_U columns of theta, r, whitened e, s^2, IRLS weights)."""
     bfix = float(beta_prior[0]) if beta_prior is not None else 1.0
     x = _x_u(theta, bfix)
     idx = _ABG if len(theta) == 5 else _AG
@@ -222,7 +225,7 @@ def solve_from(
     theta = np.asarray(theta0, float).copy()
     lam = 1e-4
     priors = _priors(len(theta), gamma_prior, beta_prior)
-    cost, Hu, r, e, s2, wt = _evaluate(w, theta, weighted, s2d, gamma_prior, robust, c, beta_prior)
+    cost, Hu, r, e, s2, wt = ri_cost(w, theta, weighted, s2d, gamma_prior, robust, c, beta_prior)
     costs = [cost]
     iterations = 0
     for it in range(1, max_iter + 1):
@@ -242,7 +245,7 @@ def solve_from(
                 lam *= 10
                 continue
             cand = theta + step
-            res = _evaluate(w, cand, weighted, s2d, gamma_prior, robust, c, beta_prior)
+            res = ri_cost(w, cand, weighted, s2d, gamma_prior, robust, c, beta_prior)
             if np.isfinite(res[0]) and res[0] <= cost:
                 theta = cand
                 cost, Hu, r, e, s2, wt = res
@@ -275,7 +278,7 @@ def noise_inflation(
     The estimator treats the ranges as independent. Real UWB errors are not: multipath and the antenna pattern
     make them vary slowly with the geometry (NTU-VIRAL: per-anchor residuals keep correlating over tens of
     seconds), so N ranges carry far less than N independent ranges' information and the inverse information
-    is over-confident by a factor kappa (anchors 0.3-0.8 m off with a predicted sigma of 3-5 cm). Batch means:
+    is over-confident by a factor kappa (docs/results/measurements.md). Batch means:
     with blocks of ``block_s`` seconds holding n_b inlier residuals, kappa = mean(n_b mean_b^2) / mean(e^2),
     which is chi2(B)/B-distributed around 1 for white errors; it is used only when it exceeds that
     distribution's ``quantile`` (white noise, as in the simulator, keeps kappa = 1).

@@ -20,6 +20,7 @@ from scipy.stats import chi2
 
 from convert.recording import RecordingReader, RecordingWriter
 from pipeline.core.geometry import exp_so3, log_so3, quat_to_rot, rot_to_quat
+from pipeline.driver import run_estimator
 from pipeline.estimator import TrajectoryRecord
 from pipeline.msckf import MsckfEstimator, VioConfig, groundtruth_state
 from pipeline.odometry_filter import OdometryEstimator, OdometryFilterConfig
@@ -112,7 +113,7 @@ def odometry_runs(tmp_path_factory):
             w.write_odometry_batch(t_ns, pm, rot_to_quat(Rm), np.zeros((len(t), 6, 6)))
         rd = RecordingReader(path)
         est = OdometryEstimator.from_recording(rd, OdometryFilterConfig(error_model="drift", **NOISE))
-        est.run(rd, None, None)
+        run_estimator(est, rd, None, None)
         out.append((est.history(), t_ns, R, p))
     return out
 
@@ -199,7 +200,7 @@ def msckf_runs(tmp_path_factory):
         for fej in (True, False) if seed < FEJ_SEEDS else (True,):
             rd = RecordingReader(path)
             est = MsckfEstimator.from_recording(rd, VioConfig(fej=fej), x0, P0)
-            est.run(rd, None, None)
+            run_estimator(est, rd, None, None)
             out[fej].append((est, truth))
     return out
 

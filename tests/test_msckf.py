@@ -12,6 +12,7 @@ from convert.euroc import EUROC_CAMERAS, EUROC_IMU
 from convert.recording import META_CALIBRATION, META_TRUTH, RecordingReader, RecordingWriter
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import exp_so3, rot_to_quat
+from pipeline.driver import run_estimator
 from pipeline.imu import GRAVITY
 from pipeline.msckf import (
     FeatureDatabase,
@@ -151,7 +152,7 @@ def test_msckf_tracks_synthetic_motion(vi_recording, fej):
     path, (t_ns, p, R) = vi_recording
     reader = RecordingReader(path)
     est = MsckfEstimator.from_recording(reader, VioConfig(fej=fej))
-    est.run(reader, None, None)
+    run_estimator(est, reader, None, None)
     h, dth, dp = errors_vs_truth(est, t_ns, p, R)
     assert len(h["t_ns"]) > 350
     prmse = np.sqrt((dp**2).sum(1).mean())
@@ -167,11 +168,11 @@ def test_msckf_resumes_after_pickle(vi_recording):
     reader = RecordingReader(path)
     mid, end = int(t_ns[0] + 4e9), int(t_ns[0] + 8e9)
     a = MsckfEstimator.from_recording(reader, VioConfig())
-    a.run(reader, None, mid)
+    run_estimator(a, reader, None, mid)
     b = pickle.loads(pickle.dumps(a))
-    b.run(reader, mid, end)
+    run_estimator(b, reader, mid, end)
     full = MsckfEstimator.from_recording(reader, VioConfig())
-    full.run(reader, None, end)
+    run_estimator(full, reader, None, end)
     hb, hf = b.history().arrays(), full.history().arrays()
     assert len(hb["t_ns"]) == len(hf["t_ns"])
     assert np.abs(hb["p"] - hf["p"]).max() < 1e-6
@@ -190,7 +191,7 @@ def test_msckf_bad_input(tmp_path):
     reader = RecordingReader(path)
     est = MsckfEstimator.from_recording(reader, VioConfig())
     with pytest.raises(InputError, match=r"/imu @ 1250000000"):
-        est.run(reader, None, None)
+        run_estimator(est, reader, None, None)
     with pytest.raises(InputError, match="initial IMU state"):
         MsckfEstimator.from_recording(reader, VioConfig(init_from_groundtruth=False))
 
@@ -213,7 +214,9 @@ def test_msckf_imu_gap_and_no_features(tmp_path):
     reader = RecordingReader(path)
     est = MsckfEstimator.from_recording(reader, VioConfig())
     seen = []
-    est.run(reader, None, None, on_range=lambda e, m: seen.append((e.t_ns, m.t_ns, m.anchor, m.distance)))
+    run_estimator(
+        est, reader, None, None, on_range=lambda e, m: seen.append((e.t_ns, m.t_ns, m.anchor, m.distance))
+    )
     assert [s[0] for s in seen] == tr.tolist() and [s[1] for s in seen] == tr.tolist()
     assert [s[2] for s in seen] == [0, 1, 0, 1, 0, 1, 0] and seen[0][3] == 3.0
     assert set(tr.tolist()) <= set(est.history().arrays()["t_ns"].tolist())
@@ -231,7 +234,7 @@ def test_msckf_logs_to_rerun(vi_recording, tmp_path):
     reader = RecordingReader(path)
     est = MsckfEstimator.from_recording(reader, VioConfig())
     with RunLog(tmp_path / "vio.rrd") as log:
-        est.run(reader, None, int(t_ns[0] + 3e9), log=log)
+        run_estimator(est, reader, None, int(t_ns[0] + 3e9), log=log)
     summary = read_rrd_summary(tmp_path / "vio.rrd")
     n = len(est.history())
     assert summary.rows.get("world/vio/pose", 0) == n
@@ -294,7 +297,7 @@ def test_zupt_holds_a_static_platform(tmp_path):
     _static_recording(path)
     reader = RecordingReader(path)
     est = MsckfEstimator.from_recording(reader, VioConfig())
-    est.run(reader, None, None)
+    run_estimator(est, reader, None, None)
     st = est.stats
     assert st.zupt_updates > 0.9 * st.frames and st.zupt_time_s > 5.0
     assert len(est.clones) < 3  # static frames add no clones (no zero-parallax feature updates)
@@ -302,7 +305,7 @@ def test_zupt_holds_a_static_platform(tmp_path):
     assert np.abs(x.p).max() < 5e-3 and np.abs(x.v).max() < 5e-3
     # without the ZUPT the same data goes through the MSCKF (zero-parallax tracks are gated away)
     est2 = MsckfEstimator.from_recording(reader, VioConfig(zupt=False))
-    est2.run(reader, None, None)
+    run_estimator(est2, reader, None, None)
     assert est2.stats.zupt_updates == 0 and len(est2.clones) > 3
 
 
@@ -313,7 +316,7 @@ def test_zupt_not_on_slow_constant_velocity(tmp_path):
     p = _static_recording(path, v_const=0.08, depth=(1.5, 2.5))
     reader = RecordingReader(path)
     est = MsckfEstimator.from_recording(reader, VioConfig())
-    est.run(reader, None, None)
+    run_estimator(est, reader, None, None)
     assert est.stats.zupt_updates == 0
     # 0.48 m travelled without rotation (weak scale observability): the MSCKF alone keeps it within 0.1 m
     assert np.linalg.norm(est.state.value("imu").p - p[-1]) < 0.1
@@ -323,7 +326,7 @@ def test_zupt_not_on_motion(vi_recording):
     path, _ = vi_recording
     reader = RecordingReader(path)
     est = MsckfEstimator.from_recording(reader, VioConfig())
-    est.run(reader, None, None)
+    run_estimator(est, reader, None, None)
     assert est.stats.zupt_updates == 0 and est.stats.updates > 300
 
 

@@ -15,6 +15,7 @@ from pipeline.core.geometry import (
     se3_interpolate,
     skew,
 )
+from pipeline.driver import run_estimator
 from pipeline.odometry_filter import (
     OdometryEstimator,
     OdometryFilterConfig,
@@ -58,7 +59,7 @@ def test_no_updates_reproduces_odometry_and_covariance_grows(tmp_path):
     t, R, p = _trajectory()
     rd = _write(tmp_path / "o.mcap", t, R, p)
     est = OdometryEstimator.from_recording(rd)
-    est.run(rd, None, None)
+    run_estimator(est, rd, None, None)
     h = est.history().arrays()
     assert np.array_equal(h["t_ns"], t)
     assert np.abs(h["p"] - p).max() < 1e-9
@@ -93,7 +94,7 @@ def test_position_sigma_follows_random_walk_per_metre(tmp_path):
     )
     rd = _write(tmp_path / "line.mcap", t, R, p)
     est = OdometryEstimator.from_recording(rd, cfg)
-    est.run(rd, None, None)
+    run_estimator(est, rd, None, None)
     cov = est.history().arrays()["cov"][-1]
     L, T = 50.0, 10.0
     expected = 0.01**2 + 0.03**2 * L + 0.001**2 * T
@@ -102,7 +103,7 @@ def test_position_sigma_follows_random_walk_per_metre(tmp_path):
     assert cov[5, 5] == pytest.approx(expected, rel=1e-9)
     # with heading noise the lateral variance grows faster than the along-track one (lever arm)
     est = OdometryEstimator.from_recording(rd, OdometryFilterConfig(sigma_p_per_sqrt_m=0.03))
-    est.run(rd, None, None)
+    run_estimator(est, rd, None, None)
     cov = est.history().arrays()["cov"][-1]
     assert cov[4, 4] > 2 * cov[3, 3]
 
@@ -114,11 +115,11 @@ def test_range_stamps_are_interpolated(tmp_path):
     seen = []
 
     def handler(est, m):
-        x = est.state.value("imu")
+        x = est.state.value(est.state.nav)
         seen.append((m.t_ns, est.t_ns, x.R.copy(), x.p.copy(), m.anchor, m.distance))
 
     est = OdometryEstimator.from_recording(rd)
-    est.run(rd, None, None, on_range=handler)
+    run_estimator(est, rd, None, None, on_range=handler)
     assert [s[0] for s in seen] == tr
     for t_r, t_state, Rx, px, anchor, dist in seen:
         assert t_state == t_r and anchor == 7 and dist == 5.0
@@ -145,19 +146,19 @@ def test_position_update_pulls_pose_and_later_increments_apply_to_it(tmp_path):
     truth = {}
 
     def handler(est, m):
-        x = est.state.value("imu")
+        x = est.state.value(est.state.nav)
         target = x.p + offset
         truth["target"] = target
         H = np.zeros((3, 6))
         H[:, 3:6] = np.eye(3)
-        res = ekf_update(est.state, {"imu": H}, target - x.p, 1e-12)
+        res = ekf_update(est.state, {est.state.nav: H}, target - x.p, 1e-12)
         assert res.accepted
-        truth["R"] = est.state.value("imu").R.copy()
-        truth["p"] = est.state.value("imu").p.copy()
-        truth["sigma_p"] = np.sqrt(np.diag(est.state.cov("imu"))[3:6])
+        truth["R"] = est.state.value(est.state.nav).R.copy()
+        truth["p"] = est.state.value(est.state.nav).p.copy()
+        truth["sigma_p"] = np.sqrt(np.diag(est.state.cov(est.state.nav))[3:6])
 
     est = OdometryEstimator.from_recording(rd)
-    est.run(rd, None, None, on_range=handler)
+    run_estimator(est, rd, None, None, on_range=handler)
     assert np.allclose(truth["p"], truth["target"], atol=1e-6)
     assert truth["sigma_p"].max() < 1e-5
     # after the fix: T_hat_k = T_fix (T_odom(t_fix)^-1 T_k)
@@ -165,7 +166,7 @@ def test_position_update_pulls_pose_and_later_increments_apply_to_it(tmp_path):
     s = (t_fix - t[k - 1]) / (t[k] - t[k - 1])
     Ro, po = se3_interpolate(R[k - 1], p[k - 1], R[k], p[k], s)
     Rl, pl = compose(truth["R"], truth["p"], *relative(Ro, po, R[-1], p[-1]))
-    x = est.state.value("imu")
+    x = est.state.value(est.state.nav)
     assert _rot_err(x.R, Rl) < 1e-9
     assert np.allclose(x.p, pl, atol=1e-9)
     assert not np.allclose(x.p, p[-1], atol=1e-3)
@@ -176,13 +177,13 @@ def test_split_run_and_pickle_equal_one_run(tmp_path):
     tr = (t[:-1] + 33_000_000).tolist()
     rd = _write(tmp_path / "s.mcap", t, R, p, ranges=tr)
     one = OdometryEstimator.from_recording(rd)
-    one.run(rd, None, None)
+    run_estimator(one, rd, None, None)
     mid = int(t[37] + 50_000_000)
     two = OdometryEstimator.from_recording(rd)
-    two.run(rd, None, mid)
+    run_estimator(two, rd, None, mid)
     assert two.t_ns < mid
     two = pickle.loads(pickle.dumps(two))
-    two.run(rd, mid, None)
+    run_estimator(two, rd, mid, None)
     a, b = one.history().arrays(), two.history().arrays()
     assert np.array_equal(a["t_ns"], b["t_ns"])
     assert np.allclose(a["p"], b["p"], atol=1e-12)
@@ -197,7 +198,7 @@ def test_duplicates_skipped_and_counted_out_of_order_sorted(tmp_path):
     pd = np.insert(p, 10, p[10], axis=0)
     rd = _write(tmp_path / "d.mcap", td, Rd, pd)
     est = OdometryEstimator.from_recording(rd)
-    est.run(rd, None, None)
+    run_estimator(est, rd, None, None)
     assert est.stats.duplicates == 1
     assert any("duplicate" in w for w in est.warnings)
     h = est.history().arrays()
@@ -219,7 +220,7 @@ def test_nan_odometry_names_the_stamp(tmp_path):
     rd = _write(tmp_path / "n.mcap", t, R, p)
     est = OdometryEstimator.from_recording(rd)
     with pytest.raises(InputError, match=str(int(t[7]))):
-        est.run(rd, None, None)
+        run_estimator(est, rd, None, None)
 
 
 def test_missing_topic_and_ranges_outside_odometry(tmp_path):
@@ -231,7 +232,7 @@ def test_missing_topic_and_ranges_outside_odometry(tmp_path):
     rd = _write(tmp_path / "o.mcap", t, R, p, ranges=[int(t[0] - 5), int(t[4]), int(t[-1] + 5)])
     calls = []
     est = OdometryEstimator.from_recording(rd)
-    est.run(rd, int(t[0] - 10), None, on_range=lambda e, m: calls.append(m.t_ns))
+    run_estimator(est, rd, int(t[0] - 10), None, on_range=lambda e, m: calls.append(m.t_ns))
     assert calls == [int(t[4])]
     assert est.stats.ranges_before_odometry == 1
 
@@ -270,7 +271,7 @@ def test_simulated_odometry_is_consistent_with_the_drift_model(tmp_path):
         cfg = OdometryFilterConfig()
         assert apply_calibration_noise(cfg, rd.calibration) == list(rd.calibration["odometry"]["noise"])
         est = OdometryEstimator.from_recording(rd, cfg)
-        est.run(rd, None, None)
+        run_estimator(est, rd, None, None)
         h = est.history().arrays()
         gt = rd.read_poses()
         i = np.searchsorted(gt.t_ns, h["t_ns"])

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pipeline.core.geometry import exp_so3, log_so3
-from pipeline.state import ImuState, Pose, State, Vec, ekf_update
+from pipeline.state import ImuState, Kind, Pose, State, Vec, ekf_update
 
 
 def _random_spd(rng, n):
@@ -64,10 +64,11 @@ def test_chi2_gate_rejects_outlier_without_change():
 def test_augment_clone_has_exact_covariance():
     rng = np.random.default_rng(3)
     s = State()
-    s.add("imu", ImuState(np.eye(3), np.zeros(3), np.zeros(3)), _random_spd(rng, 15))
+    s.add("imu", ImuState(np.eye(3), np.zeros(3), np.zeros(3)), _random_spd(rng, 15), kind=Kind.NAV)
     J = np.zeros((6, 15))
     J[:, :6] = np.eye(6)
-    s.augment("clone/0", s.value("imu").pose, {"imu": J})
+    s.augment("clone/0", s.value("imu").pose, {"imu": J}, kind=Kind.CLONE, key=0)
+    assert s.clones == [(0, "clone/0")] and s.nav == "imu"
     np.testing.assert_allclose(s.cov("clone/0"), s.cov("imu")[:6, :6])
     np.testing.assert_allclose(s.cov("clone/0", "imu"), s.cov("imu")[:6, :])
     s.remove("clone/0")
@@ -123,13 +124,18 @@ def test_fej_switch():
 def test_considered_variables_and_pose_probes():
     """A probe keeps the pose of its time as a considered variable: no update changes it or its own block, its
     cross-covariances follow the updates exactly (as an explicit Schmidt update would), and it can be dropped."""
-    from pipeline.state import add_probe, probes, remove_probes
+    from pipeline.state import add_probe, remove_probes
 
     rng = np.random.default_rng(5)
     s = State()
-    s.add("imu", Pose(exp_so3(rng.normal(size=3)), rng.normal(size=3)), _random_spd(rng, 6) * 1e-2)
+    s.add(
+        "imu",
+        Pose(exp_so3(rng.normal(size=3)), rng.normal(size=3)),
+        _random_spd(rng, 6) * 1e-2,
+        kind=Kind.NAV,
+    )
     name = add_probe(s, 1_000)
-    assert probes(s) == [(1_000, name)] and name in s.considered
+    assert s.probes == [(1_000, name)] and name in s.considered
     np.testing.assert_allclose(s.cov(name), s.cov("imu"), atol=1e-15)  # a copy of the pose at its time
     P0, x0 = s.P.copy(), s.value("imu")
     H = rng.normal(size=(2, 6))
@@ -150,7 +156,7 @@ def test_considered_variables_and_pose_probes():
     np.testing.assert_allclose(s.value("imu").p, x0.p + (K @ r)[3:6], atol=1e-12)
     np.testing.assert_array_equal(s.value(name).p, x0.p)
     remove_probes(s)
-    assert probes(s) == [] and not s.considered and s.names == ["imu"]
+    assert s.probes == [] and not s.considered and s.names == ["imu"]
 
 
 # -- the robust (IRLS-weighted) update: closed form -----------------------------------------------------------------
@@ -200,3 +206,61 @@ def test_robust_update_whitens_with_robust_R():
     np.testing.assert_allclose(s.P, P0 - w * S * np.outer(K, K), atol=1e-12)
     with pytest.raises(ValueError, match="unknown robust"):
         ekf_update(_robust_case()[0], {"a": H[:, :3], "b": H[:, 3:]}, np.array([5.0]), R, robust=("l1", 1.0))
+
+
+def test_propagate_is_phi_p_phi_t_plus_q_on_the_joint_covariance():
+    rng = np.random.default_rng(8)
+    s = _two_var_state(rng)
+    P0 = s.P.copy()
+    Phi = rng.normal(size=(3, 3))
+    Q = _random_spd(rng, 3)
+    s.propagate("a", Phi, Q)
+    F = np.eye(5)
+    F[:3, :3] = Phi
+    Qf = np.zeros((5, 5))
+    Qf[:3, :3] = Q
+    np.testing.assert_allclose(s.P, F @ P0 @ F.T + Qf, atol=1e-12)
+
+
+def test_clone_window_reuses_slots_without_reallocating():
+    """Adding and removing clones keeps the covariance buffer (no whole-matrix copy): a removed clone's slot is
+    zeroed and taken by the next clone; the capacity doubles only when the buffer is full. The covariance equals
+    that of a dense reference that appends and deletes rows and columns (closed-form Kalman update)."""
+    rng = np.random.default_rng(9)
+    s = State(capacity=64)
+    P_imu = _random_spd(rng, 15)
+    s.add("imu", ImuState(np.eye(3), np.zeros(3), np.zeros(3)), P_imu, kind=Kind.NAV)
+    J = np.zeros((6, 15))
+    J[:, :6] = np.eye(6)
+    names, Pd = ["imu"], P_imu.copy()  # the dense reference, in the order of names
+    buf = s._buf
+    for k in range(30):
+        s.augment(f"clone/{k}", s.value("imu").pose, {"imu": J}, kind=Kind.CLONE, key=k)
+        Jd = np.zeros((6, len(Pd)))
+        Jd[:, :6] = np.eye(6)
+        Pd = np.block([[Pd, Pd @ Jd.T], [Jd @ Pd, Jd @ Pd @ Jd.T]])
+        names.append(f"clone/{k}")
+        Hc, Hi = rng.normal(size=(2, 6)), rng.normal(size=(2, 15))
+        ekf_update(s, {f"clone/{k}": Hc, "imu": Hi}, rng.normal(size=2), 1.0)
+        Hd = np.zeros((2, len(Pd)))
+        Hd[:, :15], Hd[:, -6:] = Hi, Hc
+        Kd = Pd @ Hd.T @ np.linalg.inv(Hd @ Pd @ Hd.T + np.eye(2))
+        Pd = Pd - Kd @ Hd @ Pd
+        if len(s.clones) > 5:
+            oldest = s.clones[0][1]
+            s.remove(oldest)
+            i = 15 + 6 * (names.index(oldest) - 1)
+            Pd = np.delete(np.delete(Pd, np.s_[i : i + 6], 0), np.s_[i : i + 6], 1)
+            names.remove(oldest)
+        assert s._buf is buf  # 15 + 6 * 6 <= 64: never reallocated
+    assert [t for t, _ in s.clones] == list(range(25, 30)) and s.names == names
+    idx = s.index(names)
+    assert len(set(idx)) == s.size - 6  # one free slot (zero rows and columns) waits for the next clone
+    free = np.setdiff1d(np.arange(s.size), idx)
+    assert not s.P[free].any() and not s.P[:, free].any()
+    np.testing.assert_allclose(s.P[np.ix_(idx, idx)], Pd, atol=1e-9)
+    for k in range(20):  # growth: doubling keeps every block
+        before = {n: s.cov(n).copy() for n in s.names}
+        s.augment(f"clone/{100 + k}", s.value("imu").pose, {"imu": J}, kind=Kind.CLONE, key=100 + k)
+        assert all(np.array_equal(s.cov(n), c) for n, c in before.items())
+    assert s._buf.shape[0] >= s.size and s._buf is not buf

@@ -11,7 +11,7 @@ from scipy.stats import chi2
 from evaluate.ri_vs_lsi import smooth_trajectory
 from pipeline.core.geometry import exp_so3, log_so3, rot_to_quat
 from pipeline.estimator import RangeMeasurement
-from pipeline.state import Pose, State, Vec
+from pipeline.state import Kind, Pose, State, Vec
 from pipeline.uwb_filter import (
     METHODS,
     UwbConfig,
@@ -78,7 +78,7 @@ def _simulate_run(
     e0 = rng.normal(size=6) * np.sqrt(np.diag(P0))
     R_true, p_true = R_nom[0] @ exp_so3(e0[:3]), p_nom[0].copy()
     state = State(use_fej=True)
-    state.add("imu", Pose(R_nom[0], p_nom[0] - e0[3:]), P0)
+    state.add("imu", Pose(R_nom[0], p_nom[0] - e0[3:]), P0, kind=Kind.NAV)
     truth = {a: np.r_[pa, rng.normal(1.0, beta_sigma), rng.normal(0.5, 0.3)] for a, pa in ANCHORS.items()}
     cfg = UwbConfig(init_method="ri", refine_method=mode, beta_sigma=beta_sigma, n_perturbed_starts=0)
     traj = {"t_ns": [], "p": [], "q_xyzw": [], "cov": []}
@@ -196,8 +196,9 @@ def _state_with_anchor():
         "imu",
         Pose(exp_so3(np.array([0.1, -0.2, 0.3])), np.array([1.0, 2.0, 0.5])),
         A @ A.T + 1e-4 * np.eye(6),
+        kind=Kind.NAV,
     )
-    state.add("clone/1", Pose(np.eye(3), np.zeros(3)), np.eye(6) * 0.01)
+    state.add("clone/1", Pose(np.eye(3), np.zeros(3)), np.eye(6) * 0.01, kind=Kind.CLONE, key=1)
     state.P[0:6, 6:12] = state.P[6:12, 0:6] = 0.005 * np.eye(6)
     # anchor correlated with imu through the initialisation map
     J = np.zeros((5, 6))
@@ -207,6 +208,8 @@ def _state_with_anchor():
         Vec(np.array([5.0, 4.0, 3.0, 1.0, 0.2])),
         {"imu": J},
         Q=np.diag([0.04, 0.04, 0.04, 0.0025, 0.04]),
+        kind=Kind.ANCHOR,
+        key=3,
     )
     return state
 
@@ -250,7 +253,7 @@ def test_frozen_updates_only_navigation_and_gate_counts():
     assert arr["rejected"].tolist() == [False, True] and arr["cov"].shape == (2, 5, 5)
     # frozen anchors not in the state: given as constants
     st = State()
-    st.add("imu", Pose(np.eye(3), np.zeros(3)), np.eye(6) * 0.01)
+    st.add("imu", Pose(np.eye(3), np.zeros(3)), np.eye(6) * 0.01, kind=Kind.NAV)
     UwbUpdater("frozen", ARMS, anchors={3: x0}, chi2_quantile=None).update(
         st, RangeMeasurement(3, 1, 1, 3, 7.0)
     )

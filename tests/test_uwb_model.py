@@ -3,7 +3,7 @@
 import numpy as np
 
 from pipeline.core.geometry import exp_so3
-from pipeline.uwb_model import jacobians, predict, range_variance
+from pipeline.core.uwb_model import jacobians, range_model, range_variance
 
 
 def _setup(n=7, seed=0):
@@ -20,18 +20,18 @@ def _setup(n=7, seed=0):
 def test_jacobians_match_finite_differences():
     R, p, pT, x, _ = _setup()
     J = jacobians(R, p, pT, x)
-    assert np.allclose(J.h, predict(R, p, pT, x))
+    assert np.allclose(J.h, range_model(R, p, pT, x))
     eps = 1e-6
     for i in range(6):
         dx = np.zeros(6)
         dx[i] = eps
         Rp = R @ exp_so3(dx[:3])  # right perturbation
-        num = (predict(Rp, p + dx[3:], pT, x) - predict(R, p, pT, x)) / eps
+        num = (range_model(Rp, p + dx[3:], pT, x) - range_model(R, p, pT, x)) / eps
         assert np.allclose(J.H_I[:, i], num, atol=1e-5)
     for i in range(5):
         dx = np.zeros(5)
         dx[i] = eps
-        num = (predict(R, p, pT, x + dx) - predict(R, p, pT, x)) / eps
+        num = (range_model(R, p, pT, x + dx) - range_model(R, p, pT, x)) / eps
         assert np.allclose(J.H_U[:, i], num, atol=1e-5)
 
 

@@ -38,7 +38,8 @@ def _errors(est, gt, align=False):
 
 
 def test_euroc_converter_carries_groundtruth_biases(euroc_vi):
-    from pipeline.msckf import TOPIC_GT_IMU_BIAS, groundtruth_state
+    from pipeline.core.topics import TOPIC_GT_IMU_BIAS
+    from pipeline.msckf import groundtruth_state
 
     rec, _ = euroc_vi
     assert TOPIC_GT_IMU_BIAS in rec.topics()
@@ -52,12 +53,13 @@ def test_euroc_converter_carries_groundtruth_biases(euroc_vi):
 
 
 def test_msckf_real_euroc_excerpt_within_10cm(euroc_vi):
+    from pipeline.driver import run_estimator
     from pipeline.msckf import MsckfEstimator, VioConfig
 
     rec, reader = euroc_vi
     gt = rec.read_poses("/groundtruth/pose")
     est = MsckfEstimator.from_recording(reader, VioConfig())
-    est.run(reader, None, None)
+    run_estimator(est, reader, None, None)
     e, span = _errors(est, gt)
     print(f"\nV1_01_micro, GT init with GT biases: max {e.max():.3f} m, final {e[-1]:.3f} m, {est.stats}")
     assert span > 4.5 and est.stats.frames >= 94
@@ -66,6 +68,7 @@ def test_msckf_real_euroc_excerpt_within_10cm(euroc_vi):
 
 
 def test_msckf_real_euroc_excerpt_static_init(euroc_vi):
+    from pipeline.driver import run_estimator
     from pipeline.msckf import MsckfEstimator, VioConfig
     from pipeline.static_init import static_init_from_recording
 
@@ -73,7 +76,7 @@ def test_msckf_real_euroc_excerpt_static_init(euroc_vi):
     gt = rec.read_poses("/groundtruth/pose")
     si = static_init_from_recording(rec)
     est = MsckfEstimator.from_recording(reader, VioConfig(init_from_groundtruth=False), si.state, si.P)
-    est.run(reader, None, None)
+    run_estimator(est, reader, None, None)
     e, _ = _errors(est, gt, align=True)
     print(f"\nV1_01_micro, static init: posyaw-aligned max {e.max():.3f} m")
     assert e.max() < 0.1

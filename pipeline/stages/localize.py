@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import rundir as rd
+from ..driver import run_estimator
 from .context import StageContext, StageResult
 
 
@@ -23,7 +24,7 @@ def run(ctx: StageContext) -> StageResult:
     )
     with ctx.runlog("localize") as log:
         log.stage("localize", win.refine_end_ns)
-        est.run(ctx.features_reader(), win.refine_end_ns, win.end_ns, on_range=updater, log=log)
+        run_estimator(est, ctx.features_reader(), win.refine_end_ns, win.end_ns, on_range=updater, log=log)
         updater.log(log)
         hist = est.history().arrays()
         seg = hist["t_ns"] >= win.refine_end_ns

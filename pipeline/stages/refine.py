@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from .. import rundir as rd
 from .. import runlog as rl
+from ..driver import run_estimator
 from .context import StageContext, StageResult
 
 
@@ -21,7 +22,9 @@ def run(ctx: StageContext) -> StageResult:
     updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
     with ctx.runlog("refine") as log:
         log.stage("refine", win.init_end_ns)
-        est.run(ctx.features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log)
+        run_estimator(
+            est, ctx.features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log
+        )
         updater.log(log)
         for a, arr in updater.arrays().items():
             if len(arr["t_ns"]) and arr["cov"].any():
@@ -29,25 +32,22 @@ def run(ctx: StageContext) -> StageResult:
                     rl.anchor_world(a, "cov"), arr["t_ns"], arr["x"][:, :3], arr["cov"][:, :3, :3]
                 )
                 log.point_series(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
-        for n in est.state.names:  # at the end of refinement: the covariance anchor_states.json holds
-            if n.startswith("anchor/"):
-                a, x = n.split("/", 1)[1], est.state.value(n).x
-                log.ellipsoids(
-                    rl.anchor_world(a, "cov"), x[:3], est.state.cov(n)[None, :3, :3], t_ns=win.refine_end_ns
-                )
+        for (
+            a,
+            n,
+        ) in est.state.anchors.items():  # at the end of refinement: the covariance anchor_states.json holds
+            x = est.state.value(n).x
+            log.ellipsoids(
+                rl.anchor_world(a, "cov"), x[:3], est.state.cov(n)[None, :3, :3], t_ns=win.refine_end_ns
+            )
     ctx.dir.save_pickle("checkpoint_refine.pkl", est)
     hist = est.history().arrays()
     seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
     ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
     rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
-    names = [n for n in est.state.names if n.startswith("anchor/")]
     states = {
-        n.split("/", 1)[1]: {
-            "x": est.state.value(n).x,
-            "P": est.state.cov(n),
-            "noise_inflation": inflation.get(rd.anchor_key(n.split("/", 1)[1]), 1.0),
-        }
-        for n in names
+        str(a): {"x": est.state.value(n).x, "P": est.state.cov(n), "noise_inflation": inflation.get(a, 1.0)}
+        for a, n in est.state.anchors.items()
     }
     ctx.dir.save_json("anchor_states.json", states)
     label = f"{cfg.init_method}+{cfg.refine_method}"

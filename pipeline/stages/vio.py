@@ -6,6 +6,7 @@ from __future__ import annotations
 from pipeline.core.topics import TOPIC_VIO
 
 from .. import rundir as rd
+from ..driver import run_estimator
 from .context import StageContext, StageResult
 
 
@@ -23,7 +24,7 @@ def run(ctx: StageContext) -> StageResult:
     with ctx.runlog("vio") as log:
         log.stage("vio", win.start_ns)
         ctx.log_groundtruth(log)
-        est.run(ctx.features_reader(), win.start_ns, win.init_end_ns, log=log)
+        run_estimator(est, ctx.features_reader(), win.start_ns, win.init_end_ns, log=log)
         if probing:  # the checkpoint keeps the window's probes; the anchors' initialisation removes them
             est.add_probe()
             est.stop_probes(remove=False)
@@ -33,7 +34,7 @@ def run(ctx: StageContext) -> StageResult:
         extent = ctx.config.run.vio_extent
         vio_only_to_end = extent == "full" or (extent == "auto" and "refine" not in ctx.stages)
         if vio_only_to_end:
-            est.run(ctx.features_reader(), win.init_end_ns, win.end_ns, log=log)
+            run_estimator(est, ctx.features_reader(), win.init_end_ns, win.end_ns, log=log)
         hist = est.history().arrays()  # the estimators log world/vio themselves
     ctx.dir.save_npz("vio.npz", **hist)
     rd.write_odometry(ctx.dir, "vio.mcap", hist)
@@ -57,7 +58,7 @@ def _run_loose(ctx: StageContext) -> StageResult:
     with ctx.runlog("vio") as log:
         log.stage("vio", win.start_ns)
         ctx.log_groundtruth(log)
-        msckf.run(ctx.features_reader(), win.start_ns, win.end_ns, log=log)
+        run_estimator(msckf, ctx.features_reader(), win.start_ns, win.end_ns, log=log)
     full = msckf.history().arrays()
     rd.write_odometry(ctx.dir, "vio.mcap", full)
     noise = fit_drift_noise(full)
@@ -65,7 +66,7 @@ def _run_loose(ctx: StageContext) -> StageResult:
     cfg = ctx.config.odometry.model_copy(update={"topic": TOPIC_VIO, "error_model": "drift", **noise})
     reader = ctx.features_reader()
     est = OdometryEstimator.from_recording(reader, cfg)
-    est.run(reader, win.start_ns, win.init_end_ns)
+    run_estimator(est, reader, win.start_ns, win.init_end_ns)
     ctx.dir.save_pickle("checkpoint_init.pkl", est)
     hist = est.history().arrays()
     ctx.dir.save_npz("vio.npz", **hist)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core.geometry import skew
+from .geometry import skew
 
 
 @dataclass
@@ -39,8 +39,9 @@ def tag_positions(R: np.ndarray, p: np.ndarray, p_T: np.ndarray) -> np.ndarray:
     return p + np.einsum("nij,nj->ni", R, p_T)
 
 
-def predict(R: np.ndarray, p: np.ndarray, p_T: np.ndarray, x_U: np.ndarray) -> np.ndarray:
-    """Noise-free ranges h (N,)."""
+def range_model(R: np.ndarray, p: np.ndarray, p_T: np.ndarray, x_U: np.ndarray) -> np.ndarray:
+    """The paper's range model, noise-free: h = beta |p + R p_T - p_a| + gamma for x_U = [p_a, beta, gamma];
+    (N,) ranges."""
     R, p, p_T, x_U = _broadcast(R, p, p_T, x_U)
     rho = np.linalg.norm(tag_positions(R, p, p_T) - x_U[:, :3], axis=1)
     return x_U[:, 3] * rho + x_U[:, 4]
