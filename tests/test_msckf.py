@@ -84,15 +84,23 @@ def test_triangulation_and_nullspace_noise_free():
     xyp = np.concatenate([xy.reshape(nf, m, 2), np.full((nf, 2, 2), 7.0)], axis=1)
     est, ok = triangulate(R_wc, p_wc, Cp, xyp, np.arange(m + 2)[None, :] < m, iterations=5)
     assert ok.all() and np.abs(est - pts).max() < 1e-8
-    # nullspace projection, against an independent SVD of H_f: fed the identity it returns its basis N^T, whose
-    # rows are orthonormal, annihilate H_f and span the same space as the SVD's left-nullspace basis
+    # nullspace projection, against an independent SVD of H_f: its basis N^T (read back from unit residuals) has
+    # orthonormal rows that annihilate H_f and span the same space as the SVD's left-nullspace basis
     Hf = H_f.reshape(nf, 2 * m, 3)
     Hx = np.zeros((nf, m, 2, m, 6))
     for j in range(m):
         Hx[:, j, :, j, :] = H_pose.reshape(nf, m, 2, 6)[:, j]
     Hx = Hx.reshape(nf, 2 * m, 6 * m)
-    eye = np.broadcast_to(np.eye(2 * m), (nf, 2 * m, 2 * m))
-    Nt, _ = nullspace_project(Hf, eye, np.zeros((nf, 2 * m)))
+    Hp = H_pose.reshape(nf, m, 2, 6)
+    r0 = np.zeros((nf, 2 * m))
+    # nullspace_project is linear in r: its basis N^T, column by column, from unit residuals
+    Nt = np.stack(
+        [
+            nullspace_project(Hf, Hp, C, m, np.broadcast_to(np.eye(2 * m)[i], (nf, 2 * m)))[1]
+            for i in range(2 * m)
+        ],
+        axis=2,
+    )
     assert Nt.shape == (nf, 2 * m - 3, 2 * m)
     np.testing.assert_allclose(
         Nt @ np.swapaxes(Nt, 1, 2),
@@ -102,13 +110,27 @@ def test_triangulation_and_nullspace_noise_free():
     assert np.abs(Nt @ Hf).max() < 1e-10 * np.abs(Hf).max()
     U = np.linalg.svd(Hf)[0][:, :, 3:]  # left singular vectors beyond rank 3 = the left nullspace
     np.testing.assert_allclose(np.swapaxes(Nt, 1, 2) @ Nt, U @ np.swapaxes(U, 1, 2), atol=1e-10)
+    # Ho, assembled per clone block, is the dense product N^T H_x
+    Ho, _ = nullspace_project(Hf, Hp, C, m, r0)
+    assert Ho.shape == (nf, 2 * m - 3, 6 * m)
+    np.testing.assert_allclose(Ho, Nt @ Hx, atol=1e-12)
+    # padded slots (here: the last slot, pointing at clone 0) do not leak into clone 0's columns
+    valid = np.ones((nf, m), bool)
+    valid[:, -1] = False
+    Cp = C.copy()
+    Cp[:, -1] = 0
+    Hp0 = Hp.copy()
+    Hp0[:, -1] = 0.0
+    Ho_p, _ = nullspace_project(Hf, Hp0, Cp, m, r0, valid)
+    Hx0 = Hx.reshape(nf, m, 2, m, 6).copy()
+    Hx0[:, -1] = 0.0
+    np.testing.assert_allclose(Ho_p, Nt @ Hx0.reshape(nf, 2 * m, 6 * m), atol=1e-12)
     # a residual made of feature error only vanishes; one made of pose error only maps through Ho
     df = rng.normal(0, 0.1, (nf, 3))
     dx = rng.normal(0, 0.01, 6 * m)
-    Ho, ro_f = nullspace_project(Hf, Hx, np.einsum("kij,kj->ki", Hf, df))
-    assert Ho.shape == (nf, 2 * m - 3, 6 * m)
+    _, ro_f = nullspace_project(Hf, Hp, C, m, np.einsum("kij,kj->ki", Hf, df))
     assert np.abs(ro_f).max() < 1e-12 * np.abs(Hf @ df[..., None]).max()
-    _, ro_x = nullspace_project(Hf, Hx, Hx @ dx + np.einsum("kij,kj->ki", Hf, df))
+    _, ro_x = nullspace_project(Hf, Hp, C, m, Hx @ dx + np.einsum("kij,kj->ki", Hf, df))
     np.testing.assert_allclose(ro_x, Ho @ dx, atol=1e-12)
     # the projected pose Jacobian keeps all but the 7 gauge directions of a visual-only problem
     # (global position, orientation and scale): rank 6m - 7
@@ -117,7 +139,7 @@ def test_triangulation_and_nullspace_noise_free():
     # with a wrong feature guess (non-linear), the projected residual only depends on the pose error
     dpf = rng.normal(0, 1e-4, (nf, 3))
     uv2 = feature_jacobians(CAM, R[cidx], p[cidx], (pts + dpf)[fidx])[0]
-    _, ro2 = nullspace_project(Hf, Hx, (uv - uv2).reshape(nf, 2 * m))
+    _, ro2 = nullspace_project(Hf, Hp, C, m, (uv - uv2).reshape(nf, 2 * m))
     assert np.abs(ro2).max() < 1e-3 * np.abs(uv - uv2).max()
     # QR compression keeps the information: H^T H and H^T r
     H, r = np.concatenate(Ho), np.concatenate(ro_x) + rng.normal(0, 1.0, (nf * (2 * m - 3)))
@@ -254,6 +276,12 @@ def test_compress_normal_keeps_information():
     np.testing.assert_allclose(Hn.T @ Hn, H.T @ H, atol=1e-9)
     np.testing.assert_allclose(Hn.T @ rn, H.T @ r, atol=1e-9)
     np.testing.assert_allclose(Hq.T @ Hq, H.T @ H, atol=1e-9)
+    # gauge directions that are not coordinate axes (the rank-revealing pivoting must still find them)
+    Q = np.linalg.qr(rng.normal(size=(30, 30)))[0]
+    Hn, rn = compress_normal(H @ Q, r)
+    assert Hn.shape[0] == 26
+    np.testing.assert_allclose(Hn.T @ Hn, Q.T @ H.T @ H @ Q, atol=1e-9)
+    np.testing.assert_allclose(Hn.T @ rn, Q.T @ H.T @ r, atol=1e-9)
 
 
 # ---------------------------------------------------------------------------------------------------------------
