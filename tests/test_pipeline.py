@@ -254,8 +254,8 @@ def test_artefacts_agree_with_each_other_and_the_run(run_dir, sim):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known limit: the demo's pose NEES (120 s, MSCKF) is 16.3 above the 95% bound 14.45 (the VIO is "
-    "over-confident over the full trajectory; being fixed by engineer realimu). Strict: passes -> remove this mark",
+    reason="known limit (README, Known limits): the demo's pose NEES (120 s, MSCKF, 15 clones) is 16.3 above the "
+    "95% bound 14.45; vio.max_clones = 20 brings it inside but is not the default. Strict: passes -> remove this",
 )
 def test_demo_pose_nees_inside_the_bounds(demo_run):
     m = json.loads((demo_run[0] / "metrics.json").read_text())
