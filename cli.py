@@ -48,6 +48,7 @@ def _guard(fn):
 
         import click
 
+        from pipeline.core.atomic import discard_all
         from pipeline.core.errors import Terminated, os_error_message
 
         def _term(signum, frame):
@@ -65,9 +66,11 @@ def _guard(fn):
         except (typer.Exit, typer.Abort, click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
             raise
         except Terminated:
+            discard_all()
             typer.echo("error: terminated (SIGTERM); finished outputs kept, partial ones removed", err=True)
             raise typer.Exit(143) from None
         except KeyboardInterrupt:
+            discard_all()
             typer.echo("error: interrupted; finished outputs kept, partial ones removed", err=True)
             raise typer.Exit(130) from None
         except Exception as exc:

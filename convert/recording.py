@@ -31,7 +31,7 @@ from mcap.records import Metadata as McapMetadata
 from mcap.records import Schema as McapSchema
 from mcap.writer import CompressionType, Writer
 
-from pipeline.core.atomic import finish, prepare_output_file, temp_path
+from pipeline.core.atomic import discard, finish, prepare_output_file, temp_path
 from pipeline.core.errors import InputError
 from pipeline.core.topics import (  # noqa: F401  (re-exported: the recording format names its topics)
     TOPIC_CAM0,
@@ -428,7 +428,7 @@ class RecordingWriter:
         try:
             finish(self._tmp, self.path)
         except BaseException:
-            self._tmp.unlink(missing_ok=True)
+            discard(self._tmp)
             raise
 
     def abort(self) -> None:
@@ -439,7 +439,7 @@ class RecordingWriter:
         try:
             self._file.close()
         finally:
-            self._tmp.unlink(missing_ok=True)
+            discard(self._tmp)
 
     def __enter__(self) -> RecordingWriter:
         return self
