@@ -16,6 +16,7 @@ from pipeline.core.errors import InputError
 from pipeline.core.progress import progress
 
 from .anchor_truth import read_anchor_truth, truth_note, truth_record
+from .attitude_check import planar_attitude_note
 from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH, TOPIC_ODOM, TOPIC_RANGE, RecordingWriter
 from .sources import (
     MAX_RANGE_M,
@@ -25,6 +26,7 @@ from .sources import (
     clean_ranges,
     normalise_quaternions,
     order_and_dedup,
+    parse_antennas,
     pose_covariance,
     read_ranges_csv,
     read_tum,
@@ -105,6 +107,11 @@ def convert_tabular(
     if antennas is not None:
         antenna_file = find_antennas(ranges, Path(antennas))
     uwb = uwb_section(antenna_file, r.tag, r.antenna, drops)
+    if antenna_file is not None:
+        levers = [a for t in parse_antennas(antenna_file)[0].values() for a in t.get("antennas", [])]
+        note = planar_attitude_note(p, q, np.asarray(levers, float), str(poses))
+        if note:
+            drops.note(note)
     truth = None
     if anchors_truth is not None:
         anchors_truth = Path(anchors_truth)
