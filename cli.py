@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import os
+import signal
 import sys
 from enum import Enum
 from pathlib import Path
@@ -36,20 +37,78 @@ def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks."
 
 
 def _guard(fn):
-    """Turn bad input into one line on stderr and exit code 2 (a traceback only with --debug)."""
+    """The error policy, in one place: an expected failure (bad input, an OS error on an input or output, a
+    decoding error) -> one line on stderr naming the user's file and exit 2; SIGTERM / Ctrl-C -> temporary outputs
+    removed, exit 143 / 130; anything else is a bug -> one line and exit 1 (the traceback only with --debug).
+    Python warnings are shown once each, as one line."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        import warnings
+
+        import click
+
+        from pipeline.core.errors import Terminated, os_error_message
+
+        def _term(signum, frame):
+            raise Terminated()
+
         try:
-            return fn(*args, **kwargs)
-        except (InputError, FileNotFoundError, IsADirectoryError, NotADirectoryError) as exc:
+            previous = signal.signal(signal.SIGTERM, _term)
+        except ValueError:  # not the main thread
+            previous = None
+        caught: list[warnings.WarningMessage] = []
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                return fn(*args, **kwargs)
+        except (typer.Exit, typer.Abort, click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
+            raise
+        except Terminated:
+            typer.echo("error: terminated (SIGTERM); finished outputs kept, partial ones removed", err=True)
+            raise typer.Exit(143) from None
+        except KeyboardInterrupt:
+            typer.echo("error: interrupted; finished outputs kept, partial ones removed", err=True)
+            raise typer.Exit(130) from None
+        except Exception as exc:
             if _DEBUG["on"]:
                 raise
-            msg = str(exc) if isinstance(exc, InputError) else f"{exc.strerror}: {exc.filename}"
-            typer.echo(f"error: {msg}", err=True)
+            if isinstance(exc, InputError):
+                msg = str(exc)
+            elif isinstance(exc, OSError):
+                msg = os_error_message(exc)
+            elif isinstance(exc, UnicodeDecodeError):
+                msg = f"an input is not UTF-8 text ({exc.reason} at byte {exc.start}); convert it to UTF-8"
+            else:
+                first = (str(exc).strip().splitlines() or [""])[0]
+                typer.echo(
+                    f"error: internal error ({type(exc).__name__}: {first}); this is a bug in uwbcal, "
+                    "please report it with the output of --debug",
+                    err=True,
+                )
+                raise typer.Exit(1) from None
+            typer.echo("error: " + " ".join(msg.split("\n")).strip(), err=True)
             raise typer.Exit(2) from None
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+            seen = set()
+            for w in caught:
+                if not issubclass(w.category, (UserWarning, RuntimeWarning, FutureWarning)):
+                    continue
+                text = " ".join(str(w.message).split())
+                if text not in seen:
+                    seen.add(text)
+                    typer.echo(f"warning: {text}", err=True)
 
     return wrapper
+
+
+def _output_file(path: Path) -> None:
+    """Refuse an output file path that cannot be one (a directory, /dev/null) before any work is done."""
+    from pipeline.core.atomic import check_output_file
+
+    check_output_file(path)
 
 
 class Align(str, Enum):
@@ -136,6 +195,8 @@ def simulate(
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
     from convert.simulator import SimConfig, simulate_to_file
 
+    _output_file(output)
+
     given = {
         "trajectory": trajectory,
         "n_anchors": anchors,
@@ -171,6 +232,8 @@ def convert_euroc(
     """Convert EuRoC (ASL folder or ROS1 bag)."""
     from convert.euroc import convert_euroc as run
 
+    _output_file(output)
+
     typer.echo(run(path, output, groundtruth=groundtruth))
 
 
@@ -193,6 +256,8 @@ def convert_ntu_viral(
     """Convert NTU-VIRAL (ROS1 bag or CSV sequence folder)."""
     from convert.ntu_viral import convert_ntu_viral as run
 
+    _output_file(output)
+
     typer.echo(run(path, output, antennas=antennas, anchors_truth=anchors_truth))
 
 
@@ -213,6 +278,8 @@ def convert_tabular(
 ) -> None:
     """Convert any odometry (TUM) plus UWB ranges (CSV)."""
     from convert.tabular import convert_tabular as run
+
+    _output_file(output)
 
     typer.echo(run(poses, ranges, output, antennas=antennas, anchors_truth=anchors_truth))
 

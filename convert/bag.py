@@ -45,6 +45,7 @@ from .recording import (
     RangeData,
     RecordingReader,
     RecordingWriter,
+    written_by_uwbcal,
 )
 from .sources import (
     MAX_RANGE_M,
@@ -104,6 +105,8 @@ def bag_format(path: Path) -> str:
 
 
 def _is_recording(path: Path) -> bool:
+    if written_by_uwbcal(path):  # also a truncated recording (its metadata, written last, is lost)
+        return True
     try:
         return bool(RecordingReader(path).metadata(META_SOURCE))
     except Exception:  # noqa: BLE001 (anything unreadable is left to the bag reader's own error)

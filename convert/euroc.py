@@ -179,6 +179,8 @@ class ImuTable:
 
 def read_imu_csv(path: Path) -> ImuTable:
     df = read_csv_strings(path, 7, what="EuRoC IMU CSV (#timestamp [ns], w_x, w_y, w_z, a_x, a_y, a_z)")
+    if df.height == 0:
+        raise InputError(f"{path}: no IMU samples (only a header); the VIO needs the IMU — check the export")
     cols = df.columns
     t = to_int(path, df, cols[0])
     v = np.column_stack([to_float(path, df, c) for c in cols[1:7]])

@@ -8,14 +8,15 @@ from pathlib import Path
 import numpy as np
 
 from .msgs import FEATURE_TRACKS, IMAGE, IMU, ODOMETRY, POINT_STAMPED, POSE_STAMPED, UWB_RANGE
-from .recording import RecordingReader, TopicInfo
+from .recording import RecordingReader, TopicInfo, schema_mismatches
 
+ABSURD = 1e6  # no position [m], rate, acceleration or range in a recording is this large
 GAP_FACTOR = 5.0  # a gap is a step longer than this many median periods
 
 
 @dataclass(frozen=True)
 class Problem:
-    """One finding. ``kind``: gap, duplicate, out_of_order, nan, negative_range, truncated, empty."""
+    """One finding. ``kind``: gap, duplicate, out_of_order, nan, negative_range, truncated, damaged, schema, empty."""
 
     kind: str
     topic: str
@@ -181,15 +182,22 @@ def stamp_problems(topic: str, t: np.ndarray) -> list[Problem]:
 
 
 def nan_problems(topic: str, t: np.ndarray, *arrays: np.ndarray) -> list[Problem]:
+    if len(t) == 0:
+        return []
     bad = np.zeros(len(t), bool)
     for a in arrays:
-        bad |= ~np.isfinite(np.asarray(a, float).reshape(len(t), -1)).all(axis=1)
+        v = np.asarray(a, float).reshape(len(t), -1)
+        with np.errstate(invalid="ignore"):
+            bad |= ~(np.abs(v) <= ABSURD).all(axis=1)
     if not bad.any():
         return []
     n = int(bad.sum())
     return [
         Problem(
-            "nan", topic, n, f"{topic}: {n} messages with NaN/inf values (first at {t[np.argmax(bad)]} ns)"
+            "nan",
+            topic,
+            n,
+            f"{topic}: {n} messages with NaN/inf or absurd (> {ABSURD:g}) values (first at {t[np.argmax(bad)]} ns)",
         )
     ]
 
@@ -210,14 +218,18 @@ def _range_problems(topic: str, r) -> list[Problem]:
 def recording_info(path: str | Path) -> InfoReport:
     """Topics, rates, time spans, calibration, drops and the problems found in a recording."""
     r = RecordingReader(path)
+    r.verify()
     topics = r.topics()
-    problems = [Problem("truncated", "", 0, w) for w in r.warnings]
+    problems = [Problem("truncated" if "truncated" in w else "damaged", "", 0, w) for w in r.warnings]
+    problems += [Problem("schema", t, topics[t].count, w) for t, w in schema_mismatches(topics).items()]
     if topics:
         start, end = r.time_span()
     else:
         start = end = 0
         problems.append(Problem("empty", "", 0, "the recording has no messages"))
     for topic, info in sorted(topics.items()):
+        if any(p.kind == "schema" and p.topic == topic for p in problems):
+            continue
         if info.msgtype == UWB_RANGE:
             problems += _range_problems(topic, r)
         elif info.msgtype == IMU:

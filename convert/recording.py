@@ -14,7 +14,7 @@ import io
 import json
 import os
 import struct
-import warnings
+import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +30,7 @@ from mcap.records import Metadata as McapMetadata
 from mcap.records import Schema as McapSchema
 from mcap.writer import CompressionType, Writer
 
+from pipeline.core.atomic import finish, prepare_output_file, temp_path
 from pipeline.core.errors import InputError
 from pipeline.core.topics import (  # noqa: F401  (re-exported: the recording format names its topics)
     TOPIC_CAM0,
@@ -51,11 +52,56 @@ META_SOURCE = "uwbcal.source"
 META_TRUTH = "uwbcal.truth"
 META_TOPICS = "uwbcal.topics"  # per-topic time spans, written by RecordingWriter (saves a scan)
 
+# What each topic must carry (checked by `info`, before any stage, and by every column reader).
+TOPIC_SCHEMAS = {
+    TOPIC_IMU: msgs.IMU,
+    TOPIC_CAM0: msgs.IMAGE,
+    TOPIC_CAM1: msgs.IMAGE,
+    TOPIC_FEATURES: msgs.FEATURE_TRACKS,
+    TOPIC_RANGE: msgs.UWB_RANGE,
+    TOPIC_GT_POSE: msgs.POSE_STAMPED,
+    TOPIC_GT_POSITION: msgs.POINT_STAMPED,
+    TOPIC_GT_IMU_BIAS: msgs.IMU,
+    TOPIC_ODOM: msgs.ODOMETRY,
+    TOPIC_VIO: msgs.ODOMETRY,
+}
+
+
+def written_by_uwbcal(path: str | os.PathLike) -> bool:
+    """The MCAP header names uwbcal as the writing library (it survives truncation, unlike the metadata)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC) + 9 + 4 + 64)
+    except OSError:
+        return False
+    if not head.startswith(MCAP_MAGIC) or len(head) < len(MCAP_MAGIC) + 13:
+        return False
+    op, _n = _REC_HEAD.unpack_from(head, len(MCAP_MAGIC))
+    if op != OP_HEADER:
+        return False
+    pos = len(MCAP_MAGIC) + 9
+    (plen,) = _U32.unpack_from(head, pos)
+    pos += 4 + plen
+    if pos + 4 > len(head):
+        return False
+    (llen,) = _U32.unpack_from(head, pos)
+    return head[pos + 4 : pos + 4 + llen] == b"uwbcal"
+
+
+def schema_mismatches(topics: dict[str, TopicInfo]) -> dict[str, str]:
+    """topic -> problem, for the known topics whose schema is not the one they must carry."""
+    return {
+        t: f"topic '{t}' carries {info.msgtype}, expected {TOPIC_SCHEMAS[t]}"
+        for t, info in topics.items()
+        if t in TOPIC_SCHEMAS and info.msgtype != TOPIC_SCHEMAS[t]
+    }
+
+
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _CHUNK_SIZE = 4 * 1024 * 1024
 
 OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = 0x03, 0x04, 0x05, 0x06, 0x07
-OP_METADATA, OP_DATA_END, OP_FOOTER = 0x0C, 0x0F, 0x02
+OP_METADATA, OP_DATA_END, OP_FOOTER, OP_HEADER = 0x0C, 0x0F, 0x02, 0x01
 _REC_HEAD = struct.Struct("<BQ")
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 
@@ -86,10 +132,9 @@ class RecordingWriter:
     """
 
     def __init__(self, path: str | os.PathLike, *, chunk_size: int = _CHUNK_SIZE) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.part")
-        self._file = open(self._tmp, "wb")  # noqa: SIM115 (closed in close/abort)
+        self.path = prepare_output_file(path)
+        self._tmp = temp_path(self.path)
+        self._file = open(self._tmp, "xb")  # noqa: SIM115 (closed in close/abort)
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self._writer.start(profile="ros2", library="uwbcal")
         self._schemas: dict[str, int] = {}
@@ -222,6 +267,15 @@ class RecordingWriter:
         antenna = _col(antenna, n, np.int64, what="antenna")
         anchor = _col(anchor, n, np.int64, what="anchor")
         dist = _col(distance, n, float, what="distance")
+        for name, v, hi in (
+            ("tag", tag, 2**32 - 1),
+            ("antenna", antenna, 255),
+            ("anchor", anchor, 2**32 - 1),
+        ):
+            if n and (
+                v.min() < 0 or v.max() > hi
+            ):  # the message fields are uint32/uint8: never wrap silently
+                raise ValueError(f"{topic}: {name} id {int(v[(v < 0) | (v > hi)][0])} outside 0..{hi}")
         tags = np.unique(tag).tolist()
         sec, nsec = msgs.sec_nsec(t)
         payloads: list[bytes] = [b""] * n
@@ -347,7 +401,11 @@ class RecordingWriter:
             self.abort()
             raise
         self._closed = True
-        os.replace(self._tmp, self.path)
+        try:
+            finish(self._tmp, self.path)
+        except BaseException:
+            self._tmp.unlink(missing_ok=True)
+            raise
 
     def abort(self) -> None:
         """Drop the temporary file; ``path`` is left as it was."""
@@ -474,6 +532,10 @@ class _Broken(Exception):
     """A record of the data section could not be read (truncated or corrupt file)."""
 
 
+class _Damaged(Exception):
+    """One chunk is damaged (CRC mismatch, undecodable): skipped and counted, the rest is read."""
+
+
 @dataclass
 class _Chunk:
     """Where one chunk's messages are. ``index``: channel id -> file offset of its message index record
@@ -489,6 +551,7 @@ class _Chunk:
     channels: set[int] | None = None
     index: dict[int, int] | None = None
     loose: _Rows | None = None
+    crc: int = 0  # CRC32 of the uncompressed records (0: not stored)
 
 
 @dataclass
@@ -600,7 +663,8 @@ class RecordingReader:
             raise InputError(
                 f"{self.path}: not an MCAP recording (bad magic bytes); convert the data with 'uwbcal convert'"
             )
-        self.warnings: list[str] = []
+        self._notes: list[str] = []
+        self._damaged: dict[int, str] = {}  # chunk seq -> what is wrong
         self.truncated = False
         self._metadata: dict[str, dict] | None = None
         self._schemas: dict[int, str] = {}  # schema id -> msgtype
@@ -619,14 +683,37 @@ class RecordingReader:
         else:
             self._scan(damaged=summary is None)
 
+    @property
+    def warnings(self) -> list[str]:
+        """Data-quality notes: truncation, damaged chunks skipped (one line each)."""
+        out = list(self._notes)
+        if self._damaged:
+            first = next(iter(self._damaged.values()))
+            out.append(
+                f"{self.path}: {len(self._damaged)} damaged chunk(s) skipped "
+                f"(e.g. {first}); their messages are missing — re-create or re-convert the recording"
+            )
+        return out
+
+    def verify(self) -> list[str]:
+        """Check every chunk's CRC (damaged chunks are skipped from then on); returns `warnings`."""
+        with open(self.path, "rb") as f:
+            for c in self._chunks:
+                if c.loose is None and c.seq not in self._damaged:
+                    self._chunk_buf(f, c)
+        return self.warnings
+
     # -- opening -------------------------------------------------------------------------------------------------
     def _from_summary(self, s) -> None:
         self._schemas = {k: v.name for k, v in s.schemas.items()}
         self._channels = {k: (v.topic, v.schema_id) for k, v in s.channels.items()}
         if s.statistics is not None:
             self._counts = dict(s.statistics.channel_message_counts)
+        f = open(self.path, "rb")  # noqa: SIM115
         for i, ci in enumerate(sorted(s.chunk_indexes, key=lambda c: c.chunk_start_offset)):
             idx = dict(ci.message_index_offsets) or None
+            f.seek(ci.chunk_start_offset + 9 + 24)  # opcode, length, start, end, uncompressed size
+            crc = f.read(4)
             self._chunks.append(
                 _Chunk(
                     seq=i,
@@ -638,8 +725,10 @@ class RecordingReader:
                     compression=ci.compression,
                     channels=set(idx) if idx else None,
                     index=idx,
+                    crc=_U32.unpack(crc)[0] if len(crc) == 4 else 0,
                 )
             )
+        f.close()
 
     def _scan(self, damaged: bool) -> None:
         """Read the data section record by record: keep every intact chunk. ``damaged``: the summary is
@@ -669,7 +758,13 @@ class RecordingReader:
                 content = f.read(n)
                 try:
                     if op == OP_CHUNK:
-                        chunk, n_msgs, others = self._scan_chunk(content, pos + 9, len(self._chunks))
+                        try:
+                            chunk, n_msgs, others = self._scan_chunk(content, pos + 9, len(self._chunks))
+                        except (_Damaged, zstandard.ZstdError) as exc:
+                            seq = len(self._chunks) + len(self._damaged) + 1_000_000  # no _Chunk kept
+                            self._damaged[seq] = f"chunk at byte {pos}: {exc}"
+                            pos += 9 + n
+                            continue
                         for sub_op, rec in others:
                             self._add_record(sub_op, rec)
                         if chunk is not None:
@@ -711,8 +806,7 @@ class RecordingReader:
                 f"{self.path}: truncated recording (no summary/footer): recovered {total} messages from "
                 f"{len(self._chunks)} intact chunks; {lost}. Re-create or re-convert it if data are missing"
             )
-            self.warnings.append(msg)
-            warnings.warn(msg, stacklevel=3)
+            self._notes.append(msg)
 
     def _add_record(self, op: int, content: bytes) -> None:
         stream = ReadDataStream(io.BytesIO(content))
@@ -733,10 +827,18 @@ class RecordingReader:
         raw = content[rstart : rstart + rlen]
         if len(raw) != rlen:
             raise _Broken("chunk records cut short")
-        buf = _decompress(raw, compression, usize)
+        try:
+            buf = _decompress(raw, compression, usize)
+        except zstandard.ZstdError as exc:
+            raise _Damaged(f"undecodable ({exc})") from None
         if len(buf) != usize:
-            raise _Broken(f"chunk decompressed to {len(buf)} bytes, expected {usize}")
-        rows, others = _message_rows(buf, None)
+            raise _Damaged(f"decompressed to {len(buf)} bytes, expected {usize}")
+        if _crc and zlib.crc32(buf) != _crc:
+            raise _Damaged("CRC mismatch")
+        try:
+            rows, others = _message_rows(buf, None)
+        except _Broken as exc:
+            raise _Damaged(str(exc)) from None
         if len(rows.t) == 0:
             return None, {}, others
         cids, n = np.unique(rows.cid, return_counts=True)
@@ -749,6 +851,7 @@ class RecordingReader:
             uncompressed_size=usize,
             compression=compression,
             channels=set(cids.tolist()),
+            crc=_crc,
         )
         return chunk, dict(zip(cids.tolist(), n.tolist(), strict=True)), others
 
@@ -770,27 +873,51 @@ class RecordingReader:
         )
 
     # -- loading chunks ------------------------------------------------------------------------------------------
+    def _chunk_buf(self, f, chunk: _Chunk) -> bytes | None:
+        """The chunk's decompressed records, or None when it is damaged (then recorded in `warnings`)."""
+        if chunk.seq in self._damaged:
+            return None
+        f.seek(chunk.data_offset)
+        raw = f.read(chunk.compressed_size)
+        problem = None
+        if len(raw) != chunk.compressed_size:
+            problem = "cut short"
+        else:
+            try:
+                buf = _decompress(raw, chunk.compression, chunk.uncompressed_size)
+            except (zstandard.ZstdError, _Broken, MemoryError) as exc:
+                problem = f"undecodable ({exc})"
+            else:
+                if len(buf) != chunk.uncompressed_size:
+                    problem = f"decompressed to {len(buf)} bytes, expected {chunk.uncompressed_size}"
+                elif chunk.crc and zlib.crc32(buf) != chunk.crc:
+                    problem = "CRC mismatch"
+        if problem is not None:
+            self._damaged[chunk.seq] = f"chunk at byte {chunk.data_offset}: {problem}"
+            return None
+        return buf
+
     def _load(self, f, chunk: _Chunk, cids: set[int] | None) -> _Rows:
         if chunk.loose is not None:
             rows = chunk.loose
             return rows if cids is None else rows.take(np.flatnonzero(np.isin(rows.cid, list(cids))))
-        f.seek(chunk.data_offset)
-        raw = f.read(chunk.compressed_size)
-        if len(raw) != chunk.compressed_size:
-            raise InputError(
-                f"{self.path}: chunk at byte {chunk.data_offset} is cut short; the file is corrupt"
-            )
-        try:
-            buf = _decompress(raw, chunk.compression, chunk.uncompressed_size)
-        except (zstandard.ZstdError, _Broken) as exc:
-            raise InputError(
-                f"{self.path}: chunk at byte {chunk.data_offset}: {exc}; the file is corrupt"
-            ) from None
-        if chunk.index is None:
+        buf = self._chunk_buf(f, chunk)
+        if buf is None:
+            z = np.zeros(0, np.int64)
+            return _Rows([b""], z, z, z, z, z)
+        if chunk.index is not None:
             try:
-                return _message_rows(buf, cids)[0]
-            except _Broken as exc:
-                raise InputError(f"{self.path}: chunk at byte {chunk.data_offset}: {exc}") from None
+                return self._indexed_rows(f, chunk, buf, cids)
+            except (_Broken, struct.error, ValueError, IndexError):
+                pass  # a damaged message index: the records themselves are intact (CRC), walk them
+        try:
+            return _message_rows(buf, cids)[0]
+        except _Broken as exc:
+            self._damaged[chunk.seq] = f"chunk at byte {chunk.data_offset}: {exc}"
+            z = np.zeros(0, np.int64)
+            return _Rows([b""], z, z, z, z, z)
+
+    def _indexed_rows(self, f, chunk: _Chunk, buf: bytes, cids: set[int] | None) -> _Rows:
         parts = []
         nb = np.frombuffer(buf, np.uint8)
         for c, off in chunk.index.items():
@@ -800,10 +927,14 @@ class RecordingReader:
             head = f.read(15)
             op, _n, _c, alen = struct.unpack("<BQHI", head)
             if op != OP_MESSAGE_INDEX:
-                raise InputError(f"{self.path}: bad message index at byte {off}; the file is corrupt")
+                raise _Broken(f"bad message index at byte {off}")
             ent = np.frombuffer(f.read(alen), "<u8").reshape(-1, 2).astype(np.int64)
             offs = ent[:, 1]
+            if len(offs) and (offs.min() < 0 or offs.max() + 9 > len(buf)):
+                raise _Broken(f"message index at byte {off} points outside the chunk")
             reclen = nb[(offs + 1)[:, None] + np.arange(8)].copy().view("<u8").reshape(-1).astype(np.int64)
+            if len(offs) and ((offs + 9 + reclen).max() > len(buf) or reclen.min() < 22):
+                raise _Broken(f"message index at byte {off} disagrees with the chunk's records")
             parts.append((ent[:, 0], np.full(len(ent), c, np.int64), offs + 9 + 22, reclen - 22))
         if not parts:
             z = np.zeros(0, np.int64)
@@ -972,6 +1103,17 @@ class RecordingReader:
         if topic not in self.topics():
             have = ", ".join(sorted(self.topics())) or "none"
             raise InputError(f"{self.path}: no '{topic}' topic (topics: {have})")
+        self.check_schemas([topic])
+
+    def check_schemas(self, topics: Iterable[str] | None = None) -> None:
+        """Refuse a known topic carrying the wrong message type (InputError naming the file and topic)."""
+        have = self.topics()
+        bad = schema_mismatches({t: have[t] for t in (have if topics is None else topics) if t in have})
+        if bad:
+            raise InputError(
+                f"{self.path}: {next(iter(bad.values()))}; the recording was not written by 'uwbcal convert' "
+                "for this topic — re-convert it"
+            )
 
     # -- column readers ------------------------------------------------------------------------------------------
     # Rows are in time order; ``file_order=True`` gives them in the order they were written (diagnostics).
@@ -1112,7 +1254,10 @@ class MergedReader:
     def __init__(self, *readers: RecordingReader) -> None:
         self.readers = readers
         self.path = readers[0].path
-        self.warnings = [w for r in readers for w in r.warnings]
+
+    @property
+    def warnings(self) -> list[str]:
+        return [w for r in self.readers for w in r.warnings]
 
     def topics(self) -> dict[str, TopicInfo]:
         out: dict[str, TopicInfo] = {}

@@ -125,6 +125,16 @@ def _require_file(path: Path, what: str) -> None:
         raise InputError(f"{path}: missing {what}; check the dataset layout")
 
 
+def read_text(path: str | Path, what: str) -> str:
+    """A UTF-8 text input (a BOM is tolerated); InputError naming the file and the byte otherwise."""
+    path = Path(path)
+    _require_file(path, what)
+    try:
+        return path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: byte {exc.start}: not UTF-8 text ({what}); save it as UTF-8") from None
+
+
 def read_csv_strings(path: str | Path, columns: Sequence[str] | int, *, what: str = "CSV") -> pl.DataFrame:
     """Read a CSV as strings; check the header. ``columns`` = required names, or the minimal column count
     (then the first columns are taken positionally, as for EuRoC's free-form '#timestamp [ns],...' headers)."""
@@ -137,7 +147,7 @@ def read_csv_strings(path: str | Path, columns: Sequence[str] | int, *, what: st
     except (pl.exceptions.ComputeError, pl.exceptions.NoDataError, OSError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InputError(f"{path}: unreadable CSV ({first}); expected columns {_fmt_cols(columns)}") from None
-    found = [c.strip() for c in df.columns]
+    found = [c.strip().lstrip("\ufeff") for c in df.columns]  # a UTF-8 BOM is not part of the name
     df.columns = found
     if isinstance(columns, int):
         if len(found) < columns:
@@ -232,9 +242,10 @@ def read_tum(path: str | Path) -> PoseTable:
     import polars as pl
 
     path = Path(path)
-    _require_file(path, "TUM trajectory")
     rows = [
-        ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")
+        ln.split()
+        for ln in read_text(path, "TUM trajectory").splitlines()
+        if ln.strip() and not ln.lstrip().startswith("#")
     ]
     if not rows:
         raise InputError(f"{path}: no poses; expected TUM lines 't x y z qx qy qz qw'")
@@ -268,8 +279,7 @@ def normalise_quaternions(
 def load_yaml(path: str | Path, what: str) -> dict:
     """YAML, tolerating OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix`` tags."""
     path = Path(path)
-    _require_file(path, what)
-    text = path.read_text()
+    text = read_text(path, what)
     lines = [ln for ln in text.splitlines() if not ln.startswith("%YAML")]
     text = "\n".join(lines).replace("!!opencv-matrix", "")
     try:
@@ -352,6 +362,7 @@ def default_tags(tag: np.ndarray, antenna: np.ndarray) -> dict[str, dict]:
 
 
 RANGE_COLUMNS = ("stamp", "tag", "antenna", "anchor", "distance")
+ID_MAX = {"tag": 2**32 - 1, "antenna": 2**8 - 1, "anchor": 2**32 - 1}  # uwbcal_msgs/UwbRange field widths
 
 
 def read_ranges_csv(path: str | Path) -> tuple[RangeData, str]:
@@ -361,19 +372,25 @@ def read_ranges_csv(path: str | Path) -> tuple[RangeData, str]:
     if df.height == 0:
         raise InputError(f"{path}: no range rows; expected columns {','.join(RANGE_COLUMNS)}")
     t, unit = to_stamps_ns(path, df, "stamp")
-    return RangeData(
-        t,
-        to_int(path, df, "tag"),
-        to_int(path, df, "antenna"),
-        to_int(path, df, "anchor"),
-        to_float(path, df, "distance"),
-    ), unit
+    ids = {name: to_int(path, df, name) for name in ("tag", "antenna", "anchor")}
+    for name, v in ids.items():
+        hi = ID_MAX[name]
+        bad = (v < 0) | (v > hi)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(
+                f"{path}: line {i + 2}: column '{name}': {int(v[i])} is outside 0..{hi} (the recording stores "
+                f"{name} ids as uint{8 if hi == 255 else 32}); renumber the {name}s"
+            )
+    return RangeData(t, ids["tag"], ids["antenna"], ids["anchor"], to_float(path, df, "distance")), unit
 
 
 def order_and_dedup(t_ns: np.ndarray, key: np.ndarray | None, topic: str, drops: Drops) -> np.ndarray:
     """Indices that sort by (time, key) without exact duplicates of (t, key). Out-of-order input is sorted and
     noted; duplicates are dropped (counted, the first kept)."""
     n = len(t_ns)
+    if n == 0:
+        return np.zeros(0, np.int64)
     back = int((np.diff(t_ns) < 0).sum()) if n > 1 else 0
     if back:
         drops.note(f"{topic}: {back} out-of-order stamps; sorted by stamp")

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.errors import InputError
 from pipeline.core.progress import progress
 
 from .anchor_truth import read_anchor_truth, truth_note, truth_record
@@ -31,6 +32,8 @@ from .sources import (
     summary,
     write_ranges,
 )
+
+MAX_POSITION_M = 1e5  # a pose farther than 100 km from the origin is a unit error or garbage
 
 
 def convert_tabular(
@@ -57,13 +60,30 @@ def convert_tabular(
     q, ok = normalise_quaternions(pt.q_xyzw, TOPIC_ODOM, drops)
     fin = np.isfinite(pt.p).all(1)
     drops.add(TOPIC_ODOM, "non-finite position", int((~fin).sum()))
-    idx = np.flatnonzero(ok & fin)
+    with np.errstate(invalid="ignore"):
+        absurd = fin & ~(np.abs(pt.p) <= MAX_POSITION_M).all(1)
+    if absurd.any():
+        i = int(np.flatnonzero(absurd)[0])
+        drops.add(
+            TOPIC_ODOM, f"implausible position (> {MAX_POSITION_M:g} m)", int(absurd.sum()), f"record {i + 1}"
+        )
+    idx = np.flatnonzero(ok & fin & ~absurd)
+    if len(idx) == 0:
+        raise InputError(
+            f"{poses}: none of the {len(pt.t_ns)} poses is usable (non-finite, absurd or non-unit quaternion); "
+            "fix the trajectory"
+        )
     o = idx[order_and_dedup(pt.t_ns[idx], None, TOPIC_ODOM, drops)]
     t_pose, p, q = pt.t_ns[o], pt.p[o], q[o]
 
     raw, unit = read_ranges_csv(ranges)
     n_rows = len(raw)
     r = clean_ranges(raw, TOPIC_RANGE, drops, max_range)
+    if len(r) == 0:
+        why = "; ".join(f"{d['count']} {d['reason']}" for d in drops.as_list() if d["topic"] == TOPIC_RANGE)
+        raise InputError(
+            f"{ranges}: all {n_rows} range rows dropped ({why}); nothing to calibrate — fix the file"
+        )
     drops.note(
         f"{ranges.name}: {n_rows} rows, stamps in {'nanoseconds' if unit == 'ns' else 'seconds'} "
         "(detected by magnitude); " + anchors_note(r)

@@ -20,7 +20,6 @@ are reported.
 from __future__ import annotations
 
 import csv
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +28,8 @@ import numpy as np
 from convert.anchor_truth import POSE_FRAMES
 from convert.datasets import data_root
 from convert.recording import RecordingReader
+from pipeline.core.errors import InputError
+from pipeline.rundir import corrupt, read_json
 
 from .consistency import anchor_nees, chi2_bounds
 from .metrics import anchor_errors, inter_anchor_distance_errors
@@ -81,11 +82,36 @@ class RunAnchors:
     states: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # id -> (x, P), p_a first
 
 
-def _number(text: str | None) -> float:
-    try:
-        return float(text) if text not in (None, "") else float("nan")
-    except ValueError:
+ANCHOR_COLUMNS = ("anchor", "method", "stage", "x", "y", "z", "beta", "gamma")
+
+
+def _number(text: str | None, where: str = "") -> float:
+    """A number of anchors.csv: empty = not determined (NaN); anything else that is not a number is damage."""
+    if text in (None, ""):
         return float("nan")
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(
+            f"{where}: {text!r} is not a number; the run directory is damaged — re-run init/refine"
+        ) from None
+
+
+def _read_anchor_rows(path: Path) -> list[dict]:
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            missing = [c for c in ANCHOR_COLUMNS if c not in (reader.fieldnames or [])]
+            if missing:
+                raise InputError(
+                    f"{path}: header: missing column(s) {', '.join(missing)}; the run directory is damaged — "
+                    "re-run the init and refine stages"
+                )
+            return [dict(r, _line=str(i)) for i, r in enumerate(reader, start=2)]
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: byte {exc.start}: not UTF-8 text; the run directory is damaged") from None
+    except csv.Error as exc:
+        raise InputError(f"{path}: not a CSV ({exc}); the run directory is damaged") from None
 
 
 def _key(s: str) -> tuple[int, str]:
@@ -100,23 +126,25 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
     path = run_dir / "anchors.csv"
     rows = []
     if path.is_file():
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
+        rows = _read_anchor_rows(path)
     refine = [r for r in rows if r.get("stage") == "refine"]
     init = [r for r in rows if r.get("stage") == "init" and r.get("method") == init_method]
     init_json = run_dir / "init.json"
-    init_info = json.loads(init_json.read_text()) if init_json.is_file() else {}
-    chosen = init_info.get("methods", {}).get(init_info.get("chosen", init_method), {})
+    init_info = read_json(init_json) if init_json.is_file() else {}
+    chosen = (init_info.get("methods") or {}).get(init_info.get("chosen", init_method)) or {}
+    if not isinstance(chosen, dict) or not all(isinstance(v, dict) for v in chosen.values()):
+        raise corrupt(init_json, "unexpected layout")
     for r in (refine or init) + (init if refine else []):
         aid = str(r["anchor"])
         if aid in out.estimates or aid in out.undetermined:
             continue
-        xyz = np.array([_number(r.get(c)) for c in ("x", "y", "z")])
+        where = f"{path}: line {r['_line']}"
+        xyz = np.array([_number(r.get(c), where) for c in ("x", "y", "z")])
         if np.isfinite(xyz).all():
             out.estimates[aid] = {
                 "position": xyz.tolist(),
-                "beta": _number(r.get("beta")),
-                "gamma": _number(r.get("gamma")),
+                "beta": _number(r.get("beta"), where),
+                "gamma": _number(r.get("gamma"), where),
                 "method": r.get("method", ""),
             }
         else:
@@ -134,7 +162,7 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
             parts = [info.get("reason") or info.get("status") or ""] + list(info.get("warnings", []))[:1]
             u["reason"] = "; ".join(p for p in parts if p) or "not determined (no reason given by the run)"
     states_path = run_dir / "anchor_states.json"
-    states = json.loads(states_path.read_text()) if states_path.is_file() else {}
+    states = read_json(states_path) if states_path.is_file() else {}
     for aid in out.estimates:
         s = states.get(aid) if refine else None
         if s is None and not refine and aid in chosen and chosen[aid].get("cov") is not None:

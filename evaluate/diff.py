@@ -56,13 +56,22 @@ def _is_num(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def _read_json(path: Path) -> Any:
+def _read_json(path: Path) -> dict:
+    """A JSON object (metrics are always one); anything else is an input error naming the file."""
     try:
-        return json.loads(path.read_text())
+        data = json.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: byte {exc.start}: not UTF-8 text; pass a metrics JSON file") from None
     except json.JSONDecodeError as exc:
         raise InputError(
             f"{path}: line {exc.lineno}: not valid JSON ({exc.msg}); regenerate the file"
         ) from None
+    if not isinstance(data, dict):
+        raise InputError(
+            f"{path}: a JSON {type(data).__name__}, expected an object of metrics; pass a metrics.json or "
+            "summary.json"
+        )
+    return data
 
 
 def load_metrics(path: str | Path) -> dict[str, Any]:
@@ -266,8 +275,14 @@ def _sort_key(key: str) -> list:
 
 def diff_paths(baseline: Path, current: Path, rtol: float = 0.05, atol: float = ATOL) -> DiffReport:
     """``uwbcal diff``: compare the metrics of two files/folders; ``report.regressed`` -> exit code 1."""
-    if rtol < 0:
-        raise InputError(f"--rtol {rtol}: must be >= 0")
-    report = diff_metrics(load_metrics(baseline), load_metrics(current), rtol=rtol, atol=atol)
+    if not (math.isfinite(rtol) and rtol >= 0):
+        raise InputError(f"--rtol {rtol}: must be a finite number >= 0 (e.g. 0.05)")
+    base = load_metrics(baseline)
+    if not any(_is_num(v) for k, v in base.items() if not _is_ignored(k)):
+        raise InputError(
+            f"{baseline}: no numeric metrics in the baseline; it would let anything pass — "
+            "pass the metrics.json / summary.json of a finished run"
+        )
+    report = diff_metrics(base, load_metrics(current), rtol=rtol, atol=atol)
     report.baseline, report.current = str(baseline), str(current)
     return report

@@ -19,12 +19,14 @@ from convert.recording import RecordingReader
 from pipeline.core.atomic import write_text_atomic
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import quat_to_rot
+from pipeline.rundir import read_json
 
 from .align import align as fit_alignment
 from .anchor_report import anchor_metrics, read_run_anchors, reference_anchors
 from .consistency import pose_nees, summarize_nees
 from .export import compare, load_ground_truth, load_run_trajectory, run_recording_path
 from .metrics import ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
+from .quality import range_quality
 from .tables import render
 
 if TYPE_CHECKING:
@@ -42,11 +44,16 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     traj = load_run_trajectory(run_dir)
     metrics: dict = {"warnings": []}
     summary_path = run_dir / "stages.json"
-    stages = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    stages = read_json(summary_path) if summary_path.is_file() else {}
+    if not all(isinstance(st, dict) for st in stages.values()):
+        raise InputError(f"{summary_path}: expected an object per stage; the run directory is damaged")
+    metrics["warnings"].extend(
+        w for w in reader.verify() if w not in metrics["warnings"]
+    )  # truncation, damage
     for st in stages.values():
-        metrics["warnings"].extend(st.get("warnings", []))
+        metrics["warnings"].extend(str(w) for w in st.get("warnings", []) if w not in metrics["warnings"])
     if stages:
-        metrics["wall_s"] = float(sum(st.get("wall_s", 0.0) for st in stages.values()))
+        metrics["wall_s"] = float(sum(float(st.get("wall_s", 0.0)) for st in stages.values()))
     if len(traj):
         metrics["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
 
@@ -89,17 +96,18 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         metrics["matched_poses"] = int(len(cmp.t_ns))
 
     # -- anchors ---------------------------------------------------------------------------------------------
-    cfg = tomllib.loads((run_dir / "config.toml").read_text())
-    run_anchors = read_run_anchors(run_dir, cfg.get("uwb", {}).get("init_method"))
+    cfg = tomllib.loads((run_dir / "config.toml").read_text())  # parsed by run_recording_path already
+    run_anchors = read_run_anchors(run_dir, (cfg.get("uwb") or {}).get("init_method"))
     if run_anchors.estimates or run_anchors.undetermined:
         anchors, top, warns = anchor_metrics(run_anchors, ref)
         metrics.update(top)
         metrics["warnings"].extend(warns)
+        metrics["warnings"].extend(range_quality(reader, traj, run_anchors.estimates))
         init_path = run_dir / "init.json"
         if init_path.is_file():
-            init = json.loads(init_path.read_text())
-            for aid, r in init["methods"].get(init["chosen"], {}).items():
-                if aid in anchors and r.get("fim") is not None:
+            init = read_json(init_path)
+            for aid, r in (init.get("methods") or {}).get(init.get("chosen"), {}).items():
+                if aid in anchors and isinstance(r, dict) and r.get("fim") is not None:
                     anchors[aid]["fim"] = r["fim"]  # log det, condition number, weakest direction
         metrics["anchors"] = anchors
         vals = [a["nees"] for a in anchors.values() if "nees" in a]

@@ -10,6 +10,7 @@ written with the identity orientation (it has none). Lines: ``t x y z qx qy qz q
 from __future__ import annotations
 
 import tomllib
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -60,19 +61,24 @@ def load_run_trajectory(run_dir: str | Path) -> RunTrajectory:
     try:
         with np.load(path, allow_pickle=False) as z:
             arr = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: unreadable ({exc}); re-run the stage that wrote it") from None
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+        raise InputError(
+            f"{path}: unreadable ({type(exc).__name__}: {exc}); the file is damaged — re-run the stage that wrote it"
+        ) from None
     for k in ("t_ns", "p", "q_xyzw"):
         if k not in arr:
             raise InputError(f"{path}: no '{k}' array (has {sorted(arr)}); re-run the pipeline")
     n = len(arr["t_ns"])
-    tr = RunTrajectory(
-        t_ns=arr["t_ns"].astype(np.int64).reshape(-1),
-        p=arr["p"].astype(float).reshape(n, 3),
-        q_xyzw=arr["q_xyzw"].astype(float).reshape(n, 4),
-        cov=arr["cov"].astype(float).reshape(n, 6, 6) if "cov" in arr else None,
-        segment=arr["segment"].astype(np.int64).reshape(n) if "segment" in arr else None,
-    )
+    try:
+        tr = RunTrajectory(
+            t_ns=arr["t_ns"].astype(np.int64).reshape(-1),
+            p=arr["p"].astype(float).reshape(n, 3),
+            q_xyzw=arr["q_xyzw"].astype(float).reshape(n, 4),
+            cov=arr["cov"].astype(float).reshape(n, 6, 6) if "cov" in arr else None,
+            segment=arr["segment"].astype(np.int64).reshape(n) if "segment" in arr else None,
+        )
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"{path}: arrays of inconsistent shapes ({exc}); re-run the pipeline") from None
     return tr
 
 
@@ -83,11 +89,16 @@ def run_recording_path(run_dir: str | Path) -> Path:
     if not cfg_path.is_file():
         raise InputError(f"{cfg_path}: missing; is {run_dir} a run directory?")
     try:
-        cfg = tomllib.loads(cfg_path.read_text())
+        cfg = tomllib.loads(cfg_path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            f"{cfg_path}: byte {exc.start}: not UTF-8 text; the run directory is damaged"
+        ) from None
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{cfg_path}: invalid TOML ({exc})") from None
-    rec = cfg.get("run", {}).get("recording")
-    if not rec:
+    run = cfg.get("run")
+    rec = run.get("recording") if isinstance(run, dict) else None
+    if not isinstance(rec, str) or not rec:
         raise InputError(f"{cfg_path}: [run] recording: not set; the run directory is incomplete")
     p = Path(rec).expanduser()
     if not p.is_absolute() and not p.exists() and (Path(run_dir) / p).exists():
@@ -195,6 +206,12 @@ def export_run(run_dir: str | Path, output: str | Path, fmt: str = "tum") -> str
     its anchors (`evaluate.anchors_export`); returns a one-paragraph summary."""
     if fmt not in FORMATS:
         raise InputError(f"--format {fmt}: unsupported; choose one of {', '.join(FORMATS)}")
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise InputError(
+            f"{out}: exists and is not a directory; export writes a folder (estimate.tum, groundtruth.tum, or the anchor files) — "
+            "give a directory path"
+        )
     if fmt != "tum":
         from .anchors_export import export_anchors
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import tomllib
 from pathlib import Path
 from typing import Any, Literal
@@ -82,23 +83,59 @@ def merge_dicts(base: dict, over: dict) -> dict:
     return out
 
 
-def load_config(path: Path | None = None, overrides: dict | None = None) -> PipelineConfig:
-    """Defaults <- TOML file <- overrides (nested dicts). Errors name the file and the bad key."""
-    data: dict = {}
-    if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise InputError(f"{path}: config file not found")
-        try:
-            data = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise InputError(f"{path}: not valid TOML ({exc})") from None
-    if overrides:
-        data = merge_dicts(data, overrides)
+# No configuration number is this large: a sigma of 1e300 m, a window of 1e12 s are typos, not settings.
+PLAUSIBLE_MAX = 1e6
+
+
+def check_numbers(data: Any, src: str, where: str = "") -> None:
+    """Every number finite and within +-PLAUSIBLE_MAX (InputError naming the file and the key)."""
+    if isinstance(data, dict):
+        for k, v in data.items():
+            check_numbers(v, src, f"{where}.{k}" if where else str(k))
+    elif isinstance(data, list):
+        for i, v in enumerate(data):
+            check_numbers(v, src, f"{where}[{i}]")
+    elif isinstance(data, (int, float)) and not isinstance(data, bool):
+        if not math.isfinite(data):
+            raise InputError(f"{src}: {where} = {data}: must be a finite number")
+        if abs(data) > PLAUSIBLE_MAX:
+            raise InputError(
+                f"{src}: {where} = {data:g}: implausibly large (> {PLAUSIBLE_MAX:g}); fix the value"
+            )
+
+
+def read_toml(path: Path) -> dict:
+    """A TOML file as a dict; InputError naming the file on anything unreadable."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: config file not found")
     try:
-        return PipelineConfig.model_validate(data)
+        return tomllib.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: byte {exc.start}: not UTF-8 text; save the config as UTF-8") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{path}: not valid TOML ({exc})") from None
+
+
+def load_config(path: Path | None = None, overrides: dict | None = None) -> PipelineConfig:
+    """Defaults <- TOML file <- overrides (nested dicts). Errors name the file and the bad key.
+
+    Strict: values must have the key's type (no "10" for 10), be finite and plausible; unknown keys refused."""
+    data: dict = read_toml(path) if path is not None else {}
+    src = str(path) if path else "config"
+    check_numbers(data, src)
+    if path is not None:  # the file on its own: its errors name it, even for keys the command line overrides
+        _validate(data, src)
+    if overrides:
+        check_numbers(overrides, "overrides")
+        data = merge_dicts(data, overrides)
+    return _validate(data, src)
+
+
+def _validate(data: dict, src: str) -> PipelineConfig:
+    try:
+        return PipelineConfig.model_validate(data, strict=True)
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(x) for x in err["loc"])
-        src = str(path) if path else "config"
         raise InputError(f"{src}: {where}: {err['msg']} ({len(exc.errors())} problem(s) in total)") from None

@@ -12,7 +12,9 @@ import dataclasses
 import time
 from pathlib import Path
 
-from convert.recording import RecordingReader
+from convert.recording import TOPIC_IMU, TOPIC_ODOM, TOPIC_RANGE, RecordingReader
+from pipeline.core.atomic import sweep_stale
+from pipeline.core.errors import InputError
 from pipeline.core.names import STAGES
 
 from . import rundir as rd
@@ -23,6 +25,7 @@ from .stages import REGISTRY, Evaluator, StageContext, StageResult
 class Pipeline:
     def __init__(self, config: PipelineConfig, run_dir: Path, evaluator: Evaluator | None = None) -> None:
         self.ctx = StageContext(config, run_dir, evaluator)
+        self.shown_warnings: set[str] = set()
 
     @property
     def config(self) -> PipelineConfig:
@@ -37,32 +40,91 @@ class Pipeline:
         return self.ctx.results_text
 
     def run(self, stages: list[str] | None = None, progress=print) -> list[StageResult]:
+        """The stages, under the run-directory lock; config.toml and stages.json are written after each stage
+        that succeeds (`provenance`); temporary files of an interrupted earlier run are removed first."""
         ctx = self.ctx
-        stages = stages or list(ctx.config.run.stages)
+        stages = list(ctx.config.run.stages) if stages is None else list(stages)
+        if not stages:
+            raise InputError(f"--stages: no stage given; choose from {', '.join(STAGES)}")
         ctx.stages = list(stages)
-        ctx.resolve_auto()
-        ctx.dir.path.mkdir(parents=True, exist_ok=True)
-        rd.write_text(ctx.dir.file(rd.CONFIG), ctx.config.to_toml())
-        results = []
-        try:
-            for name, stage in REGISTRY.items():
-                if name not in stages:
-                    continue
-                t0 = time.perf_counter()
-                res = dataclasses.replace(stage(ctx), wall_s=time.perf_counter() - t0)
-                results.append(res)
-                self._record_stage(res)
-                progress(f"[{name}] {res.summary} ({res.wall_s:.1f} s)")
-        finally:
-            if ctx.config.run.log:
-                ctx.dir.merge_rrd(ctx.run_kind())
+        with rd.run_lock(ctx.dir.path) as stale_pid:
+            if stale_pid is not None:
+                progress(f"note: took over the lock of an interrupted run (pid {stale_pid}, not running)")
+            removed = sweep_stale(ctx.dir.path)
+            if removed:
+                names = ", ".join(p.name for p in removed[:3]) + (" ..." if len(removed) > 3 else "")
+                progress(f"note: removed {len(removed)} temporary file(s) of an interrupted run ({names})")
+            ctx.reader.check_schemas()
+            for w in ctx.reader.warnings:  # once here; the results table leaves them out (run_cli)
+                progress(f"warning: {w}")
+                self.shown_warnings.add(f"warning: {w}")
+            ctx.resolve_auto()
+            if any(s != "frontend" for s in stages):
+                ctx.windows()  # the recording has what the stages need (ranges, a pose source): fail before any
+                check_values(ctx)
+            results = []
+            try:
+                for name, stage in REGISTRY.items():
+                    if name not in stages:
+                        continue
+                    t0 = time.perf_counter()
+                    res = dataclasses.replace(stage(ctx), wall_s=time.perf_counter() - t0)
+                    results.append(res)
+                    self._record_stage(res)
+                    progress(f"[{name}] {res.summary} ({res.wall_s:.1f} s)")
+            finally:
+                if ctx.config.run.log:
+                    ctx.dir.merge_rrd(ctx.run_kind())
         return results
 
     def _record_stage(self, res: StageResult) -> None:
-        path = "stages.json"
-        stages = self.dir.load_json(path) if self.dir.exists(path) else {}
-        stages[res.stage] = {"wall_s": res.wall_s, "summary": res.summary, "warnings": res.warnings}
-        self.dir.save_json(path, {k: stages[k] for k in STAGES if k in stages})
+        from .provenance import record_stage
+
+        entry = {"wall_s": res.wall_s, "summary": res.summary, "warnings": res.warnings}
+        res.warnings += record_stage(self.dir, res.stage, entry, self.config, self.ctx.stages)
+
+
+def check_values(ctx: StageContext) -> None:
+    """Refuse NaN/inf or absurd values in the ranges and the pose source's input before any stage (they would
+    surface as a numerical failure deep in a filter)."""
+    from convert.info import nan_problems
+
+    reader = ctx.reader
+    topics, problems = reader.topics(), []
+    if TOPIC_RANGE in topics:
+        r = reader.read_ranges()
+        problems += nan_problems(TOPIC_RANGE, r.t_ns, r.distance)
+    if ctx.pose_source() == "odometry" and TOPIC_ODOM in topics:
+        o = reader.read_odometry()
+        problems += nan_problems(TOPIC_ODOM, o.t_ns, o.p, o.q_xyzw)
+    elif TOPIC_IMU in topics:
+        m = reader.read_imu()
+        problems += nan_problems(TOPIC_IMU, m.t_ns, m.gyro, m.acc)
+    if problems:
+        raise InputError(
+            f"{ctx.recording}: {problems[0].text}; re-convert the data (uwbcal convert drops such records)"
+        )
+
+
+def _resumed_config(output: Path, overrides: dict) -> Path | None:
+    """A partial re-run (stages given, VIO not among them) builds on the directory's artefacts: it continues
+    with the directory's config.toml (then config.toml keeps reproducing the run). Refused when that run was of
+    another recording (its artefacts would be mixed with this one's)."""
+    stages = overrides["run"].get("stages")
+    cfg_path = output / rd.CONFIG
+    if not stages or "vio" in stages or not cfg_path.is_file():
+        return None
+    from .config import read_toml
+
+    data = read_toml(cfg_path)
+    was = (data.get("run") or {}).get("recording")
+    now = overrides["run"]["recording"]
+    if isinstance(was, str) and was and Path(was).resolve() != Path(now):
+        raise InputError(
+            f"{output}: holds a run of {was}; re-running only {','.join(stages)} on {now} would mix two "
+            "recordings — run every stage, or choose another output directory"
+        )
+    return cfg_path
 
 
 def run_cli(
@@ -77,8 +139,15 @@ def run_cli(
     evaluator: Evaluator | None = None,
 ) -> str:
     overrides: dict = {"run": {"recording": str(Path(recording).resolve()), "log": log}}
-    if stages:
+    if stages is not None:
         overrides["run"]["stages"] = [s.strip() for s in stages.split(",") if s.strip()]
+        if not overrides["run"]["stages"]:
+            raise InputError(f"--stages {stages!r}: no stage named; choose from {', '.join(STAGES)}")
+        unknown = [s for s in overrides["run"]["stages"] if s not in STAGES]
+        if unknown:
+            raise InputError(
+                f"--stages {stages!r}: unknown stage(s) {', '.join(unknown)}; choose from {', '.join(STAGES)}"
+            )
     uwb: dict = {}
     if init:
         uwb["init_method"] = init
@@ -86,8 +155,8 @@ def run_cli(
         uwb["refine_method"] = refine
     if uwb:
         overrides["uwb"] = uwb
-    cfg = load_config(config, overrides)
-    RecordingReader(cfg.run.recording)  # fail early, before the run directory is touched
+    RecordingReader(overrides["run"]["recording"])  # fail early, before the run directory is touched
+    cfg = load_config(config or _resumed_config(Path(output), overrides), overrides)
     pipe = Pipeline(cfg, output, evaluator)
     pipe.run()
-    return pipe.results_text
+    return "\n".join(ln for ln in pipe.results_text.splitlines() if ln not in pipe.shown_warnings)

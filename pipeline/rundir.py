@@ -3,17 +3,22 @@ and the merged run.rrd (DESIGN §4)."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import fcntl
 import io
 import json
+import os
 import pickle
+import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from convert.recording import TOPIC_VIO, RecordingWriter, json_default
-from pipeline.core.atomic import atomic_path, write_text_atomic
+from pipeline.core.atomic import FILE_MODE, atomic_path, pid_alive, write_text_atomic
 from pipeline.core.errors import InputError
 from pipeline.core.names import SEGMENT_IDS
 
@@ -26,6 +31,8 @@ ANCHORS = "anchors.csv"
 RRD = "run.rrd"
 TRAJECTORY = "trajectory.npz"
 LOGS = "logs"
+STAGES_JSON = "stages.json"
+LOCK = ".uwbcal.lock"
 
 
 class RunDir:
@@ -51,8 +58,11 @@ class RunDir:
     def save_json(self, name: str, data: Any) -> None:
         write_text_atomic(self.path / name, json.dumps(data, indent=2, default=json_default) + "\n")
 
-    def load_json(self, name: str) -> Any:
-        return json.loads((self.path / name).read_text())
+    def load_json(self, name: str, stage: str = "this stage") -> Any:
+        return read_json(self.require(name, stage), object)
+
+    def corrupt(self, p: Path, problem: str) -> InputError:
+        return corrupt(p, problem)
 
     def save_npz(self, name: str, **arrays: np.ndarray) -> None:
         with atomic_path(self.path / name) as tmp:
@@ -60,8 +70,12 @@ class RunDir:
                 np.savez_compressed(f, **arrays)
 
     def load_npz(self, name: str, stage: str) -> dict[str, np.ndarray]:
-        with np.load(self.require(name, stage), allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+        p = self.require(name, stage)
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+            raise self.corrupt(p, f"unreadable array file ({type(exc).__name__})") from None
 
     def save_pickle(self, name: str, obj: Any) -> None:
         with atomic_path(self.path / name) as tmp:
@@ -69,8 +83,12 @@ class RunDir:
                 pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
 
     def load_pickle(self, name: str, stage: str) -> Any:
-        with open(self.require(name, stage), "rb") as f:
-            return pickle.load(f)
+        p = self.require(name, stage)
+        try:
+            with open(p, "rb") as f:
+                return pickle.load(f)
+        except Exception as exc:  # noqa: BLE001 - a damaged pickle can fail in any way
+            raise self.corrupt(p, f"unreadable checkpoint ({type(exc).__name__})") from None
 
     # -- rerun logs --------------------------------------------------------------------------------------------
     def stage_rrd(self, order: int, stage: str) -> Path:
@@ -89,6 +107,91 @@ class RunDir:
 
 def write_text(path: Path, text: str) -> None:
     write_text_atomic(path, text)
+
+
+def corrupt(p: Path, problem: str) -> InputError:
+    """The error for a damaged artefact of a run directory."""
+    return InputError(
+        f"{p}: {problem}; the run directory is damaged — re-run the stage that writes it "
+        f"(uwbcal run REC -o {p.parent} --stages ...)"
+    )
+
+
+def read_json(path: Path, kind: type = dict) -> Any:
+    """A JSON artefact of a run directory (of type ``kind``); InputError naming it when damaged."""
+    try:
+        data = json.loads(Path(path).read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise corrupt(path, f"not valid JSON ({exc})") from None
+    if not isinstance(data, kind):
+        raise corrupt(path, f"a JSON {type(data).__name__}, expected a JSON {kind.__name__}")
+    return data
+
+
+_HELD: dict[Path, int] = {}  # run directories this process has locked -> nesting depth
+
+
+@contextlib.contextmanager
+def run_lock(path: Path) -> Iterator[int | None]:
+    """Hold the run directory for this process (``flock`` on ``RUN_DIR/.uwbcal.lock``, removed on release).
+
+    A second uwbcal on the same directory is refused with the holder's pid. The kernel drops the lock of a
+    process that dies (even SIGKILL), so a stale lock file of a dead pid is simply taken over; yields that pid
+    (None when there was none). Re-entrant within one process (``run`` -> ``evaluate``)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(
+            f"{path}: exists and is not a directory; choose another output directory for the run"
+        )
+    key = path.resolve()
+    if key in _HELD:
+        _HELD[key] += 1
+        try:
+            yield None
+        finally:
+            _HELD[key] -= 1
+        return
+    lock = path / LOCK
+    created = not path.exists()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, FILE_MODE)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
+                os.close(fd)
+                raise InputError(
+                    f"{path}: in use by another uwbcal run (pid {holder}); wait for it to finish or choose "
+                    "another output directory"
+                ) from None
+            try:  # the previous holder may have removed the file between our open and flock: retry
+                same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+    except OSError as exc:
+        raise InputError(
+            f"{path}: cannot lock the run directory ({exc.strerror}); choose a writable output directory"
+        ) from None
+    old = os.read(fd, 32).decode(errors="replace").strip()
+    stale = int(old) if old.isdigit() and int(old) != os.getpid() and not pid_alive(int(old)) else None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    _HELD[key] = 1
+    try:
+        yield stale
+    finally:
+        del _HELD[key]
+        with contextlib.suppress(OSError):
+            os.unlink(lock)
+        os.close(fd)
+        if created:  # a run that failed before writing anything leaves no empty directory behind
+            with contextlib.suppress(OSError):
+                path.rmdir()
 
 
 # -- artefacts the stages share ----------------------------------------------------------------------------------
@@ -138,8 +241,14 @@ def write_anchors(run_dir: RunDir, rows: list[dict], replace_stage: str) -> None
     path = run_dir.file(ANCHORS)
     old = []
     if path.exists():
-        with open(path, newline="") as f:
-            old = [r for r in csv.DictReader(f) if r["stage"] != replace_stage]
+        try:
+            with open(path, newline="", encoding="utf-8") as f:
+                reader = csv.DictReader(f)
+                if "stage" not in (reader.fieldnames or []):
+                    raise corrupt(path, "no 'stage' column")
+                old = [r for r in reader if r["stage"] != replace_stage]
+        except (UnicodeDecodeError, csv.Error) as exc:
+            raise corrupt(path, f"unreadable ({type(exc).__name__})") from None
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=ANCHOR_COLUMNS, lineterminator="\n")
     w.writeheader()

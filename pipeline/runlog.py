@@ -123,16 +123,16 @@ VIO_NIS = "filter/vio"
 
 
 def legend_markdown(methods: Sequence[str] = ("lsi", "ri", "ri-robust")) -> str:
-    shape = {"box": "box", "sphere": "sphere", "cross": "cross"}
+    shape = {"box": "wireframe box", "sphere": "sphere", "cross": "cross"}
     rows = [
         "| marker | what |",
         "|---|---|",
-        "| white sphere | true (simulated) or surveyed anchor |",
+        "| small sphere with the anchor id | true (simulated) or surveyed anchor |",
         *(
             f"| {_colour_name(m)} {shape[MARKERS.get(m, 'sphere')]} | {m.upper()} initialisation |"
             for m in methods
         ),
-        "| green sphere + wireframe | refined estimate with its 3σ ellipsoid (over time) |",
+        "| green dot + wireframe ellipsoid | refined estimate and its 3σ ellipsoid (over time) |",
         "| green / blue / pink lines | ground truth / VIO / UWB-aided trajectories |",
     ]
     return "\n".join(rows)
@@ -574,18 +574,25 @@ class RunLog:
         c = np.asarray(p, dtype=np.float64).reshape(3)
         color = COLORS.get(method, COLORS["none"])
         marker = MARKERS.get(method, "sphere")
+        # wireframe and thin lines: the markers of one anchor overlap (the estimates agree within centimetres)
         if marker == "box":
-            arch = rr.Boxes3D(centers=[c], half_sizes=[[0.12] * 3], colors=[color], fill_mode="Solid")
+            arch = rr.Boxes3D(
+                centers=[c],
+                half_sizes=[[0.15] * 3],
+                colors=[color],
+                radii=rr.Radius.ui_points(1.5),
+                fill_mode="MajorWireframe",
+            )
         elif marker == "cross":
-            e = 0.18 * np.eye(3)
+            e = 0.25 * np.eye(3)
             arch = rr.LineStrips3D(
-                [[c - v, c + v] for v in e], colors=[color], radii=rr.Radius.ui_points(3.0)
+                [[c - v, c + v] for v in e], colors=[color], radii=rr.Radius.ui_points(1.5)
             )
         else:
-            arch = rr.Points3D([c], colors=[color], radii=[0.12])
+            arch = rr.Points3D([c], colors=[color], radii=[0.07])
         self._rec.log(entity, arch, static=static)
 
-    def point_series(self, entity: str, t_ns: Any, p: Any, color: Any = None, radius: float = 0.1) -> None:
+    def point_series(self, entity: str, t_ns: Any, p: Any, color: Any = None, radius: float = 0.05) -> None:
         """A point moving over time (e.g. an anchor estimate over refinement), column-wise."""
         if self._rec is None:
             return
@@ -610,7 +617,8 @@ class RunLog:
         )
 
     def residual_band(self, anchor: object, t_ns: Any, residual: Any, nis: Any, n_sigma: float = 3.0) -> None:
-        """±n·σ of the range innovation beside the residual: σ = |r| / sqrt(NIS) (NIS = r²/S), at `uwb/<id>/band`."""
+        """±n·σ of the range innovation beside the residual: σ = |r| / sqrt(NIS) (NIS = r²/S), at `uwb/<id>/band`;
+        with n = sqrt(the χ² gate) a range is rejected exactly when its residual leaves the band."""
         if self._rec is None:
             return
         r = np.asarray(residual, dtype=np.float64).reshape(-1)
@@ -620,7 +628,7 @@ class RunLog:
         sig = n_sigma * np.abs(r[ok]) / np.sqrt(nis[ok])
         entity = uwb(anchor, "band")
         self.scalars(entity, t, np.c_[sig, -sig])
-        self.series_static_style(entity, [f"+{n_sigma:g}σ", f"-{n_sigma:g}σ"], [COLORS["gate"]] * 2)
+        self.series_static_style(entity, [f"+{n_sigma:.3g}σ", f"-{n_sigma:.3g}σ"], [COLORS["gate"]] * 2)
 
     def nis_average(self, entity: str, t_ns: Any, nis: Any, dof: int = 1, window: int = 50) -> None:
         """Moving average of NIS over `window` updates with the two-sided 95 % χ² bounds of that average."""
@@ -653,7 +661,7 @@ def make_blueprint(
     """The layout a run opens on, built from what the run logged (`present`: entity paths; None = all):
 
     left, the 3-D world (anchors with markers per initialiser, trajectories, 3σ ellipsoids), the camera only when
-    the run has camera data, and the marker legend; right, per-anchor range residual (±3σ band) and NIS tabs,
+    the run has camera data, and the marker legend; right, per-anchor range residual (with the gate as a ±σ band) and NIS tabs,
     NEES and NIS side by side each with its χ² band, σ / β / γ / VIO / init tabs, and the stage log."""
     import rerun.blueprint as rrb
 
@@ -671,7 +679,7 @@ def make_blueprint(
             rrb.TimeSeriesView(
                 origin=f"uwb/{a}",
                 contents=[f"+ uwb/{a}/residual/**", f"+ uwb/{a}/band/**", f"+ uwb/{a}/rejected/**"],
-                name=f"{a}: range residual ±3σ [m]",
+                name=f"{a}: range residual and gate band [m]",
             ),
             rrb.TimeSeriesView(
                 origin=f"uwb/{a}", contents=[f"+ uwb/{a}/nis/**", f"+ uwb/{a}/nis_gate/**"], name=f"{a}: NIS"

@@ -60,8 +60,6 @@ class UwbConfig(BaseModel):
     sigma_scale: float = Field(
         1.0, gt=0, description="assumed / nominal noise ratio (sigma_U of paper Table 1)"
     )
-    init_window_s: float | None = Field(None, gt=0, description="see run.init_window_s (that one wins)")
-    refine_window_s: float | None = Field(None, gt=0, description="see run.refine_window_s (that one wins)")
     chi2_quantile: float | None = Field(
         0.95, gt=0, lt=1, description="NIS gate of range updates (update_loss gate); None: off"
     )
@@ -614,7 +612,8 @@ class UwbUpdater:
                 log.series_static_style(
                     rl.uwb(a, "rejected"), ["rejected"], [rl.COLORS["rejected"]], points=True
                 )
-            log.residual_band(a, t, arr["residual"], arr["nis"])
+            gate = float(np.sqrt(chi2.ppf(self.chi2_quantile, 1))) if self.chi2_quantile is not None else 3.0
+            log.residual_band(a, t, arr["residual"], arr["nis"], n_sigma=gate)
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])
         arrs = [arr for arr in self.arrays().values() if len(arr["t_ns"])]

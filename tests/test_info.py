@@ -64,8 +64,7 @@ def test_truncated_recording_is_reported(tmp_path):
     _write(tmp_path / "full.mcap", t, np.zeros((n, 3)), chunk_size=64 * 1024)
     data = (tmp_path / "full.mcap").read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
-    with pytest.warns(UserWarning, match="truncated"):
-        rep = recording_info(tmp_path / "cut.mcap")
+    rep = recording_info(tmp_path / "cut.mcap")
     assert rep.kinds() == {"truncated"}  # the recovered prefix itself is clean
     assert 0 < rep.topics["/imu"].count < n
     assert "recovered" in rep.render()

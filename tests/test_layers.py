@@ -22,7 +22,7 @@ LAYERS = (
     ("foundation", ("pipeline.core",)),
     ("convert", ("convert",)),
     ("estimation", ("pipeline",)),
-    ("stages", ("pipeline.stages", "pipeline.run", "pipeline.rundir")),
+    ("stages", ("pipeline.stages", "pipeline.run", "pipeline.rundir", "pipeline.provenance")),
     ("evaluate", ("evaluate",)),
     ("cli", ("cli", "pipeline.demo", "benchmarks")),
 )

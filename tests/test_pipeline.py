@@ -234,3 +234,28 @@ def test_anchor_ellipsoid_half_axes_are_3_sqrt_eigenvalues(run_dir):
 
         R = Rotation.from_quat(q).as_matrix()
         np.testing.assert_allclose(R @ np.diag((half / 3) ** 2) @ R.T, P, rtol=1e-4, atol=1e-9)
+
+
+def test_rejected_ranges_are_exactly_those_outside_the_gate_band(run_dir):
+    import numpy as np
+
+    def series(entity):
+        t, v = [], []
+        for b in _chunks(run_dir / "run.rrd", entity):
+            t += b.column("sensor_time").cast("int64").to_pylist()
+            v += b.column("Scalars:scalars").to_pylist()
+        o = np.argsort(t, kind="stable")
+        return np.asarray(t)[o], np.asarray(v, float)[o]
+
+    n_rejected = 0
+    for a in range(4):
+        t_r, r = series(f"uwb/{a}/residual")
+        t_b, band = series(f"uwb/{a}/band")
+        t_x, _ = series(f"uwb/{a}/rejected")
+        assert np.array_equal(t_b, t_r) and np.allclose(band[:, 0], -band[:, 1])
+        outside = np.abs(r[:, 0]) > band[:, 0]
+        rejected = np.isin(t_r, t_x)
+        near = np.abs(np.abs(r[:, 0]) - band[:, 0]) < 1e-5 * band[:, 0]  # float32 scalars: skip the boundary
+        assert np.array_equal(outside[~near], rejected[~near]), a
+        n_rejected += int(rejected.sum())
+    assert n_rejected > 0

@@ -115,7 +115,7 @@ def test_full_run_roundtrip(tmp_path: Path) -> None:
         "world: trajectories, anchors, 3σ ellipsoids",
         "cam0",
         "a0: NIS",
-        "7: range residual ±3σ [m]",
+        "7: range residual and gate band [m]",
         "log",
         "NEES pose (6 dof)",
         "σ position [m]",

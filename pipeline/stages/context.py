@@ -210,6 +210,7 @@ class StageContext:
                 rl.anchor_world(a, "truth"),
                 np.asarray(t["position"])[None],
                 labels=[str(a)],
+                radii=[0.05],
                 static=True,
             )
 

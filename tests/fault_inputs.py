@@ -1,0 +1,179 @@
+"""Inputs for the fault-injection suite (tests/test_faults.py), generated here, small: a few seconds of
+simulated data, TUM/CSV/YAML/TOML texts, damaged copies of recordings and run directories."""
+
+from __future__ import annotations
+
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from convert.recording import (
+    META_CALIBRATION,
+    META_SOURCE,
+    META_TRUTH,
+    TOPIC_RANGE,
+    RecordingReader,
+    RecordingWriter,
+)
+
+T0 = 1_700_000_000_000_000_000
+ANCHORS = np.array([[4.0, 3.0, 1.0], [-3.5, 1.0, 2.5], [1.0, -3.5, 2.0]])
+
+
+# -- tabular inputs ------------------------------------------------------------------------------------------------
+def circle_poses(n: int = 200, rate: float = 10.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A 3-D flight (stamps [s], positions, unit quaternions xyzw) that observes anchors from all sides."""
+    t = np.arange(n) / rate
+    a = 2 * np.pi * t / (n / rate) * 2
+    p = np.column_stack([2.5 * np.cos(a), 2.0 * np.sin(a), 1.0 + 0.8 * np.sin(0.5 * a)])
+    yaw = a + np.pi / 2
+    q = np.column_stack([np.zeros(n), np.zeros(n), np.sin(yaw / 2), np.cos(yaw / 2)])
+    return t, p, q
+
+
+def tum_text(t=None, p=None, q=None) -> str:
+    if t is None:
+        t, p, q = circle_poses()
+    return "".join(
+        f"{ti:.6f} " + " ".join(f"{v:.6f}" for v in (*pi, *qi)) + "\n"
+        for ti, pi, qi in zip(t, p, q, strict=True)
+    )
+
+
+def ranges_rows(anchor_ids=(0, 1, 2), noise: float = 0.05, seed: int = 0) -> list[list]:
+    """[stamp_ns, tag, antenna, anchor, distance] at 10 Hz per anchor along `circle_poses`."""
+    rng = np.random.default_rng(seed)
+    t, p, _ = circle_poses()
+    rows = []
+    for i in range(len(t)):
+        for k, a in enumerate(anchor_ids):
+            d = np.linalg.norm(ANCHORS[k % len(ANCHORS)] - p[i]) + rng.normal(0, noise)
+            rows.append([int(round(t[i] * 1e9)) + T0 + k * 1000, 1, 0, a, round(float(d), 4)])
+    return rows
+
+
+def csv_text(rows, header: str = "stamp,tag,antenna,anchor,distance") -> str:
+    return header + "\n" + "".join(",".join(str(v) for v in r) + "\n" for r in rows)
+
+
+def tum_for_ranges() -> str:
+    """TUM stamps on the same clock as `ranges_rows` (ns offset T0), exact decimal seconds."""
+    return tum_abs(*circle_poses())
+
+
+def tum_abs(t, p, q) -> str:
+    lines = []
+    for ti, pi, qi in zip(t, p, q, strict=True):
+        ns = T0 + int(round(ti * 1e9))
+        lines.append(f"{ns // 10**9}.{ns % 10**9:09d} " + " ".join(f"{v:.6f}" for v in (*pi, *qi)))
+    return "\n".join(lines) + "\n"
+
+
+ANTENNA_YAML = "antenna_offset: [1, 1, 0.0, 0.0, 0.1]\nranging_bias: [1, 0.0]\n"
+
+
+# -- recordings ----------------------------------------------------------------------------------------------------
+def rewrite(
+    src: Path,
+    dst: Path,
+    *,
+    ranges=None,
+    chunk_size: int | None = None,
+    swap_schema: dict | None = None,
+    calibration=None,
+) -> Path:
+    """Copy a recording message by message; ``ranges(RangeData) -> RangeData`` edits the ranges,
+    ``chunk_size`` re-chunks, ``swap_schema = {topic: (msgtype, source_topic)}`` writes another topic's
+    messages under ``topic`` (a wrong message type), ``calibration(dict) -> dict`` edits the calibration."""
+    r = RecordingReader(src)
+    topics = r.topics()
+    kw = {"chunk_size": chunk_size} if chunk_size else {}
+    swap_schema = swap_schema or {}
+    with RecordingWriter(dst, **kw) as w:
+        if (
+            ranges is None and not swap_schema
+        ):  # interleaved in time, as a converter writes (chunks mix topics)
+            for topic, t, raw in r.messages(raw=True):
+                w.write_raw(topic, t, topics[topic].msgtype, raw)
+            topics = {}
+        for topic, info in topics.items():
+            if topic in swap_schema:
+                continue
+            if topic == TOPIC_RANGE and ranges is not None:
+                d = ranges(r.read_ranges())
+                w.write_range_batch(d.t_ns, d.tag, d.antenna, d.anchor, d.distance)
+                continue
+            for _, t, raw in r.messages([topic], raw=True):
+                w.write_raw(topic, t, info.msgtype, raw)
+        for topic, (msgtype, source) in swap_schema.items():
+            for _, t, raw in r.messages([source], raw=True):
+                w.write_raw(topic, t, msgtype, raw)
+        for name in (META_CALIBRATION, META_SOURCE, META_TRUTH):
+            m = r.metadata(name)
+            if name == META_CALIBRATION and calibration is not None:
+                m = calibration(m)
+            if m is not None:
+                w.set_metadata(name, m)
+    return dst
+
+
+def chunk_data_spans(path: Path) -> list[tuple[int, int]]:
+    """(start, end) byte offsets of the compressed records of each chunk (for targeted bit rot)."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        s = make_reader(f).get_summary()
+    return [
+        (
+            ci.chunk_start_offset + ci.chunk_length - ci.compressed_size,
+            ci.chunk_start_offset + ci.chunk_length,
+        )
+        for ci in sorted(s.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    ]
+
+
+def flip_bytes(path: Path, dst: Path, n: int, lo: int, hi: int, seed: int = 0) -> Path:
+    data = bytearray(path.read_bytes())
+    rng = np.random.default_rng(seed)
+    for k in rng.integers(lo, hi, size=n).tolist():
+        data[k] ^= 0xFF
+    dst.write_bytes(bytes(data))
+    return dst
+
+
+def truncate(path: Path, dst: Path, fraction: float) -> Path:
+    data = path.read_bytes()
+    dst.write_bytes(data[: int(len(data) * fraction)])
+    return dst
+
+
+def junk(n: int, seed: int = 0) -> bytes:
+    """Reproducible garbage bytes."""
+    return np.random.default_rng(seed + n).bytes(n)
+
+
+def dead_pid() -> int:
+    """A pid that is not running (probing upwards from a high number)."""
+    pid = 4_000_000
+    while True:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return pid
+        except PermissionError:
+            pass
+        pid += 1
+
+
+def fake_ros1_bag(path: Path, *, truncated: bool) -> Path:
+    """A ROS1 bag header record followed by nothing (or by garbage): what a killed `rosbag record` leaves."""
+    header = b"#ROSBAG V2.0\n"
+    fields = b"".join(
+        struct.pack("<I", len(f)) + f
+        for f in (b"op=\x03", b"index_pos=" + struct.pack("<Q", 4117), b"conn_count=" + struct.pack("<I", 1))
+    )
+    rec = struct.pack("<I", len(fields)) + fields + struct.pack("<I", 10) + b" " * 10
+    path.write_bytes(header + (rec[: len(rec) // 2] if truncated else rec + os.urandom(64)))
+    return path

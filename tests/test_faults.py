@@ -1,0 +1,1493 @@
+"""Fault injection over the CLI (issue #15): a table of hostile inputs and faults, each with its asserted outcome.
+
+Every case: the correct result (exit 0 and a check of what was written), or exit 2 with ONE ``error:`` line that
+names the user's file (never a temporary file); never a traceback (an internal error would exit 1); no debris
+(no ``*.part``, no lock file, nothing new in the directory after a refused command). Inputs are generated here
+(`fault_inputs`), small; the CLI runs in-process (typer's CliRunner) except for signals and concurrency.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import fault_inputs as fi
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cli import app
+from convert.msgs import POSE_STAMPED
+from convert.recording import TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE, RecordingReader, RecordingWriter
+from convert.simulator import SimConfig, simulate_to_file
+from pipeline import rundir
+
+runner = CliRunner()
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# -- shared inputs (built once) ------------------------------------------------------------------------------------
+@dataclass
+class Shared:
+    root: Path
+    rec: Path  # 20 s simulated odometry + ranges + ground truth, 3 anchors
+    rec_chunks: Path  # the same in 32 kB chunks (bit rot hits one chunk of many)
+    run: Path  # a finished run of `rec`
+    rec60: Path  # 60 s: a geometry that makes a ranging bias observable
+
+
+@pytest.fixture(scope="session")
+def shared(tmp_path_factory) -> Shared:
+    root = tmp_path_factory.mktemp("faults-shared")
+    rec = root / "sim.mcap"
+    simulate_to_file(SimConfig(duration=20.0, n_anchors=3, odometry_rate=20.0, camera=False, seed=1), rec)
+    chunks = fi.rewrite(rec, root / "chunks.mcap", chunk_size=32 * 1024)
+    run = root / "run"
+    res = runner.invoke(app, ["run", str(rec), "-o", str(run), "--no-log"])
+    assert res.exit_code == 0, res.output
+    rec60 = root / "sim60.mcap"
+    simulate_to_file(SimConfig(duration=60.0, n_anchors=3, odometry_rate=20.0, camera=False, seed=1), rec60)
+    return Shared(root, rec, chunks, run, rec60)
+
+
+class Ctx:
+    """One case's working directory and helpers."""
+
+    def __init__(self, work: Path, shared: Shared) -> None:
+        self.work, self.shared = work, shared
+
+    def p(self, name: str) -> Path:
+        return self.work / name
+
+    def write(self, name: str, data: str | bytes) -> str:
+        path = self.work / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        (path.write_bytes if isinstance(data, bytes) else path.write_text)(data)
+        return str(path)
+
+    def run_copy(self, name: str = "run") -> Path:
+        dst = self.work / name
+        shutil.copytree(self.shared.run, dst)
+        return dst
+
+    def readonly_dir(self) -> Path:
+        """A directory this process cannot write in (root ignores permission bits: use sysfs then)."""
+        if os.geteuid() == 0:
+            return Path("/sys/kernel")
+        d = self.work / "ro"
+        d.mkdir()
+        d.chmod(0o555)
+        return d
+
+
+@dataclass
+class Case:
+    id: str
+    items: tuple[int, ...]  # the numbered items of issue #15 this case covers (0: a category beyond them)
+    category: str
+    build: Callable[[Ctx], list[str]]  # -> CLI arguments (inputs written into ctx.work)
+    expect: str = "error"  # "error" (exit 2, one line naming `names`), "ok" (exit 0 + check), "regressed"
+    names: Callable[[Ctx], str] | None = None  # the path the error line must contain
+    check: Callable[[Ctx, object], None] | None = None  # the correct result
+    new_ok: tuple[str, ...] = ()  # files an error case may leave (e.g. an untouched earlier run dir)
+
+
+CASES: list[Case] = []
+
+
+def case(id, items, category, build, expect="error", names=None, check=None, new_ok=()):
+    CASES.append(Case(id, tuple(items), category, build, expect, names, check, new_ok))
+
+
+def named(name: str) -> Callable[[Ctx], str]:
+    return lambda c: str(c.p(name))
+
+
+# -- tabular: ids, values, CSV/TUM/YAML malformations ----------------------------------------------------------------
+def tab(rows=None, tum=None, header="stamp,tag,antenna,anchor,distance", antennas=None, csv_bytes=None):
+    def build(c: Ctx) -> list[str]:
+        r = rows(fi.ranges_rows()) if callable(rows) else (rows or fi.ranges_rows())
+        c.write("ranges.csv", csv_bytes if csv_bytes is not None else fi.csv_text(r, header))
+        t = tum if tum is not None else fi.tum_for_ranges()
+        c.write("poses.tum", t if not callable(t) else t(fi.tum_for_ranges()))
+        args = ["convert", "tabular", "--poses", str(c.p("poses.tum")), "--ranges", str(c.p("ranges.csv"))]
+        if antennas is not None:
+            c.write("antennas.yaml", antennas)
+            args += ["--antennas", str(c.p("antennas.yaml"))]
+        return args + ["-o", str(c.p("out.mcap"))]
+
+    return build
+
+
+def set_col(col: int, value, row: int = 5):
+    def f(rows):
+        rows[row][col] = value
+        return rows
+
+    return f
+
+
+def rec_check(**want) -> Callable[[Ctx, object], None]:
+    def check(c: Ctx, res) -> None:
+        r = RecordingReader(c.p("out.mcap"))
+        rng = r.read_ranges()
+        if "anchors" in want:
+            assert sorted(set(rng.anchor.tolist())) == sorted(want["anchors"])
+        if "n_ranges" in want:
+            assert len(rng) == want["n_ranges"]
+        if "antennas" in want:
+            assert sorted(set(rng.antenna.tolist())) == sorted(want["antennas"])
+        if "n_poses" in want:
+            assert r.topics()["/odometry"].count == want["n_poses"]
+        if "stdout" in want:
+            assert want["stdout"] in res.stdout, res.stdout
+        assert np.isfinite(rng.distance).all() and (rng.distance >= 0).all()
+        odo = r.read_odometry()
+        assert np.isfinite(odo.p).all() and np.abs(odo.p).max() < 1e5
+
+    return check
+
+
+N_ROWS = len(fi.ranges_rows())
+N_POSES = len(fi.circle_poses()[0])
+case(
+    "tab-ok",
+    [0],
+    "tabular",
+    tab(),
+    "ok",
+    check=rec_check(anchors=[0, 1, 2], n_ranges=N_ROWS, n_poses=N_POSES),
+)
+case("tab-anchor-2^32+100", [1], "id ranges", tab(set_col(3, 4294967396)), names=named("ranges.csv"))
+case("tab-anchor-negative", [1], "id ranges", tab(set_col(3, -1)), names=named("ranges.csv"))
+case("tab-antenna-256", [1], "id ranges", tab(set_col(2, 256)), names=named("ranges.csv"))
+case("tab-tag-negative", [1], "id ranges", tab(set_col(1, -3)), names=named("ranges.csv"))
+case("tab-tag-2^32", [1], "id ranges", tab(set_col(1, 2**32)), names=named("ranges.csv"))
+case("tab-anchor-2^64", [1], "id ranges", tab(set_col(3, 2**64)), names=named("ranges.csv"))
+case("tab-anchor-float", [1], "id ranges", tab(set_col(3, 1.5)), names=named("ranges.csv"))
+case(
+    "tab-anchor-max-uint32-kept",
+    [1],
+    "id ranges",
+    tab(lambda rows: [r[:3] + [4294967295 if r[3] == 2 else r[3]] + r[4:] for r in rows]),
+    "ok",
+    check=rec_check(anchors=[0, 1, 4294967295], n_ranges=N_ROWS),
+)
+case(
+    "tab-antenna-255-kept",
+    [1],
+    "id ranges",
+    tab(lambda rows: [r[:2] + [255] + r[3:] for r in rows]),
+    "ok",
+    check=rec_check(antennas=[255], n_ranges=N_ROWS),
+)
+case(
+    "tab-all-distances-nan",
+    [2],
+    "NaN/inf",
+    tab(lambda rows: [r[:4] + ["nan"] for r in rows]),
+    names=named("ranges.csv"),
+)
+case(
+    "tab-all-distances-negative",
+    [2],
+    "NaN/inf",
+    tab(lambda rows: [r[:4] + [-1.0] for r in rows]),
+    names=named("ranges.csv"),
+)
+case(
+    "tab-all-distances-inf-or-huge",
+    [2],
+    "NaN/inf",
+    tab(lambda rows: [r[:4] + ["inf" if i % 2 else 1e300] for i, r in enumerate(rows)]),
+    names=named("ranges.csv"),
+)
+case(
+    "tab-some-nan-dropped",
+    [2],
+    "NaN/inf",
+    tab(lambda rows: [r[:4] + ["nan" if i < 7 else r[4]] for i, r in enumerate(rows)]),
+    "ok",
+    check=rec_check(n_ranges=N_ROWS - 7, stdout="distance NaN/inf"),
+)
+case(
+    "tab-zero-distances-kept",
+    [10],
+    "NaN/inf",
+    tab(lambda rows: [r[:4] + [0.0 if r[3] == 0 else r[4]] for r in rows]),
+    "ok",
+    check=rec_check(n_ranges=N_ROWS),
+)
+case("tab-csv-empty-file", [0], "CSV", tab(csv_bytes=b""), names=named("ranges.csv"))
+case(
+    "tab-csv-header-only",
+    [2],
+    "CSV",
+    tab(csv_bytes=b"stamp,tag,antenna,anchor,distance\n"),
+    names=named("ranges.csv"),
+)
+case(
+    "tab-csv-missing-column",
+    [0],
+    "CSV",
+    tab(header="stamp,tag,antenna,anchor,dist"),
+    names=named("ranges.csv"),
+)
+case(
+    "tab-csv-ragged-row",
+    [0],
+    "CSV",
+    tab(csv_bytes=fi.csv_text(fi.ranges_rows()).replace("\n", "\n1,2\n", 3).encode()),
+    names=named("ranges.csv"),
+)
+case("tab-csv-binary-garbage", [3], "CSV", tab(csv_bytes=fi.junk(2048)), names=named("ranges.csv"))
+case(
+    "tab-csv-latin1",
+    [3],
+    "encodings",
+    tab(csv_bytes=fi.csv_text(fi.ranges_rows()).encode() + b"1,1,0,0,3.0\xe9\n"),
+    names=named("ranges.csv"),
+)
+case(
+    "tab-csv-utf8-bom",
+    [3],
+    "encodings",
+    tab(csv_bytes=b"\xef\xbb\xbf" + fi.csv_text(fi.ranges_rows()).encode()),
+    "ok",
+    check=rec_check(n_ranges=N_ROWS),
+)
+case(
+    "tab-csv-crlf",
+    [0],
+    "CSV",
+    tab(csv_bytes=fi.csv_text(fi.ranges_rows()).replace("\n", "\r\n").encode()),
+    "ok",
+    check=rec_check(n_ranges=N_ROWS),
+)
+case(
+    "tab-csv-stamps-in-ms",
+    [0],
+    "CSV",
+    tab(lambda rows: [[r[0] // 10**6] + r[1:] for r in rows]),
+    names=named("ranges.csv"),
+)
+case("tab-csv-text-in-distance", [0], "CSV", tab(set_col(4, "far")), names=named("ranges.csv"))
+case(
+    "tab-csv-duplicate-rows",
+    [0],
+    "duplicate stamps",
+    tab(lambda rows: rows + rows[:9]),
+    "ok",
+    check=rec_check(n_ranges=N_ROWS, stdout="duplicate stamp"),
+)
+case(
+    "tab-csv-out-of-order",
+    [0],
+    "out-of-order stamps",
+    tab(lambda rows: rows[::-1]),
+    "ok",
+    check=rec_check(n_ranges=N_ROWS, stdout="out-of-order"),
+)
+
+
+def tum_lines(f):
+    return lambda text: "\n".join(f(text.strip().splitlines())) + "\n"
+
+
+def tum_set(i, field_, value):
+    def f(lines):
+        parts = lines[i].split()
+        parts[field_] = value
+        lines[i] = " ".join(parts)
+        return lines
+
+    return tum_lines(f)
+
+
+case("tum-empty", [0], "TUM", tab(tum=""), names=named("poses.tum"))
+case("tum-comments-only", [0], "TUM", tab(tum="# t x y z qx qy qz qw\n# nothing\n"), names=named("poses.tum"))
+case(
+    "tum-seven-fields",
+    [0],
+    "TUM",
+    tab(tum=tum_lines(lambda ls: ls[:3] + [ls[3].rsplit(" ", 1)[0]] + ls[4:])),
+    names=named("poses.tum"),
+)
+case("tum-text-in-number", [0], "TUM", tab(tum=tum_set(4, 2, "abc")), names=named("poses.tum"))
+case("tum-latin1", [3], "encodings", tab(tum=lambda t: t.encode() + b"# caf\xe9\n"), names=named("poses.tum"))
+case(
+    "tum-x-1e300-dropped",
+    [10],
+    "NaN/inf/huge",
+    tab(tum=tum_set(10, 1, "1e300")),
+    "ok",
+    check=rec_check(n_poses=N_POSES - 1, stdout="implausible position"),
+)
+case(
+    "tum-nan-dropped",
+    [10],
+    "NaN/inf/huge",
+    tab(tum=tum_set(11, 2, "nan")),
+    "ok",
+    check=rec_check(n_poses=N_POSES - 1, stdout="non-finite position"),
+)
+case(
+    "tum-inf-quaternion-dropped",
+    [10],
+    "NaN/inf/huge",
+    tab(tum=tum_set(12, 5, "inf")),
+    "ok",
+    check=rec_check(n_poses=N_POSES - 1, stdout="non-unit quaternion"),
+)
+case(
+    "tum-zero-quaternion-dropped",
+    [10],
+    "NaN/inf/huge",
+    tab(tum=tum_lines(lambda ls: ls[:13] + [" ".join(ls[13].split()[:4] + ["0", "0", "0", "0"])] + ls[14:])),
+    "ok",
+    check=rec_check(n_poses=N_POSES - 1, stdout="non-unit quaternion"),
+)
+case(
+    "tum-all-absurd",
+    [10],
+    "NaN/inf/huge",
+    tab(tum=tum_lines(lambda ls: [" ".join([l.split()[0], "1e300"] + l.split()[2:]) for l in ls])),
+    names=named("poses.tum"),
+)
+case(
+    "tum-duplicate-stamps",
+    [0],
+    "duplicate stamps",
+    tab(tum=tum_lines(lambda ls: ls + ls[:5])),
+    "ok",
+    check=rec_check(n_poses=N_POSES, stdout="duplicate stamp"),
+)
+case(
+    "tum-out-of-order",
+    [0],
+    "out-of-order stamps",
+    tab(tum=tum_lines(lambda ls: ls[::-1])),
+    "ok",
+    check=rec_check(n_poses=N_POSES, stdout="out-of-order"),
+)
+case(
+    "tum-missing-file",
+    [0],
+    "TUM",
+    lambda c: tab()(c)[:3] + [str(c.p("nope.tum"))] + tab()(c)[4:],
+    names=named("nope.tum"),
+)
+
+
+def tum_is_dir(c: Ctx) -> list[str]:
+    args = tab()(c)
+    (c.p("posesdir")).mkdir()
+    return args[:3] + [str(c.p("posesdir"))] + args[4:]
+
+
+case("tum-path-is-directory", [0], "TUM", tum_is_dir, names=named("posesdir"))
+case("yaml-ok", [0], "YAML", tab(antennas=fi.ANTENNA_YAML), "ok", check=rec_check(n_ranges=N_ROWS))
+case(
+    "yaml-invalid",
+    [0],
+    "YAML",
+    tab(antennas="antenna_offset: [1, 1, 0.0\n  ranging_bias: {"),
+    names=named("antennas.yaml"),
+)
+case(
+    "yaml-latin1",
+    [3],
+    "encodings",
+    tab(antennas=fi.ANTENNA_YAML.encode() + b"# \xe9\n"),
+    names=named("antennas.yaml"),
+)
+case("yaml-not-a-mapping", [0], "YAML", tab(antennas="- 1\n- 2\n"), names=named("antennas.yaml"))
+case(
+    "yaml-offsets-short",
+    [0],
+    "YAML",
+    tab(antennas="antenna_offset: [1, 2, 0.0, 0.0, 0.1]\n"),
+    names=named("antennas.yaml"),
+)
+case(
+    "yaml-odd-bias",
+    [0],
+    "YAML",
+    tab(antennas="antenna_offset: [1, 1, 0, 0, 0]\nranging_bias: [1]\n"),
+    names=named("antennas.yaml"),
+)
+case("yaml-empty", [0], "YAML", tab(antennas=""), names=named("antennas.yaml"))
+
+
+# -- outputs: existing directory / file, read-only, /dev/null ------------------------------------------------------
+def out_is_dir(build):
+    def f(c: Ctx) -> list[str]:
+        args = build(c)
+        out = Path(args[args.index("-o") + 1])
+        out.mkdir()
+        (out / "keep.txt").write_text("x")
+        return args
+
+    return f
+
+
+def out_at(build, where: Callable[[Ctx], Path]):
+    def f(c: Ctx) -> list[str]:
+        args = build(c)
+        i = args.index("-o") + 1
+        args[i] = str(where(c) / Path(args[i]).name)
+        return args
+
+    return f
+
+
+def sim_args(c: Ctx) -> list[str]:
+    return ["simulate", "--duration", "3", "--anchors", "2", "--no-camera", "-o", str(c.p("out.mcap"))]
+
+
+case("tabular-output-is-directory", [4], "existing outputs", out_is_dir(tab()), names=named("out.mcap"))
+case("simulate-output-is-directory", [4], "existing outputs", out_is_dir(sim_args), names=named("out.mcap"))
+case(
+    "simulate-output-dev-null",
+    [3],
+    "existing outputs",
+    lambda c: sim_args(c)[:-1] + ["/dev/null"],
+    names=lambda c: "/dev/null",
+)
+case(
+    "tabular-output-readonly",
+    [3],
+    "read-only outputs",
+    out_at(tab(), lambda c: c.readonly_dir()),
+    names=lambda c: str(c.readonly_dir() / "out.mcap"),
+)
+case(
+    "simulate-output-readonly",
+    [3],
+    "read-only outputs",
+    out_at(sim_args, lambda c: c.readonly_dir()),
+    names=lambda c: str(c.readonly_dir() / "out.mcap"),
+)
+case(
+    "tabular-output-parent-is-file",
+    [3],
+    "existing outputs",
+    lambda c: tab()(c)[:-1] + [c.write("afile", "x") + "/out.mcap"],
+    names=named("afile"),
+)
+
+
+def existing_file_replaced(c: Ctx) -> list[str]:
+    c.write("out.mcap", b"old content")
+    return tab()(c)
+
+
+case(
+    "tabular-output-existing-file-replaced",
+    [4],
+    "existing outputs",
+    existing_file_replaced,
+    "ok",
+    check=rec_check(n_ranges=N_ROWS),
+)
+
+
+# -- recordings: empty / garbage / truncated / bit rot / wrong schemas ------------------------------------------------
+def info(make: Callable[[Ctx], Path]):
+    return lambda c: ["info", str(make(c))]
+
+
+def run_on(make: Callable[[Ctx], Path], *extra: str):
+    return lambda c: ["run", str(make(c)), "-o", str(c.p("run")), "--no-log", *extra]
+
+
+def raw_file(data: bytes):
+    return lambda c: Path(c.write("rec.mcap", data))
+
+
+MAGIC = b"\x89MCAP0\r\n"
+case("info-empty-file", [0], "MCAP", info(raw_file(b"")), names=named("rec.mcap"))
+case("info-garbage", [0], "MCAP", info(raw_file(fi.junk(4096))), names=named("rec.mcap"))
+case("info-magic-only", [0], "MCAP", info(raw_file(MAGIC)), names=named("rec.mcap"))
+case("info-magic-then-garbage", [0], "MCAP", info(raw_file(MAGIC + fi.junk(4096))), names=named("rec.mcap"))
+case("run-garbage-recording", [0], "MCAP", run_on(raw_file(fi.junk(1000))), names=named("rec.mcap"))
+case("run-missing-recording", [0], "MCAP", run_on(lambda c: c.p("nope.mcap")), names=named("nope.mcap"))
+case(
+    "run-recording-is-directory",
+    [0],
+    "MCAP",
+    run_on(lambda c: (c.p("d.mcap").mkdir(), c.p("d.mcap"))[1]),
+    names=named("d.mcap"),
+)
+
+
+def truncated(fraction: float, chunks: bool = True):
+    return lambda c: fi.truncate(c.shared.rec_chunks if chunks else c.shared.rec, c.p("rec.mcap"), fraction)
+
+
+def info_says(*words: str):
+    def check(c: Ctx, res) -> None:
+        for w in words:
+            assert w in res.stdout, res.stdout
+
+    return check
+
+
+case(
+    "info-truncated-half",
+    [12],
+    "truncated MCAP",
+    info(truncated(0.5)),
+    "ok",
+    check=info_says("truncated recording", "recovered"),
+)
+case(
+    "info-truncated-summary-only",
+    [12],
+    "truncated MCAP",
+    info(truncated(0.995)),
+    "ok",
+    check=info_says("truncated recording"),
+)
+case("info-truncated-to-header", [12], "truncated MCAP", info(truncated(0.00002)), names=named("rec.mcap"))
+
+
+def bitrot(n: int, which: int | None = 3, seed: int = 0):
+    """n flipped bytes inside the compressed data of chunk `which` (None: anywhere in the chunks)."""
+
+    def make(c: Ctx) -> Path:
+        spans = fi.chunk_data_spans(c.shared.rec_chunks)
+        lo, hi = (spans[which][0], spans[which][1]) if which is not None else (spans[0][0], spans[-1][1])
+        return fi.flip_bytes(c.shared.rec_chunks, c.p("rec.mcap"), n, lo, hi, seed)
+
+    return make
+
+
+def no_absurd_values(c: Ctx, res) -> None:
+    assert "damaged chunk(s) skipped" in res.stdout, res.stdout
+    assert "absurd" not in res.stdout and "NaN/inf" not in res.stdout, res.stdout
+
+
+case("info-bitrot-one-chunk-1-byte", [9], "bit rot", info(bitrot(1)), "ok", check=no_absurd_values)
+case("info-bitrot-one-chunk-100-bytes", [9], "bit rot", info(bitrot(100)), "ok", check=no_absurd_values)
+case(
+    "info-bitrot-100-bytes-spread",
+    [9],
+    "bit rot",
+    info(bitrot(100, None, seed=5)),
+    "ok",
+    check=no_absurd_values,
+)
+case(
+    "info-bitrot-3-chunks",
+    [9],
+    "bit rot",
+    info(
+        lambda c: fi.flip_bytes(
+            bitrot(5, 2)(c), c.p("rec.mcap"), 5, *fi.chunk_data_spans(c.shared.rec_chunks)[6]
+        )
+    ),
+    "ok",
+    check=no_absurd_values,
+)
+
+
+def wrong_schema(topic: str, msgtype: str, source: str):
+    return lambda c: fi.rewrite(c.shared.rec, c.p("rec.mcap"), swap_schema={topic: (msgtype, source)})
+
+
+case(
+    "info-wrong-schema-on-uwb-range",
+    [8],
+    "wrong schemas",
+    info(wrong_schema(TOPIC_RANGE, POSE_STAMPED, TOPIC_GT_POSE)),
+    "ok",
+    check=info_says("topic '/uwb/range' carries geometry_msgs/msg/PoseStamped"),
+)
+case(
+    "run-wrong-schema-on-uwb-range",
+    [8],
+    "wrong schemas",
+    run_on(wrong_schema(TOPIC_RANGE, POSE_STAMPED, TOPIC_GT_POSE)),
+    names=named("rec.mcap"),
+)
+case(
+    "info-wrong-schema-on-imu",
+    [8],
+    "wrong schemas",
+    info(wrong_schema(TOPIC_IMU, POSE_STAMPED, TOPIC_GT_POSE)),
+    "ok",
+    check=info_says("topic '/imu' carries geometry_msgs/msg/PoseStamped"),
+)
+case(
+    "run-wrong-schema-on-imu",
+    [8],
+    "wrong schemas",
+    run_on(wrong_schema(TOPIC_IMU, POSE_STAMPED, TOPIC_GT_POSE)),
+    names=named("rec.mcap"),
+)
+
+
+def empty_recording(c: Ctx) -> Path:
+    with RecordingWriter(c.p("rec.mcap")):
+        pass
+    return c.p("rec.mcap")
+
+
+def only_ranges(c: Ctx) -> Path:
+    r = RecordingReader(c.shared.rec).read_ranges()
+    with RecordingWriter(c.p("rec.mcap")) as w:
+        w.write_range_batch(r.t_ns, r.tag, r.antenna, r.anchor, r.distance)
+    return c.p("rec.mcap")
+
+
+case(
+    "info-recording-without-messages",
+    [0],
+    "MCAP",
+    info(empty_recording),
+    "ok",
+    check=info_says("the recording has no messages"),
+)
+case("run-recording-without-messages", [0], "MCAP", run_on(empty_recording), names=named("rec.mcap"))
+case("run-recording-only-ranges", [0], "MCAP", run_on(only_ranges), names=named("rec.mcap"))
+
+
+def with_stamp_fault(kind: str):
+    def make(c: Ctx) -> Path:
+        r = RecordingReader(c.shared.rec).read_ranges()
+        t = r.t_ns.copy()
+        if kind == "dup":
+            t[10:20] = t[9]
+        else:
+            t[10:20] = t[10:20][::-1]
+        with RecordingWriter(c.p("rec.mcap")) as w:
+            w.write_range_batch(t, r.tag, r.antenna, r.anchor, r.distance)
+        return c.p("rec.mcap")
+
+    return make
+
+
+case(
+    "info-duplicate-stamps",
+    [0],
+    "duplicate stamps",
+    info(with_stamp_fault("dup")),
+    "ok",
+    check=info_says("duplicate"),
+)
+case(
+    "info-out-of-order-stamps",
+    [0],
+    "out-of-order stamps",
+    info(with_stamp_fault("back")),
+    "ok",
+    check=info_says("out-of-order"),
+)
+
+
+# -- ROS1 bags and EuRoC folders ------------------------------------------------------------------------------------
+def bag(data: Callable[[Ctx], Path], conv: str = "euroc"):
+    return lambda c: ["convert", conv, str(data(c)), "-o", str(c.p("out.mcap"))]
+
+
+case("bag-empty", [0], "ROS1 bags", bag(lambda c: Path(c.write("x.bag", b""))), names=named("x.bag"))
+case(
+    "bag-garbage",
+    [0],
+    "ROS1 bags",
+    bag(lambda c: Path(c.write("x.bag", fi.junk(4096)))),
+    names=named("x.bag"),
+)
+case(
+    "bag-truncated-header",
+    [0],
+    "ROS1 bags",
+    bag(lambda c: fi.fake_ros1_bag(c.p("x.bag"), truncated=True)),
+    names=named("x.bag"),
+)
+case(
+    "bag-header-then-garbage",
+    [0],
+    "ROS1 bags",
+    bag(lambda c: fi.fake_ros1_bag(c.p("x.bag"), truncated=False)),
+    names=named("x.bag"),
+)
+case(
+    "ntu-bag-garbage",
+    [0],
+    "ROS1 bags",
+    bag(lambda c: Path(c.write("n.bag", fi.junk(4096))), "ntu-viral"),
+    names=named("n.bag"),
+)
+case(
+    "ntu-bag-empty",
+    [0],
+    "ROS1 bags",
+    bag(lambda c: Path(c.write("n.bag", b"")), "ntu-viral"),
+    names=named("n.bag"),
+)
+
+IMU_HEADER = "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n"
+SENSOR_YAML = (
+    "sensor_type: imu\nrate_hz: 200\nT_BS:\n  cols: 4\n  rows: 4\n  data: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, "
+    "0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]\ngyroscope_noise_density: 1.7e-4\ngyroscope_random_walk: 1.9e-05\n"
+    "accelerometer_noise_density: 2.0e-3\naccelerometer_random_walk: 3.0e-3\n"
+)
+
+
+def euroc(imu_csv: str | bytes, yaml: str | bytes = SENSOR_YAML):
+    def make(c: Ctx) -> Path:
+        c.write("seq/mav0/imu0/data.csv", imu_csv)
+        c.write("seq/mav0/imu0/sensor.yaml", yaml)
+        return c.p("seq")
+
+    return make
+
+
+IMU_ROWS = "".join(f"{1403636579758555392 + i * 5_000_000},0.0,0.0,0.0,0.0,0.0,9.81\n" for i in range(50))
+case("euroc-imu-header-only", [12], "EuRoC", bag(euroc(IMU_HEADER)), names=named("seq/mav0/imu0/data.csv"))
+case(
+    "euroc-imu-garbage-row",
+    [0],
+    "EuRoC",
+    bag(euroc(IMU_HEADER + IMU_ROWS + "x,y,z,1,2,3,4\n")),
+    names=named("seq/mav0/imu0/data.csv"),
+)
+case(
+    "euroc-sensor-yaml-latin1",
+    [3],
+    "encodings",
+    bag(euroc(IMU_HEADER + IMU_ROWS, SENSOR_YAML.encode() + b"#\xe9\n")),
+    names=named("seq/mav0/imu0/sensor.yaml"),
+)
+case(
+    "euroc-no-mav0",
+    [0],
+    "EuRoC",
+    bag(lambda c: (c.p("empty").mkdir(), c.p("empty"))[1]),
+    names=named("empty"),
+)
+case(
+    "euroc-output-is-directory",
+    [4],
+    "existing outputs",
+    out_is_dir(bag(euroc(IMU_HEADER + IMU_ROWS))),
+    names=named("out.mcap"),
+)
+
+
+# -- run config: strict types, finite/plausible numbers, every key used ---------------------------------------------
+def with_config(text: str | bytes, *extra: str):
+    def build(c: Ctx) -> list[str]:
+        c.write("cfg.toml", text)
+        return [
+            "run",
+            str(c.shared.rec),
+            "-o",
+            str(c.p("run")),
+            "--no-log",
+            "--config",
+            str(c.p("cfg.toml")),
+            *extra,
+        ]
+
+    return build
+
+
+for cid, text in (
+    ("cfg-string-for-number", '[run]\ninit_window_s = "10"\n'),
+    ("cfg-sigma-inf", "[uwb]\nsigma_range = inf\n"),
+    ("cfg-sigma-nan", "[uwb]\nsigma_range = nan\n"),
+    ("cfg-sigma-1e300", "[uwb]\nsigma_range = 1e300\n"),
+    ("cfg-sigma-negative", "[uwb]\nsigma_range = -0.1\n"),
+    ("cfg-sigma-zero", "[uwb]\nsigma_range = 0.0\n"),
+    ("cfg-window-huge", "[run]\ninit_window_s = 1e12\n"),
+    ("cfg-uwb-init-window-removed", "[uwb]\ninit_window_s = 5.0\n"),
+    ("cfg-uwb-refine-window-removed", "[uwb]\nrefine_window_s = 5.0\n"),
+    ("cfg-unknown-key", "[uwb]\nsigma_rnage = 0.1\n"),
+    ("cfg-unknown-section", "[uwbb]\nsigma_range = 0.1\n"),
+    ("cfg-bool-for-number", "[uwb]\nsigma_range = true\n"),
+    ("cfg-float-for-int", "[uwb]\nmin_ranges = 20.0\n"),
+    ("cfg-string-for-bool", '[run]\nlog = "yes"\n'),
+    ("cfg-bad-literal", '[uwb]\ninit_method = "magic"\n'),
+    ("cfg-invalid-toml", "[uwb\nsigma_range = 0.1\n"),
+):
+    case(cid, [7], "TOML", with_config(text), names=named("cfg.toml"))
+case(
+    "cfg-latin1",
+    [3],
+    "encodings",
+    with_config(b"# caf\xe9\n[uwb]\nsigma_range = 0.1\n"),
+    names=named("cfg.toml"),
+)
+case(
+    "cfg-missing-file",
+    [0],
+    "TOML",
+    lambda c: ["run", str(c.shared.rec), "-o", str(c.p("run")), "--config", str(c.p("none.toml"))],
+    names=named("none.toml"),
+)
+case(
+    "cfg-is-directory",
+    [0],
+    "TOML",
+    lambda c: (
+        c.p("cfgdir").mkdir(),
+        ["run", str(c.shared.rec), "-o", str(c.p("run")), "--config", str(c.p("cfgdir"))],
+    )[1],
+    names=named("cfgdir"),
+)
+
+
+def windows_are(init_s: float):
+    def check(c: Ctx, res) -> None:
+        w = json.loads((c.p("run") / "windows.json").read_text())
+        assert abs(w["init_end_s"] - w["start_s"] - init_s) < 1e-6, w
+        assert "init_window_s = 8.0" in (c.p("run") / "config.toml").read_text()
+
+    return check
+
+
+case(
+    "cfg-int-window-accepted",
+    [7],
+    "TOML",
+    with_config("[run]\ninit_window_s = 8\n"),
+    "ok",
+    check=windows_are(8.0),
+)
+for cid, stages in (
+    ("stages-comma", ","),
+    ("stages-blank", " "),
+    ("stages-unknown", "vio,magic"),
+    ("stages-empty", ""),
+):
+    case(
+        cid,
+        [12],
+        "usage",
+        lambda c, s=stages: ["run", str(c.shared.rec), "-o", str(c.p("run")), "--stages", s],
+        names=lambda c: "--stages",
+    )
+
+
+# -- outputs of run / export ----------------------------------------------------------------------------------------
+case(
+    "run-output-is-file",
+    [3],
+    "existing outputs",
+    lambda c: ["run", str(c.shared.rec), "-o", c.write("run", "x"), "--no-log"],
+    names=named("run"),
+)
+case(
+    "run-output-readonly",
+    [3],
+    "read-only outputs",
+    lambda c: ["run", str(c.shared.rec), "-o", str(c.readonly_dir() / "run"), "--no-log"],
+    names=lambda c: str(c.readonly_dir() / "run"),
+)
+
+
+def export(out: Callable[[Ctx], str]):
+    return lambda c: ["export", str(c.run_copy()), "-o", out(c)]
+
+
+case(
+    "export-output-dev-null",
+    [3],
+    "existing outputs",
+    export(lambda c: "/dev/null"),
+    names=lambda c: "/dev/null",
+    new_ok=("run",),
+)
+case(
+    "export-output-is-file",
+    [3],
+    "existing outputs",
+    export(lambda c: c.write("tum", "x")),
+    names=named("tum"),
+    new_ok=("run",),
+)
+case(
+    "export-output-readonly",
+    [3],
+    "read-only outputs",
+    export(lambda c: str(c.readonly_dir() / "tum")),
+    names=lambda c: str(c.readonly_dir() / "tum"),
+    new_ok=("run",),
+)
+case(
+    "export-format-unknown",
+    [0],
+    "usage",
+    lambda c: ["export", str(c.run_copy()), "-o", str(c.p("t")), "--format", "kitti"],
+    names=lambda c: "--format",
+    new_ok=("run",),
+)
+
+
+def exported(c: Ctx, res) -> None:
+    est = (c.p("tum") / "estimate.tum").read_text().splitlines()
+    gt = (c.p("tum") / "groundtruth.tum").read_text().splitlines()
+    assert len(est) == len(gt) > 100 and len(est[0].split()) == 8
+
+
+case("export-ok", [0], "export", export(lambda c: str(c.p("tum"))), "ok", check=exported)
+
+
+# -- corrupt run-directory artefacts ---------------------------------------------------------------------------------
+def corrupt(name: str, data: bytes | Callable[[bytes], bytes], cmd: str = "evaluate", *extra: str):
+    def build(c: Ctx) -> list[str]:
+        run = c.run_copy()
+        p = run / name
+        p.write_bytes(data(p.read_bytes()) if callable(data) else data)
+        if cmd == "evaluate":
+            return ["evaluate", str(run)]
+        if cmd == "export":
+            return ["export", str(run), "-o", str(c.p("tum"))]
+        return ["run", str(c.shared.rec), "-o", str(run), "--no-log", "--stages", cmd, *extra]
+
+    return build
+
+
+def half(b: bytes) -> bytes:
+    return b[: len(b) // 2]
+
+
+RUN_FILES = ("run",)
+for cid, name, data, cmd in (
+    ("eval-trajectory-npz-truncated", "trajectory.npz", half, "evaluate"),
+    ("eval-trajectory-npz-garbage", "trajectory.npz", fi.junk(500), "evaluate"),
+    ("eval-trajectory-npz-empty", "trajectory.npz", b"", "evaluate"),
+    ("eval-anchors-csv-garbage", "anchors.csv", fi.junk(300), "evaluate"),
+    ("eval-anchors-csv-no-columns", "anchors.csv", b"foo,bar\n1,2\n", "evaluate"),
+    (
+        "eval-anchors-csv-text-number",
+        "anchors.csv",
+        b"anchor,method,stage,x,y,z,beta,gamma\n0,ri,init,a,b,c,1,0\n",
+        "evaluate",
+    ),
+    ("eval-stages-json-garbage", "stages.json", b"{not json", "evaluate"),
+    ("eval-stages-json-list", "stages.json", b"[1, 2]", "evaluate"),
+    ("eval-stages-json-values-not-objects", "stages.json", b'{"vio": 3}', "evaluate"),
+    ("eval-config-toml-garbage", "config.toml", b"[run\nrecording = ", "evaluate"),
+    ("eval-config-toml-latin1", "config.toml", b"# \xe9\n[run]\n", "evaluate"),
+    ("eval-config-toml-no-recording", "config.toml", b"[uwb]\nsigma_range = 0.1\n", "evaluate"),
+    ("eval-init-json-garbage", "init.json", b"\x00\x01", "evaluate"),
+    ("eval-anchor-states-garbage", "anchor_states.json", b"{", "evaluate"),
+    ("export-trajectory-npz-truncated", "trajectory.npz", half, "export"),
+    ("localize-checkpoint-refine-truncated", "checkpoint_refine.pkl", half, "localize"),
+    ("refine-init-pkl-garbage", "init.pkl", fi.junk(200), "refine"),
+    ("refine-checkpoint-init-empty", "checkpoint_init.pkl", b"", "refine"),
+    ("localize-anchor-states-garbage", "anchor_states.json", b"[[[", "localize"),
+    ("init-vio-npz-truncated", "vio.npz", half, "init"),
+    ("rerun-stages-json-garbage", "stages.json", b"nope", "evaluate,"),
+):
+    case(
+        cid,
+        [12],
+        "corrupt run directory",
+        corrupt(name, data, cmd),
+        names=lambda c, n=name: str(c.p("run") / n),
+        new_ok=RUN_FILES,
+    )
+
+
+def unchanged_config_after_failed_rerun(c: Ctx) -> list[str]:
+    run = c.run_copy()
+    (run / "checkpoint_init.pkl").write_bytes(b"garbage")
+    c.before_config = (run / "config.toml").read_bytes()  # type: ignore[attr-defined]
+    return [
+        "run",
+        str(c.shared.rec),
+        "-o",
+        str(run),
+        "--no-log",
+        "--stages",
+        "refine,localize,evaluate",
+        "--refine",
+        "ekf",
+    ]
+
+
+case(
+    "failed-rerun-keeps-config",
+    [6],
+    "corrupt run directory",
+    unchanged_config_after_failed_rerun,
+    names=lambda c: str(c.p("run") / "checkpoint_init.pkl"),
+    new_ok=RUN_FILES,
+)
+case(
+    "eval-missing-run-dir",
+    [0],
+    "corrupt run directory",
+    lambda c: ["evaluate", str(c.p("nothing"))],
+    names=named("nothing"),
+)
+case(
+    "eval-empty-dir",
+    [0],
+    "corrupt run directory",
+    lambda c: (c.p("e").mkdir(), ["evaluate", str(c.p("e"))])[1],
+    names=lambda c: str(c.p("e")),
+    new_ok=("e",),
+)
+case(
+    "eval-trajectory-missing",
+    [12],
+    "corrupt run directory",
+    lambda c: (
+        lambda r: ((r / "trajectory.npz").unlink(), (r / "vio.npz").unlink(), ["evaluate", str(r)])[2]
+    )(c.run_copy()),
+    names=lambda c: str(c.p("run") / "trajectory.npz"),
+    new_ok=RUN_FILES,
+)
+
+
+def nan_anchor_is_undetermined(c: Ctx, res) -> None:
+    m = json.loads((c.p("run") / "metrics.json").read_text())
+    assert m["anchors"]["0"]["determined"] is False and "estimate" not in m["anchors"]["0"], m["anchors"]
+    assert "error_m" not in m["anchors"]["0"]
+
+
+case(
+    "eval-anchors-csv-nan-is-undetermined",
+    [12],
+    "corrupt run directory",
+    corrupt("anchors.csv", b"anchor,method,stage,x,y,z,beta,gamma\n0,ri,refine,nan,0,0,1,0\n"),
+    "ok",
+    check=nan_anchor_is_undetermined,
+)
+
+
+def evaluated(c: Ctx, res) -> None:
+    m = json.loads((c.p("run") / "metrics.json").read_text())
+    base = json.loads((c.shared.run / "metrics.json").read_text())
+    assert m["prmse_m"] == base["prmse_m"] and m["anchor_error_m"] == base["anchor_error_m"]
+
+
+case(
+    "eval-ok", [0], "corrupt run directory", lambda c: ["evaluate", str(c.run_copy())], "ok", check=evaluated
+)
+
+
+# -- diff abuse -----------------------------------------------------------------------------------------------------
+def diff(base, cur, *extra):
+    def build(c: Ctx) -> list[str]:
+        b = c.write("base.json", base if isinstance(base, bytes) else json.dumps(base))
+        k = c.write("cur.json", cur if isinstance(cur, bytes) else json.dumps(cur))
+        return ["diff", b, k, *extra]
+
+    return build
+
+
+GOOD = {"prmse_m": {"all": 0.1}, "anchor_error_m": 0.2}
+WORSE = {"prmse_m": {"all": 1.0}, "anchor_error_m": 2.0}
+case("diff-rtol-nan", [11], "diff abuse", diff(GOOD, WORSE, "--rtol", "nan"), names=lambda c: "--rtol")
+case("diff-rtol-negative", [11], "diff abuse", diff(GOOD, WORSE, "--rtol", "-1"), names=lambda c: "--rtol")
+case("diff-rtol-inf", [11], "diff abuse", diff(GOOD, WORSE, "--rtol", "inf"), names=lambda c: "--rtol")
+case("diff-empty-baseline", [11], "diff abuse", diff({}, WORSE), names=named("base.json"))
+case(
+    "diff-baseline-only-strings",
+    [11],
+    "diff abuse",
+    diff({"a": "x", "wall_s": 3.0}, WORSE),
+    names=named("base.json"),
+)
+case("diff-current-is-list", [11], "diff abuse", diff(GOOD, [1, 2, 3]), names=named("cur.json"))
+case("diff-baseline-is-list", [11], "diff abuse", diff([GOOD], GOOD), names=named("base.json"))
+case("diff-current-is-number", [11], "diff abuse", diff(GOOD, 3), names=named("cur.json"))
+case("diff-garbage-json", [11], "diff abuse", diff(GOOD, b"{oops"), names=named("cur.json"))
+case("diff-latin1", [3], "encodings", diff(GOOD, b'{"a": "\xe9"}'), names=named("cur.json"))
+case(
+    "diff-missing",
+    [11],
+    "diff abuse",
+    lambda c: ["diff", c.write("b.json", json.dumps(GOOD)), str(c.p("no"))],
+    names=named("no"),
+)
+case("diff-10x-worse-regressed", [11], "diff abuse", diff(GOOD, WORSE), "regressed")
+case("diff-same-ok", [11], "diff abuse", diff(GOOD, GOOD), "ok", check=lambda c, r: None)
+case("diff-missing-key-regressed", [11], "diff abuse", diff(GOOD, {"prmse_m": {"all": 0.1}}), "regressed")
+
+
+# -- data quality reaching metrics.json -----------------------------------------------------------------------------
+TIGHT_GAMMA = {"mean": -0.3, "sigma": 0.1}  # the simulator's true offset, declared as an informative prior
+
+
+def edited_ranges(edit, gamma_prior: dict | None = None, long: bool = False):
+    def make(c: Ctx) -> Path:
+        def f(r):
+            r.distance = edit(r).astype(float)
+            return r
+
+        def cal(m):
+            m["uwb"]["gamma_prior"] = gamma_prior
+            return m
+
+        src = c.shared.rec60 if long else c.shared.rec
+        return fi.rewrite(src, c.p("rec.mcap"), ranges=f, calibration=cal if gamma_prior else None)
+
+    return make
+
+
+def metrics_warn(*words: str, stderr: str | None = None, once: str | None = None):
+    def check(c: Ctx, res) -> None:
+        m = json.loads((c.p("run") / "metrics.json").read_text())
+        text = "\n".join(m["warnings"])
+        for w in words:
+            assert w in text, text
+        if stderr:
+            assert stderr in res.stderr + res.stdout
+        if once:
+            both = res.stdout + res.stderr
+            assert both.count(once) == 1, both
+            assert "UserWarning" not in both
+
+    return check
+
+
+case(
+    "quality-anchor-all-zero-ranges",
+    [10],
+    "data quality",
+    run_on(edited_ranges(lambda r: np.where(r.anchor == 0, 0.0, r.distance))),
+    "ok",
+    check=metrics_warn("anchor 0: all", "zero: degenerate"),
+)
+case(
+    "quality-anchor-constant-ranges",
+    [10],
+    "data quality",
+    run_on(edited_ranges(lambda r: np.where(r.anchor == 1, 7.5, r.distance))),
+    "ok",
+    check=metrics_warn("anchor 1: all", "equal (7.5 m)"),
+)
+case(
+    "quality-anchor-biased-2m",
+    [10],
+    "data quality",
+    run_on(edited_ranges(lambda r: np.where(r.anchor == 2, r.distance + 2.0, r.distance), TIGHT_GAMMA, True)),
+    "ok",
+    check=metrics_warn("anchor 2: ranging offset gamma"),
+)
+
+
+def no_bias_warning(c: Ctx, res) -> None:
+    m = json.loads((c.p("run") / "metrics.json").read_text())
+    assert not [w for w in m["warnings"] if "biased" in w or "ranging offset" in w], m["warnings"]
+
+
+case(
+    "quality-unbiased-no-false-alarm",
+    [10],
+    "data quality",
+    run_on(edited_ranges(lambda r: r.distance, TIGHT_GAMMA, True)),
+    "ok",
+    check=no_bias_warning,
+)
+case(
+    "quality-truncated-recording",
+    [12],
+    "truncated MCAP",
+    run_on(truncated(0.8)),
+    "ok",
+    check=metrics_warn("truncated recording", once="truncated recording"),
+)
+case(
+    "quality-damaged-chunk",
+    [9],
+    "bit rot",
+    run_on(bitrot(50, 20)),
+    "ok",
+    check=metrics_warn("damaged chunk(s) skipped"),
+)
+
+
+# -- locks, stale temporaries, umask (in-process) -------------------------------------------------------------------
+def stale_part(c: Ctx) -> list[str]:
+    run = c.run_copy()
+    pid = fi.dead_pid()
+    (run / f".trajectory.npz.{pid}.abcd1234.part").write_bytes(b"half a file")
+    (run / f".metrics.json.{pid}.beef.part").write_bytes(b"{")
+    return ["run", str(c.shared.rec), "-o", str(run), "--no-log", "--stages", "evaluate"]
+
+
+case(
+    "stale-part-files-removed",
+    [4],
+    "interrupted runs",
+    stale_part,
+    "ok",
+    check=lambda c, res: ("removed 2 temporary file(s)" in res.stdout) or pytest.fail(res.stdout),
+)
+
+
+def stale_lock(c: Ctx) -> list[str]:
+    run = c.run_copy()
+    (run / rundir.LOCK).write_text(f"{fi.dead_pid()}\n")
+    return ["run", str(c.shared.rec), "-o", str(run), "--no-log", "--stages", "evaluate"]
+
+
+case(
+    "stale-lock-of-dead-pid-taken-over",
+    [5],
+    "interrupted runs",
+    stale_lock,
+    "ok",
+    check=lambda c, res: ("took over the lock" in res.stdout) or pytest.fail(res.stdout),
+)
+
+
+def umask_modes(c: Ctx, res) -> None:
+    mask = os.umask(0)
+    os.umask(mask)
+    for p in (c.p("run")).iterdir():
+        assert p.stat().st_mode & 0o777 == 0o666 & ~mask, (p, oct(p.stat().st_mode))
+
+
+case("artefacts-respect-umask", [12], "outputs", run_on(lambda c: c.shared.rec), "ok", check=umask_modes)
+
+
+def other_recording_partial(c: Ctx) -> list[str]:
+    run = c.run_copy()
+    other = fi.rewrite(c.shared.rec, c.p("other.mcap"))
+    return ["run", str(other), "-o", str(run), "--no-log", "--stages", "refine,localize,evaluate"]
+
+
+case(
+    "partial-rerun-on-another-recording",
+    [5, 6],
+    "concurrent runs",
+    other_recording_partial,
+    names=named("run"),
+    new_ok=("run", "other.mcap"),
+)
+
+
+# -- absurd values inside a recording (not from a converter) ---------------------------------------------------------
+def odometry_edit(row: int, value: float):
+    def make(c: Ctx) -> Path:
+        r = RecordingReader(c.shared.rec)
+        o = r.read_odometry()
+        o.p[row, 0] = value
+        rng = r.read_ranges()
+        with RecordingWriter(c.p("rec.mcap")) as w:
+            w.write_odometry_batch(o.t_ns, o.p, o.q_xyzw, o.cov, topic="/odometry")
+            w.write_range_batch(rng.t_ns, rng.tag, rng.antenna, rng.anchor, rng.distance)
+            w.set_metadata("uwbcal.calibration", r.calibration)
+        return c.p("rec.mcap")
+
+    return make
+
+
+case("run-odometry-x-1e300", [10], "NaN/inf/huge", run_on(odometry_edit(50, 1e300)), names=named("rec.mcap"))
+case(
+    "run-odometry-nan", [10], "NaN/inf/huge", run_on(odometry_edit(50, float("nan"))), names=named("rec.mcap")
+)
+case(
+    "info-odometry-x-1e300",
+    [10],
+    "NaN/inf/huge",
+    info(odometry_edit(50, 1e300)),
+    "ok",
+    check=info_says("absurd (> 1e+06) values"),
+)
+
+
+# -- the table runner ------------------------------------------------------------------------------------------------
+def _files(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+def _top(rel: str) -> str:
+    return rel.split(os.sep, 1)[0]
+
+
+@pytest.mark.parametrize("c", CASES, ids=[c.id for c in CASES])
+def test_fault(c: Case, shared: Shared, tmp_path: Path) -> None:
+    ctx = Ctx(tmp_path, shared)
+    args = c.build(ctx)
+    before = _files(tmp_path)
+    res = runner.invoke(app, args)
+    out = res.stdout + res.stderr
+    assert "Traceback" not in out and "internal error" not in out, out
+    assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
+    if c.expect == "error":
+        assert res.exit_code == 2, out
+        errors = [ln for ln in res.stderr.splitlines() if ln.startswith("error:")]
+        assert len(errors) == 1, res.stderr
+        assert not [ln for ln in res.stderr.splitlines() if not ln.startswith(("error:", "warning:"))], (
+            res.stderr
+        )
+        assert c.names(ctx) in errors[0], (errors[0], c.names(ctx))
+        assert ".part" not in errors[0]
+        new = {f for f in _files(tmp_path) - before if _top(f) not in c.new_ok}
+        assert not new, new
+    elif c.expect == "regressed":
+        assert res.exit_code == 1 and "REGRESSED" in res.stdout, out
+    else:
+        assert res.exit_code == 0, out
+        c.check(ctx, res)
+    left = [f for f in _files(tmp_path) if f.endswith(".part") or f.endswith(rundir.LOCK)]
+    assert not left, left
+    if c.id == "failed-rerun-keeps-config":
+        assert (ctx.p("run") / "config.toml").read_bytes() == ctx.before_config
+
+
+def test_fault_table_covers_the_issue() -> None:
+    """≥ 100 cases, every numbered item of issue #15 (1-12) covered, every category present."""
+    assert len(CASES) >= 100 and len({c.id for c in CASES}) == len(CASES)
+    covered = {i for c in CASES for i in c.items}
+    assert set(range(1, 13)) <= covered, sorted(set(range(1, 13)) - covered)
+    cats = {c.category for c in CASES}
+    for want in (
+        "truncated MCAP",
+        "bit rot",
+        "ROS1 bags",
+        "wrong schemas",
+        "CSV",
+        "TUM",
+        "YAML",
+        "TOML",
+        "encodings",
+        "id ranges",
+        "NaN/inf",
+        "duplicate stamps",
+        "out-of-order stamps",
+        "read-only outputs",
+        "existing outputs",
+        "corrupt run directory",
+        "diff abuse",
+    ):
+        assert want in cats, want
+
+
+# -- subprocesses: signals and concurrency ----------------------------------------------------------------------------
+UWBCAL = [sys.executable, "-c", "import sys; from cli import app; sys.exit(app())"]
+
+
+def _spawn(*args: str) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.Popen(
+        [*UWBCAL, *args], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+
+
+def _wait_for(pred, timeout: float = 60.0, step: float = 0.01) -> bool:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if pred():
+            return True
+        time.sleep(step)
+    return False
+
+
+def _stage_done(run: Path, stage: str) -> bool:
+    try:
+        return stage in json.loads((run / "stages.json").read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return False
+
+
+def _metrics(run: Path) -> dict:
+    m = json.loads((run / "metrics.json").read_text())
+    return {k: v for k, v in m.items() if k not in ("wall_s", "evaluate_s")}
+
+
+@pytest.fixture(scope="module")
+def long_rec(tmp_path_factory) -> Path:
+    rec = tmp_path_factory.mktemp("faults-long") / "long.mcap"
+    simulate_to_file(SimConfig(duration=60.0, n_anchors=4, odometry_rate=50.0, camera=False, seed=2), rec)
+    return rec
+
+
+def test_sigkill_mid_refine_then_resume(long_rec: Path, tmp_path: Path) -> None:
+    """Items 4, 6: SIGKILL during refine, re-run -> the metrics of an uninterrupted run, no debris, and
+    config.toml reproduces the run on a fresh directory."""
+    ref, run, fresh = tmp_path / "ref", tmp_path / "killed", tmp_path / "fresh"
+    res = runner.invoke(app, ["run", str(long_rec), "-o", str(ref), "--no-log"])
+    assert res.exit_code == 0, res.output
+    proc = _spawn("run", str(long_rec), "-o", str(run), "--no-log")
+    assert _wait_for(lambda: _stage_done(run, "init")), proc.communicate()
+    time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not _stage_done(run, "refine"), "refine finished before the kill"
+    res = runner.invoke(
+        app, ["run", str(long_rec), "-o", str(run), "--no-log", "--stages", "refine,localize,evaluate"]
+    )
+    assert res.exit_code == 0, res.output
+    assert _metrics(run) == _metrics(ref)
+    assert not [p for p in run.rglob("*") if p.name.endswith(".part") or p.name == rundir.LOCK]
+    assert sorted(p.name for p in run.iterdir()) == sorted(p.name for p in ref.iterdir())
+    res = runner.invoke(
+        app, ["run", str(long_rec), "-o", str(fresh), "--no-log", "--config", str(run / "config.toml")]
+    )
+    assert res.exit_code == 0, res.output
+    assert _metrics(fresh) == _metrics(ref)
+
+
+def test_sigterm_removes_partial_outputs(long_rec: Path, tmp_path: Path) -> None:
+    """Item 4: SIGTERM mid-stage -> exit 143, one line, no temporary files; the next run completes."""
+    run = tmp_path / "run"
+    proc = _spawn("run", str(long_rec), "-o", str(run), "--no-log")
+    assert _wait_for(lambda: _stage_done(run, "vio"))
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert any(ln.startswith("error: terminated") for ln in err.splitlines()) and "Traceback" not in err
+    assert not [p for p in run.rglob("*") if p.name.endswith(".part") or p.name == rundir.LOCK]
+    res = runner.invoke(
+        app, ["run", str(long_rec), "-o", str(run), "--no-log", "--stages", "init,refine,localize,evaluate"]
+    )
+    assert res.exit_code == 0, res.output
+
+
+def test_sigterm_during_simulate_leaves_no_part(tmp_path: Path) -> None:
+    out = tmp_path / "s.mcap"
+    proc = _spawn("simulate", "-o", str(out))  # 120 s with camera tracks: the writing takes a while
+    assert _wait_for(lambda: any(tmp_path.glob(".s.mcap.*.part")), timeout=60, step=0.002)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and "Traceback" not in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_concurrent_runs_on_one_directory(shared: Shared, long_rec: Path, tmp_path: Path) -> None:
+    """Item 5: the second `uwbcal run` on a directory in use is refused with a clear message."""
+    run = tmp_path / "run"
+    a = _spawn("run", str(long_rec), "-o", str(run), "--no-log")
+    assert _wait_for(lambda: (run / rundir.LOCK).exists())
+    b = _spawn("run", str(fi.rewrite(shared.rec, tmp_path / "other.mcap")), "-o", str(run), "--no-log")
+    _, err_b = b.communicate(timeout=120)
+    _, err_a = a.communicate(timeout=120)
+    assert a.returncode == 0, err_a
+    assert b.returncode == 2 and "in use by another uwbcal run" in err_b and str(run) in err_b, err_b
+    assert "Traceback" not in err_a + err_b
+    cfg = (run / "config.toml").read_text()
+    assert str(long_rec) in cfg and "other.mcap" not in cfg
+
+
+def test_lock_is_exclusive_and_leaves_nothing(tmp_path: Path) -> None:
+    """Item 5 without subprocesses: the lock excludes every other open file description; released, nothing
+    remains (the directory it created is removed when empty)."""
+    run = tmp_path / "run"
+    with rundir.run_lock(run):
+        import fcntl
+
+        fd = os.open(run / rundir.LOCK, os.O_RDWR)
+        with pytest.raises(BlockingIOError):
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.close(fd)
+    assert not run.exists()
