@@ -48,6 +48,7 @@ def _guard(fn):
 
         import click
 
+        from pipeline.core.atomic import discard_all
         from pipeline.core.errors import Terminated, os_error_message
 
         def _term(signum, frame):
@@ -65,9 +66,11 @@ def _guard(fn):
         except (typer.Exit, typer.Abort, click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
             raise
         except Terminated:
+            discard_all()
             typer.echo("error: terminated (SIGTERM); finished outputs kept, partial ones removed", err=True)
             raise typer.Exit(143) from None
         except KeyboardInterrupt:
+            discard_all()
             typer.echo("error: interrupted; finished outputs kept, partial ones removed", err=True)
             raise typer.Exit(130) from None
         except Exception as exc:
@@ -191,6 +194,13 @@ def simulate(
         bool | None,
         typer.Option("--camera/--no-camera", help="Simulate camera feature tracks (default: yes)."),
     ] = None,
+    imu_from: Annotated[
+        Path | None,
+        typer.Option(
+            help="A converted recording with a real IMU and ground truth: keep its IMU, ground truth and "
+            "biases, simulate tracks and ranges along its trajectory (a hybrid recording)."
+        ),
+    ] = None,
 ) -> None:
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
     from convert.simulator import SimConfig, simulate_to_file
@@ -210,6 +220,16 @@ def simulate(
     given = {k: v for k, v in given.items() if v is not None}
     if odometry_noise_scale != 1.0:
         given["odometry_noise_scale"] = odometry_noise_scale
+    if imu_from is not None:
+        from convert.hybrid import hybrid_to_file
+
+        if scenario is not None or trajectory is not None or odometry_rate is not None:
+            raise InputError(
+                f"{imu_from}: --imu-from takes the trajectory from the recording's ground truth; drop "
+                "--scenario / --trajectory / --odometry-rate"
+            )
+        typer.echo(hybrid_to_file(imu_from, SimConfig(seed=seed, **given), output))
+        return
     if scenario is not None:
         from convert.scenarios import scenario_to_file
 
@@ -460,11 +480,15 @@ def bench(
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Write results as JSON.")] = None,
     cases: Annotated[str | None, typer.Option(help="Comma-separated case names.")] = None,
     quick: Annotated[bool, typer.Option(help="Small sizes (smoke run).")] = False,
+    against: Annotated[
+        Path | None,
+        typer.Option(help="Another uwbcal checkout (e.g. a git worktree of main): run every case on it too."),
+    ] = None,
 ) -> None:
     """Run the benchmarks (wall time, real-time factor, peak memory, ratio to baseline)."""
     from benchmarks.runner import run_benchmarks
 
-    typer.echo(run_benchmarks(output, cases=cases, quick=quick))
+    typer.echo(run_benchmarks(output, cases=cases, quick=quick, against=against))
 
 
 def main() -> None:  # pragma: no cover

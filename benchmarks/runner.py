@@ -1,5 +1,8 @@
 """`uwbcal bench`: every case runs in its own process; we report wall time, real-time factor, peak memory and
-the ratio to the case's baseline measured in the same invocation (machines are noisy: ratios, not seconds)."""
+the ratio to the case's baseline measured in the same invocation (machines are noisy: ratios, not seconds).
+
+``--against TREE`` also runs every case on another checkout of uwbcal (e.g. a ``git worktree`` of main) in the
+same invocation, alternating the two trees case by case, and reports the speed-up of this tree over it."""
 
 from __future__ import annotations
 
@@ -30,10 +33,20 @@ class BenchResult:
     error: str | None = None
 
 
-def _run_in_child(name: str, quick: bool) -> BenchResult:
+def _run_in_child(name: str, quick: bool, tree: Path | None = None) -> BenchResult:
+    """Run one case in a child process; ``tree``: import uwbcal from that checkout instead of this one."""
     cmd = [sys.executable, "-m", "benchmarks.cases", name] + (["--quick"] if quick else [])
+    env = None
+    if tree is not None:
+        from convert.datasets import data_root
+
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(
+            [str(tree)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
+        )
+        env.setdefault("UWBCAL_DATA", str(data_root()))  # the other tree's ../shared/data may not exist
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tree, env=env)
     out, err = proc.communicate()
     wall = time.perf_counter() - t0
     # ru_maxrss of RUSAGE_CHILDREN is the max over all children so far; read this child's own figure from it
@@ -60,13 +73,25 @@ def _run_in_child(name: str, quick: bool) -> BenchResult:
     )
 
 
-def run_benchmarks(output: Path | None, cases: str | None = None, quick: bool = False) -> str:
+def _check_tree(tree: Path) -> Path:
+    from pipeline.core.errors import InputError
+
+    tree = Path(tree).resolve()
+    if not (tree / "benchmarks" / "cases.py").is_file():
+        raise InputError(f"{tree}: not a uwbcal checkout (no benchmarks/cases.py); give the root of one")
+    return tree
+
+
+def run_benchmarks(
+    output: Path | None, cases: str | None = None, quick: bool = False, against: Path | None = None
+) -> str:
+    from pipeline.core.errors import InputError
+
     names = [c.strip() for c in cases.split(",")] if cases else list(CASES)
     unknown = [n for n in names if n not in CASES]
     if unknown:
-        from pipeline.core.errors import InputError
-
         raise InputError(f"unknown benchmark case(s) {unknown}; known: {sorted(CASES)}")
+    other_tree = _check_tree(against) if against is not None else None
     # baselines run first so that every ratio is measured in this same invocation
     needed = []
     for n in names:
@@ -74,12 +99,19 @@ def run_benchmarks(output: Path | None, cases: str | None = None, quick: bool = 
         if b and b not in needed and b not in names:
             needed.append(b)
     results: dict[str, BenchResult] = {}
+    other: dict[str, BenchResult] = {}
     for n in needed + names:
+        if other_tree is not None:  # alternate the trees so that load changes hit both alike
+            other[n] = _run_in_child(n, quick, other_tree)
         results[n] = _run_in_child(n, quick)
     for r in results.values():
         if r.baseline and r.ok and results.get(r.baseline) and results[r.baseline].ok:
             r.ratio_to_baseline = r.wall_s / results[r.baseline].wall_s
-    lines = [f"{'case':<28} {'wall s':>8} {'RTF':>8} {'peak MB':>9} {'ratio':>7}  baseline / note"]
+    load = os.getloadavg()
+    lines = [
+        f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1/5/15 min)",
+        f"{'case':<28} {'wall s':>8} {'RTF':>8} {'peak MB':>9} {'ratio':>7}  baseline / note",
+    ]
     for r in results.values():
         if not r.ok:
             lines.append(f"{r.case:<28} FAILED: {r.error}")
@@ -90,11 +122,27 @@ def run_benchmarks(output: Path | None, cases: str | None = None, quick: bool = 
         if r.extra:
             note += " " + ", ".join(f"{k}={v}" for k, v in r.extra.items())
         lines.append(f"{r.case:<28} {r.wall_s:8.2f} {rtf} {r.peak_rss_mb:9.0f} {ratio}  {note.strip()}")
+    if other_tree is not None:
+        lines += ["", f"against {other_tree} (same invocation, alternating):"]
+        lines.append(f"{'case':<28} {'this s':>8} {'other s':>8} {'speed-up':>9}  other's note")
+        for n, r in results.items():
+            o = other[n]
+            if not (r.ok and o.ok):
+                lines.append(f"{n:<28} FAILED: {(r.error if not r.ok else o.error)}")
+                continue
+            note = ", ".join(f"{k}={v}" for k, v in o.extra.items())
+            lines.append(f"{n:<28} {r.wall_s:8.2f} {o.wall_s:8.2f} {o.wall_s / r.wall_s:8.2f}x  {note}")
     if output:
         doc = {
-            "machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
+            "machine": {
+                "cpus": os.cpu_count(),
+                "python": sys.version.split()[0],
+                "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()],
+            },
             "quick": quick,
             "results": [asdict(r) for r in results.values()],
         }
+        if other_tree is not None:
+            doc["against"] = {"tree": str(other_tree), "results": [asdict(r) for r in other.values()]}
         write_text_atomic(output, json.dumps(doc, indent=2))
     return "\n".join(lines)

@@ -230,6 +230,15 @@ def read_groundtruth_biases(path: Path) -> ImuTable | None:
     return ImuTable(t[keep], b[keep, :3], b[keep, 3:])
 
 
+def groundtruth_in_imu_frame(gt: PoseTable, T_B_imu: np.ndarray) -> PoseTable:
+    """Body-frame poses T_W_B -> IMU-frame poses T_W_imu = T_W_B T_B_imu (the recording's poses are the IMU's)."""
+    from pipeline.core.geometry import quat_to_rot, rot_to_quat
+
+    R = quat_to_rot(gt.q_xyzw)
+    p = gt.p + R @ T_B_imu[:3, 3]
+    return PoseTable(gt.t_ns, p, rot_to_quat(R @ T_B_imu[:3, :3]))
+
+
 def read_image(path: Path) -> tuple[np.ndarray | None, bytes]:
     """A PNG as stored (mono8 stays bit-identical); returns (image or None when undecodable, file bytes)."""
     import cv2
@@ -308,6 +317,11 @@ def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = No
         gt = PoseTable(gt.t_ns[ok], gt.p[ok], q[ok])
         o = order_and_dedup(gt.t_ns, None, TOPIC_GT_POSE, drops)
         gt = PoseTable(gt.t_ns[o], gt.p[o], gt.q_xyzw[o])
+        if not np.allclose(
+            T_B_imu, np.eye(4)
+        ):  # EuRoC's ground truth is the body frame B: express it in imu0's
+            gt = groundtruth_in_imu_frame(gt, T_B_imu)
+            drops.note("ground truth moved from the body frame to imu0's (imu0/sensor.yaml T_BS)")
         files.append(gt_file)
     gt_bias = read_groundtruth_biases(gt_file) if gt_file is not None else None
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import mcap.writer
 import numpy as np
 import zstandard
 from mcap.data_stream import ReadDataStream
@@ -30,7 +31,7 @@ from mcap.records import Metadata as McapMetadata
 from mcap.records import Schema as McapSchema
 from mcap.writer import CompressionType, Writer
 
-from pipeline.core.atomic import finish, prepare_output_file, temp_path
+from pipeline.core.atomic import discard, finish, prepare_output_file, temp_path
 from pipeline.core.errors import InputError
 from pipeline.core.topics import (  # noqa: F401  (re-exported: the recording format names its topics)
     TOPIC_CAM0,
@@ -99,6 +100,29 @@ def schema_mismatches(topics: dict[str, TopicInfo]) -> dict[str, str]:
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _CHUNK_SIZE = 4 * 1024 * 1024
+ZSTD_LEVEL = 1
+
+
+class _ZstdLevel:
+    """Stands in for the ``zstandard`` module inside ``mcap.writer``, whose chunks are compressed with the
+    module-level ``zstandard.compress`` at level 3 (~80 MB/s on camera images). Level 1 keeps 96-99 % of the
+    compression ratio at ~3.5x the speed (measured on EuRoC and synthetic frames), so that converting a bag runs
+    at I/O speed. Only ``compress`` is used by the writer; anything else is the real module's."""
+
+    def __init__(self, module, level: int) -> None:
+        self._module = module
+        self._level = level
+
+    def compress(self, data: bytes) -> bytes:
+        # a compressor per chunk: ZstdCompressor objects must not be shared between threads
+        return self._module.ZstdCompressor(level=self._level).compress(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self._module, name)
+
+
+if getattr(mcap.writer, "zstandard", None) is zstandard:
+    mcap.writer.zstandard = _ZstdLevel(zstandard, ZSTD_LEVEL)
 
 OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = 0x03, 0x04, 0x05, 0x06, 0x07
 OP_METADATA, OP_DATA_END, OP_FOOTER, OP_HEADER = 0x0C, 0x0F, 0x02, 0x01
@@ -404,7 +428,7 @@ class RecordingWriter:
         try:
             finish(self._tmp, self.path)
         except BaseException:
-            self._tmp.unlink(missing_ok=True)
+            discard(self._tmp)
             raise
 
     def abort(self) -> None:
@@ -415,7 +439,7 @@ class RecordingWriter:
         try:
             self._file.close()
         finally:
-            self._tmp.unlink(missing_ok=True)
+            discard(self._tmp)
 
     def __enter__(self) -> RecordingWriter:
         return self

@@ -241,6 +241,9 @@ class SimData:
     landmarks: np.ndarray  # [L,3]
     odometry: OdometrySim | None = None
     metadata: dict[str, dict] = field(default_factory=dict)  # name -> JSON record
+    groundtruth_bias: ImuSim | None = (
+        None  # written as /groundtruth/imu_bias (hybrid recordings: real biases)
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -509,6 +512,53 @@ def simulate_ranges(
     )
 
 
+@dataclass
+class WorldSim:
+    """What the simulator places around a trajectory and measures along it: landmarks and their feature tracks,
+    anchors and their ranges."""
+
+    landmarks: np.ndarray
+    features: FeatureSim | None
+    anchors: np.ndarray
+    beta: np.ndarray
+    gamma: np.ndarray
+    ranges: RangeSim
+
+
+def simulate_world(
+    traj: SplineTrajectory, duration: float, cam: dict, cfg: SimConfig, *, advance=None
+) -> WorldSim:
+    """Landmarks in a room around the whole trajectory, camera tracks (``cam``: calibration with ``rate_hz``)
+    and UWB ranges over ``[start, start + duration]`` of ``traj``; each from its own random stream of the seed.
+    Shared by `simulate` and the real-IMU hybrid recordings (`convert.hybrid`)."""
+    t0 = traj.t0_ns
+    # the world (room, landmarks, default anchors) depends on the whole trajectory, not on the duration simulated
+    lo, hi = bounding_box(traj, traj.duration)
+    rate = float(cam["rate_hz"])
+    landmarks = room_landmarks(
+        traj, sample_times(t0, traj.duration, rate), lo, hi, cam, cfg, stream(cfg.seed, "landmarks")
+    )
+    features = None
+    if cfg.camera:
+        features = simulate_features(
+            traj,
+            sample_times(t0, duration, rate),
+            landmarks,
+            cam,
+            cfg.pixel_sigma,
+            cfg.max_feature_range,
+            stream(cfg.seed, "camera"),
+            max_features=cfg.max_features,
+            advance=advance,
+        )
+    anchors = (
+        np.asarray(cfg.anchors, float) if cfg.anchors is not None else default_anchors(lo, hi, cfg.n_anchors)
+    )
+    beta, gamma = cfg.per_anchor("beta"), cfg.per_anchor("gamma")
+    ranges = simulate_ranges(traj, t0, duration, anchors, beta, gamma, cfg, stream(cfg.seed, "uwb"))
+    return WorldSim(landmarks, features, anchors, beta, gamma, ranges)
+
+
 def simulate(cfg: SimConfig, *, advance=None) -> SimData:
     """All sensor streams as arrays (no files written)."""
     traj = load_trajectory(cfg.trajectory, knot_dt=cfg.knot_dt)
@@ -519,9 +569,6 @@ def simulate(cfg: SimConfig, *, advance=None) -> SimData:
             "give a shorter --duration"
         )
     t0 = traj.t0_ns
-    # the world (room, landmarks, default anchors) depends on the whole trajectory, not on the duration simulated
-    lo, hi = bounding_box(traj, traj.duration)
-
     t_imu = sample_times(t0, duration, cfg.imu_rate)
     imu = simulate_imu(traj, t_imu, cfg, stream(cfg.seed, "imu"))
     gt_s = traj.evaluate(rel_seconds(traj, t_imu))
@@ -529,29 +576,7 @@ def simulate(cfg: SimConfig, *, advance=None) -> SimData:
 
     cam = camera_model()
     cam["rate_hz"] = float(cfg.cam_rate)
-    landmarks = room_landmarks(
-        traj, sample_times(t0, traj.duration, cfg.cam_rate), lo, hi, cam, cfg, stream(cfg.seed, "landmarks")
-    )
-    features = None
-    if cfg.camera:
-        t_cam = sample_times(t0, duration, cfg.cam_rate)
-        features = simulate_features(
-            traj,
-            t_cam,
-            landmarks,
-            cam,
-            cfg.pixel_sigma,
-            cfg.max_feature_range,
-            stream(cfg.seed, "camera"),
-            max_features=cfg.max_features,
-            advance=advance,
-        )
-
-    anchors = (
-        np.asarray(cfg.anchors, float) if cfg.anchors is not None else default_anchors(lo, hi, cfg.n_anchors)
-    )
-    beta, gamma = cfg.per_anchor("beta"), cfg.per_anchor("gamma")
-    ranges = simulate_ranges(traj, t0, duration, anchors, beta, gamma, cfg, stream(cfg.seed, "uwb"))
+    world = simulate_world(traj, duration, cam, cfg, advance=advance)
 
     odometry = None
     if cfg.odometry_rate is not None:
@@ -563,13 +588,13 @@ def simulate(cfg: SimConfig, *, advance=None) -> SimData:
         odometry=odometry,
         trajectory=traj,
         imu=imu,
-        features=features,
-        ranges=ranges,
+        features=world.features,
+        ranges=world.ranges,
         groundtruth=gt,
-        anchors=anchors,
-        beta=beta,
-        gamma=gamma,
-        landmarks=landmarks,
+        anchors=world.anchors,
+        beta=world.beta,
+        gamma=world.gamma,
+        landmarks=world.landmarks,
     )
     data.metadata = _metadata(data, cam, duration)
     return data
@@ -610,34 +635,20 @@ def _links_truth(data: SimData) -> list[dict]:
     return out
 
 
-def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
-    from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH
-    from .sources import converter_name, sha256_file
-
-    cfg, traj = data.config, data.trajectory
-    calibration = {
-        "imu": {
-            "gyroscope_noise_density": cfg.gyro_noise_density,
-            "gyroscope_random_walk": cfg.gyro_random_walk,
-            "accelerometer_noise_density": cfg.acc_noise_density,
-            "accelerometer_random_walk": cfg.acc_random_walk,
-            "rate_hz": float(cfg.imu_rate),
-        },
-        "uwb": {
-            "tags": {
-                str(cfg.tag_id + i): {"antennas": [arm.tolist()]} for i, arm in enumerate(cfg.lever_arms())
-            },
-            "sigma_range": cfg.sigma_range,
-            "gamma_prior": {"mean": 0.0, "sigma": 1.0},
-            "beta_prior": {"mean": 1.0, "sigma": 0.2},
-        },
-        "groundtruth": {"lever_arm": [0.0, 0.0, 0.0], "frame": "body"},
+def uwb_calibration(cfg: SimConfig) -> dict:
+    """The calibration record of the simulated tags: lever arms, range noise, the priors a user would declare."""
+    return {
+        "tags": {str(cfg.tag_id + i): {"antennas": [arm.tolist()]} for i, arm in enumerate(cfg.lever_arms())},
+        "sigma_range": cfg.sigma_range,
+        "gamma_prior": {"mean": 0.0, "sigma": 1.0},
+        "beta_prior": {"mean": 1.0, "sigma": 0.2},
     }
-    if data.odometry is not None:
-        calibration["odometry"] = {"error_model": "drift", "noise": odometry_noise(cfg.odometry_noise_scale)}
-    if data.features is not None:
-        calibration["cameras"] = {"cam0": cam}
-    truth = {
+
+
+def world_truth(data: SimData, duration: float) -> dict:
+    """``uwbcal.truth`` of the simulated world (anchors, links, noise levels, trajectory, duration)."""
+    cfg = data.config
+    return {
         "kind": "simulated",
         "anchors_frame": "world",
         "anchors": {
@@ -655,10 +666,6 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
         "max_range": cfg.max_range,
         "seed": int(cfg.seed),
         "gravity": cfg.gravity,
-        "imu": {  # biases at the first IMU sample (they random-walk afterwards)
-            "gyro_bias": list(map(float, cfg.gyro_bias_init)),
-            "accel_bias": list(map(float, cfg.acc_bias_init)),
-        },
         "pixel_sigma": cfg.pixel_sigma,
         "landmarks": len(data.landmarks),
         "tag": {"id": cfg.tag_id, "antenna": 0, "lever_arm": cfg.lever_arms()[0].tolist()},
@@ -669,9 +676,36 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
             if cfg.visibility
             else {}
         ),
-        "trajectory": traj.name,
+        "trajectory": data.trajectory.name,
         "duration": duration,
         "nlos_count": int(data.ranges.nlos.sum()),
+    }
+
+
+def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
+    from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH
+    from .sources import converter_name, sha256_file
+
+    cfg, traj = data.config, data.trajectory
+    calibration = {
+        "imu": {
+            "gyroscope_noise_density": cfg.gyro_noise_density,
+            "gyroscope_random_walk": cfg.gyro_random_walk,
+            "accelerometer_noise_density": cfg.acc_noise_density,
+            "accelerometer_random_walk": cfg.acc_random_walk,
+            "rate_hz": float(cfg.imu_rate),
+        },
+        "uwb": uwb_calibration(cfg),
+        "groundtruth": {"lever_arm": [0.0, 0.0, 0.0], "frame": "body"},
+    }
+    if data.odometry is not None:
+        calibration["odometry"] = {"error_model": "drift", "noise": odometry_noise(cfg.odometry_noise_scale)}
+    if data.features is not None:
+        calibration["cameras"] = {"cam0": cam}
+    truth = world_truth(data, duration)
+    truth["imu"] = {  # biases at the first IMU sample (they random-walk afterwards)
+        "gyro_bias": list(map(float, cfg.gyro_bias_init)),
+        "accel_bias": list(map(float, cfg.acc_bias_init)),
     }
     files = [{"path": str(traj.source), "sha256": sha256_file(traj.source)}] if traj.source else []
     source = {
@@ -689,7 +723,7 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
 # file output
 # ---------------------------------------------------------------------------------------------------------------
 def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str, int]:
-    from .recording import TOPIC_GT_POSE, TOPIC_ODOM, RecordingWriter
+    from .recording import TOPIC_GT_IMU_BIAS, TOPIC_GT_POSE, TOPIC_ODOM, RecordingWriter
 
     with RecordingWriter(output) as w:
         w.write_imu_batch(data.imu.t_ns, data.imu.gyro, data.imu.acc)
@@ -706,6 +740,9 @@ def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str
         )
         gt = data.groundtruth
         w.write_pose_batch(gt.t_ns, gt.p, gt.q_xyzw, topic=TOPIC_GT_POSE)
+        if data.groundtruth_bias is not None:
+            b = data.groundtruth_bias
+            w.write_imu_batch(b.t_ns, b.gyro, b.acc, topic=TOPIC_GT_IMU_BIAS)
         if data.odometry is not None:
             o = data.odometry
             w.write_odometry_batch(o.t_ns, o.p, o.q_xyzw, topic=TOPIC_ODOM)

@@ -174,6 +174,22 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
     return out
 
 
+def aligned_anchors(run: RunAnchors, al) -> RunAnchors:
+    """``run`` with the anchor positions (and their covariance blocks) mapped by the alignment ``al``
+    (`evaluate.align.Alignment`: p -> s R p + t), e.g. from a static-initialised VIO's frame to the ground truth's."""
+    A = al.s * al.R
+    est = {
+        aid: {**e, "position": al.apply_positions(np.asarray(e["position"], float)).tolist()}
+        for aid, e in run.estimates.items()
+    }
+    states = {}
+    for aid, (x, P) in run.states.items():
+        T = np.eye(len(x))
+        T[:3, :3] = A
+        states[aid] = (np.r_[al.apply_positions(x[:3]), x[3:]], T @ P @ T.T)
+    return RunAnchors(est, dict(run.undetermined), states)
+
+
 def anchor_metrics(run: RunAnchors, ref: AnchorReference | None) -> tuple[dict, dict, list[str]]:
     """(metrics["anchors"], the top-level anchor keys of metrics.json, warnings); see the module docstring."""
     anchors: dict[str, dict] = {}

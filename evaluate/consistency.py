@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from pipeline.core.geometry import log_so3
+from pipeline.state import chi2_quantile
 
 
 def nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -107,7 +107,7 @@ def chi2_bounds(n_runs: int, dof: int, confidence: float = 0.95) -> tuple[float,
         raise ValueError(f"chi2_bounds: need n_runs >= 1 and dof >= 1, got {n_runs}, {dof}")
     a = 1.0 - confidence
     k = n_runs * dof
-    return float(chi2.ppf(a / 2, k) / n_runs), float(chi2.ppf(1 - a / 2, k) / n_runs)
+    return float(chi2_quantile(a / 2, k) / n_runs), float(chi2_quantile(1 - a / 2, k) / n_runs)
 
 
 def fraction_inside(values: np.ndarray, bounds: tuple[float, float]) -> float:

@@ -21,8 +21,9 @@ from pipeline.core.errors import InputError
 from pipeline.core.geometry import quat_to_rot
 from pipeline.rundir import read_json
 
+from .align import Alignment
 from .align import align as fit_alignment
-from .anchor_report import anchor_metrics, read_run_anchors, reference_anchors
+from .anchor_report import aligned_anchors, anchor_metrics, read_run_anchors, reference_anchors
 from .consistency import pose_nees, summarize_nees
 from .export import compare, load_ground_truth, load_run_trajectory, run_recording_path
 from .metrics import ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
@@ -33,6 +34,18 @@ if TYPE_CHECKING:
     from pipeline.runlog import RunLog
 
 SEGMENT_NAMES = ("init", "refine", "localize")
+
+
+def initial_pose_alignment(
+    R_est0: np.ndarray, p_est0: np.ndarray, R_gt0: np.ndarray, p_gt0: np.ndarray
+) -> Alignment:
+    """The yaw rotation and offset that put the first estimated pose on the ground truth's (the gauge of a
+    filter that starts in its own gravity-aligned frame)."""
+    D = R_gt0 @ R_est0.T
+    yaw = np.arctan2(D[1, 0], D[0, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Alignment(R=Rz, t=p_gt0 - Rz @ p_est0, method="initial-pose")
 
 
 def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = None) -> dict:
@@ -58,8 +71,12 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         metrics["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
 
     ref = reference_anchors(reader)
+    # a VIO started by the static initialiser estimates in its own frame (gravity-aligned, yaw 0, origin at
+    # the start): position and yaw are a gauge, the anchors live in that frame too
+    static_frame = (run_dir / "static_init.json").is_file()
     if align in (None, "auto"):
-        align = "none" if ref is not None and ref.kind == "simulated" else "se3"
+        simulated = ref is not None and ref.kind == "simulated"
+        align = "posyaw" if static_frame else "none" if simulated else "se3"
     metrics["alignment"] = align
 
     # -- trajectory -----------------------------------------------------------------------------------------
@@ -68,6 +85,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     except InputError as exc:
         gt = None
         metrics["warnings"].append(f"no trajectory metrics: {exc}")
+    al = None
     if gt is not None and len(traj):
         cmp = compare(traj.t_ns, traj.p, traj.q_xyzw, gt)
         al = fit_alignment(cmp.p_est, cmp.p_gt, align)
@@ -79,10 +97,20 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         if cmp.q_gt is not None:
             R_gt = quat_to_rot(cmp.q_gt)
             metrics["ormse_deg"] = ormse_deg_by_segment(R_al, R_gt, masks)
-            if align == "none" and traj.cov is not None:
-                # NEES of the body pose (the lever arm is zero for full-pose ground truth)
-                p_body = traj.p[cmp.assoc.idx]
-                ne = pose_nees(R_est, p_body, traj.cov[cmp.assoc.idx], R_gt, cmp.p_gt)
+            if (align == "none" or static_frame) and traj.cov is not None:
+                # NEES of the body pose (the lever arm is zero for full-pose ground truth). In the static
+                # initialiser's frame: after the alignment that is its gauge (yaw and position of the first pose
+                # set to the ground truth's; the filter's covariance starts ~0 in them), not a fitted one (that
+                # would take out error the covariance accounts for)
+                ga = Alignment()
+                if static_frame:
+                    ga = initial_pose_alignment(R_est[0], cmp.p_est[0], R_gt[0], cmp.p_gt[0])
+                    metrics["nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
+                A = np.eye(6)
+                A[3:, 3:] = ga.R
+                cov = A @ traj.cov[cmp.assoc.idx] @ A.T
+                p_body = ga.apply_positions(traj.p[cmp.assoc.idx])
+                ne = pose_nees(ga.apply_rotations(R_est), p_body, cov, R_gt, cmp.p_gt)
                 metrics["nees_pose"] = summarize_nees(ne.pose, 6)
                 metrics["nees_orientation"] = summarize_nees(ne.orientation, 3)
                 metrics["nees_position"] = summarize_nees(ne.position, 3)
@@ -98,6 +126,10 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     # -- anchors ---------------------------------------------------------------------------------------------
     cfg = tomllib.loads((run_dir / "config.toml").read_text())  # parsed by run_recording_path already
     run_anchors = read_run_anchors(run_dir, (cfg.get("uwb") or {}).get("init_method"))
+    if static_frame and al is not None and ref is not None and ref.kind == "simulated":
+        # estimated in the static initialiser's frame: compared (and reported) after the trajectory's alignment
+        run_anchors = aligned_anchors(run_anchors, al)
+        metrics["anchor_alignment"] = f"{align} alignment of the trajectory (static initialiser's frame)"
     if run_anchors.estimates or run_anchors.undetermined:
         anchors, top, warns = anchor_metrics(run_anchors, ref)
         metrics.update(top)

@@ -35,6 +35,14 @@ def _progress(description: str) -> Progress:
     )
 
 
+def _worker_init() -> None:
+    """One BLAS thread per worker process: ``jobs`` workers each running a multi-threaded BLAS would put
+    ``jobs x cores`` threads on the cores."""
+    from pipeline.core.blas import limit_blas_threads
+
+    limit_blas_threads(1)
+
+
 def run_jobs(
     job: Job,
     params: Sequence[dict[str, Any]],
@@ -62,7 +70,7 @@ def run_jobs(
                 results[i] = job(p)
                 progress.advance(task)
         else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
+            with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_init) as pool:
                 futs = {pool.submit(job, p): i for i, p in enumerate(params)}
                 for fut in as_completed(futs):
                     results[futs[fut]] = fut.result()

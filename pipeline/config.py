@@ -31,6 +31,10 @@ class RunSection(BaseModel):
     refine_window_s: float | None = Field(None, gt=0, description="length of paper stage 2; default 1/3")
     align: Literal["auto", "none", "posyaw", "se3", "sim3"] = "auto"
     log: bool = True
+    log_process: bool = Field(
+        True,
+        description="rerun logging in a helper process that overlaps with the computation (false: in-process)",
+    )
     vio_extent: Literal["auto", "full", "init"] = Field(
         "auto",
         description="auto: the VIO-only pass stops at the end of the initialisation window when refine runs in "

@@ -9,14 +9,11 @@ logs the span's trajectory, covariance and the estimator's own series.
 
 from __future__ import annotations
 
-import ctypes
-import glob
-import os
-from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .core.blas import single_blas_thread
 from .estimator import Estimator, RangeHandler, RangeMeasurement
 
 if TYPE_CHECKING:
@@ -76,29 +73,3 @@ def log_history(log: RunLog, hist: dict[str, np.ndarray], first: int) -> None:
     log.ellipsoid_series(rl.VIO_COV, t[::step], p[::step], cov[::step, 3:6, 3:6])
     log.scalars(f"{rl.SIGMA}/vio_p3sigma", t, sig3[:, 3:6], ["x", "y", "z"])
     log.scalars(f"{rl.SIGMA}/vio_theta3sigma_deg", t, np.degrees(sig3[:, 0:3]), ["x", "y", "z"])
-
-
-@contextmanager
-def single_blas_thread():
-    """Run the filter's many small LAPACK calls on one OpenBLAS thread (this thread only).
-
-    Multi-threaded OpenBLAS on small matrices (QRs of a few hundred rows) is much slower on a loaded machine
-    than one thread (docs/results/measurements.md). Uses OpenBLAS' thread-local setter of the libraries bundled with numpy/scipy;
-    a no-op when they are not found. (threadpoolctl would do the same but is not a dependency.)
-    """
-    setters = []
-    for mod in ("numpy", "scipy"):
-        try:
-            base = os.path.dirname(__import__(mod).__file__)
-            for so in glob.glob(os.path.join(base, os.pardir, f"{mod}.libs", "*openblas*.so*")):
-                fn = ctypes.CDLL(so).openblas_set_num_threads_local
-                fn.restype, fn.argtypes = ctypes.c_int, [ctypes.c_int]
-                setters.append(fn)
-        except (OSError, AttributeError, ImportError, TypeError):
-            continue
-    prev = [fn(1) for fn in setters]
-    try:
-        yield
-    finally:
-        for fn, n in zip(setters, prev, strict=True):
-            fn(max(n, 1))

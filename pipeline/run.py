@@ -63,6 +63,10 @@ class Pipeline:
                 ctx.windows()  # the recording has what the stages need (ranges, a pose source): fail before any
                 check_values(ctx)
             results = []
+            if ctx.config.run.log and ctx.config.run.log_process:
+                from .runlog_async import start_log_server
+
+                ctx.log_server = start_log_server()
             try:
                 for name, stage in REGISTRY.items():
                     if name not in stages:
@@ -73,8 +77,13 @@ class Pipeline:
                     self._record_stage(res)
                     progress(f"[{name}] {res.summary} ({res.wall_s:.1f} s)")
             finally:
-                if ctx.config.run.log:
-                    ctx.dir.merge_rrd(ctx.run_kind())
+                server, ctx.log_server = ctx.log_server, None
+                try:
+                    if ctx.config.run.log:
+                        ctx.dir.merge_rrd(ctx.run_kind(), server)
+                finally:
+                    if server is not None:
+                        server.stop()
         return results
 
     def _record_stage(self, res: StageResult) -> None:

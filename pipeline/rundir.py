@@ -95,14 +95,22 @@ class RunDir:
         (self.path / LOGS).mkdir(parents=True, exist_ok=True)
         return self.path / LOGS / f"{order:02d}_{stage}.rrd"
 
-    def merge_rrd(self, run_kind: str | None = None) -> Path | None:
-        """Merge the per-stage logs into run.rrd, so a stage re-run alone still gives a complete run.rrd."""
+    def rrd_parts(self) -> list[Path]:
+        """The per-stage logs, in stage order."""
+        return sorted((self.path / LOGS).glob("*.rrd")) if (self.path / LOGS).is_dir() else []
+
+    def merge_rrd(self, run_kind: str | None = None, server=None) -> Path | None:
+        """Merge the per-stage logs into run.rrd, so a stage re-run alone still gives a complete run.rrd;
+        ``server``: a `runlog_async.LogServer` to do it in (rerun is imported there already)."""
         from .runlog import merge_run_logs
 
-        parts = sorted((self.path / LOGS).glob("*.rrd")) if (self.path / LOGS).is_dir() else []
-        return (
-            merge_run_logs(parts, self.path / RRD, run_kind, name=self.path.resolve().name) if parts else None
-        )
+        parts = self.rrd_parts()
+        if not parts:
+            return None
+        name = self.path.resolve().name
+        if server is not None:
+            return server.merge(parts, self.path / RRD, run_kind, name=name)
+        return merge_run_logs(parts, self.path / RRD, run_kind, name=name)
 
 
 def write_text(path: Path, text: str) -> None:

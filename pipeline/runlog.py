@@ -147,7 +147,7 @@ def moving_nis(
 ) -> tuple[np.ndarray, np.ndarray, float, float]:
     """Trailing mean of `window` NIS values (time-sorted) and the 95 % two-sided bounds of such a mean,
     χ²(0.025, window·dof)/window and χ²(0.975, window·dof)/window."""
-    from scipy.stats import chi2
+    from .state import chi2_quantile
 
     t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
     v = np.asarray(nis, dtype=np.float64).reshape(-1)
@@ -160,7 +160,12 @@ def moving_nis(
     c = np.concatenate([[0.0], np.cumsum(v)])
     avg = (c[window:] - c[:-window]) / window
     n = window * dof
-    return t[window - 1 :], avg, float(chi2.ppf(0.025, n) / window), float(chi2.ppf(0.975, n) / window)
+    return (
+        t[window - 1 :],
+        avg,
+        float(chi2_quantile(0.025, n) / window),
+        float(chi2_quantile(0.975, n) / window),
+    )
 
 
 def _ts(t_ns: Any) -> np.ndarray:

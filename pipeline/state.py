@@ -18,10 +18,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.linalg import qr
-from scipy.stats import chi2
+from scipy.linalg import cho_solve, qr, solve_triangular
+from scipy.special import gammaincinv
 
 from .core.geometry import exp_so3
+
+
+def _fresh(cls, **arrays: np.ndarray):
+    """An instance of the dataclass ``cls`` from newly computed float arrays, without ``__post_init__``'s
+    defensive copies (boxplus runs for every variable of every update)."""
+    obj = object.__new__(cls)
+    obj.__dict__.update(arrays)
+    return obj
 
 
 @dataclass
@@ -38,7 +46,7 @@ class Vec:
         return self.x.shape[0]
 
     def boxplus(self, dx: np.ndarray) -> Vec:
-        return Vec(self.x + dx)
+        return _fresh(Vec, x=self.x + dx)
 
 
 @dataclass
@@ -55,7 +63,7 @@ class Pose:
     dim = 6
 
     def boxplus(self, dx: np.ndarray) -> Pose:
-        return Pose(self.R @ exp_so3(dx[0:3]), self.p + dx[3:6])
+        return _fresh(Pose, R=self.R @ exp_so3(dx[0:3]), p=self.p + dx[3:6])
 
 
 @dataclass
@@ -75,12 +83,13 @@ class ImuState:
     dim = 15
 
     def boxplus(self, dx: np.ndarray) -> ImuState:
-        return ImuState(
-            self.R @ exp_so3(dx[0:3]),
-            self.p + dx[3:6],
-            self.v + dx[6:9],
-            self.bg + dx[9:12],
-            self.ba + dx[12:15],
+        return _fresh(
+            ImuState,
+            R=self.R @ exp_so3(dx[0:3]),
+            p=self.p + dx[3:6],
+            v=self.v + dx[6:9],
+            bg=self.bg + dx[9:12],
+            ba=self.ba + dx[12:15],
         )
 
     @property
@@ -434,9 +443,35 @@ def remove_probes(state: State) -> None:
         state.remove(n)
 
 
+def chi2_quantile(quantile: float, dof):
+    """``scipy.stats.chi2.ppf(quantile, dof)`` (the same formula, bit for bit) without importing scipy.stats,
+    which costs ~1.4 s per process (every Monte Carlo worker, every CLI call)."""
+    return 2 * gammaincinv(np.asarray(dof) / 2, quantile)
+
+
 @functools.lru_cache(maxsize=4096)
-def _chi2_gate(quantile: float, dof: int) -> float:
-    return float(chi2.ppf(quantile, dof))
+def chi2_ppf(quantile: float, dof: int) -> float:
+    """Cached chi-squared quantile (the filters ask for the same few gates thousands of times)."""
+    return float(chi2_quantile(quantile, dof))
+
+
+def _stacked_jacobian(
+    state: State, H: Mapping[str, np.ndarray], m: int
+) -> tuple[slice | np.ndarray, np.ndarray]:
+    """The update's Jacobian blocks as one (m, k) matrix over covariance indices ``idx`` (a slice, i.e. no copy of
+    P's columns, when the variables are contiguous in the state, e.g. the MSCKF's clones)."""
+    blocks = sorted(
+        ((state.slice(v), np.asarray(Hb, float).reshape(m, -1)) for v, Hb in H.items()),
+        key=lambda x: x[0].start,
+    )
+    if not blocks:
+        return slice(0, 0), np.zeros((m, 0))
+    if all(a[0].stop == b[0].start for a, b in zip(blocks[:-1], blocks[1:], strict=True)):
+        idx: slice | np.ndarray = slice(blocks[0][0].start, blocks[-1][0].stop)
+    else:
+        idx = np.concatenate([np.arange(sl.start, sl.stop) for sl, _ in blocks])
+    Hd = blocks[0][1] if len(blocks) == 1 else np.concatenate([Hb for _, Hb in blocks], axis=1)
+    return idx, Hd
 
 
 def ekf_update(
@@ -472,20 +507,17 @@ def ekf_update(
     elif R.ndim == 2 and R.shape[0] == 1 and R.shape[1] == m:
         R = np.diag(R[0])
     n = state.size
-    PHt = np.zeros((n, m))
-    for var, Hb in H.items():
-        PHt += state.P[:, state.slice(var)] @ Hb.T
-    S = np.zeros((m, m))
-    for var, Hb in H.items():
-        S += Hb @ PHt[state.slice(var), :]
+    idx, Hd = _stacked_jacobian(state, H, m)
+    PHt = state.P[:, idx] @ Hd.T
+    S = Hd @ PHt[idx, :]
     S = 0.5 * (S + S.T) + R
     try:
         cho = np.linalg.cholesky(S)
     except np.linalg.LinAlgError as exc:
         raise FloatingPointError(f"innovation covariance not positive definite ({m} rows)") from exc
-    y = np.linalg.solve(cho, r)
+    y = solve_triangular(cho, r, lower=True, check_finite=False)
     nis = float(y @ y)
-    gate = _chi2_gate(chi2_gate, m) if chi2_gate is not None else None
+    gate = chi2_ppf(chi2_gate, m) if chi2_gate is not None else None
     if gate is not None and nis > gate:
         return UpdateResult(False, nis, m, gate)
     if robust is not None and m == 1:
@@ -507,7 +539,7 @@ def ekf_update(
     schmidt += [v for v in state.considered if v not in schmidt]
     # Joseph form: P+ = (I - K H) P (I - K H)^T + K R K^T, written with PHt to avoid forming I - KH.
     if not schmidt:
-        K = np.linalg.solve(cho.T, np.linalg.solve(cho, PHt.T)).T  # K = P H^T S^-1
+        K = cho_solve((cho, True), PHt.T, check_finite=False).T  # K = P H^T S^-1
         KHP = K @ PHt.T
         P = state.P - KHP - KHP.T + K @ S @ K.T
         np.multiply(P + P.T, 0.5, out=state.P)  # symmetric, written into the state's buffer
@@ -518,7 +550,7 @@ def ekf_update(
     mask = np.ones(n, bool)
     mask[state.index(schmidt)] = False
     e = np.flatnonzero(mask)
-    K_e = np.linalg.solve(cho.T, np.linalg.solve(cho, PHt[e].T)).T
+    K_e = cho_solve((cho, True), PHt[e].T, check_finite=False).T
     KHP = K_e @ PHt.T  # (n_e, n)
     P = state.P
     P[e, :] -= KHP

@@ -77,6 +77,24 @@ class StaticInitResult:
         s = self.state
         return s.R, s.p, s.v, s.bg, s.ba
 
+    def summary(self) -> dict:
+        """JSON-ready record of the initialisation (the run directory's ``static_init.json``)."""
+        s = self.state
+        return {
+            "t_start_ns": self.t_start_ns,
+            "t_end_ns": self.t_end_ns,
+            "samples": self.samples,
+            "acc_norm_mean": self.acc_norm_mean,
+            "acc_norm_std": self.acc_norm_std,
+            "gyro_std": self.gyro_std,
+            "roll_pitch_deg": np.degrees(roll_pitch(s.R)).tolist(),
+            "R": s.R.tolist(),
+            "bg": s.bg.tolist(),
+            "ba": s.ba.tolist(),
+            "sigma": np.sqrt(np.diag(self.P)).tolist(),
+            "world_frame": "gravity-aligned, yaw 0 and origin at the start (not the ground truth's frame)",
+        }
+
     def __str__(self) -> str:
         return (
             f"still for {(self.t_end_ns - self.t_start_ns) * 1e-9:.2f} s ({self.samples} samples): "

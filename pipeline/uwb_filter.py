@@ -16,14 +16,13 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.stats import chi2
 
 from pipeline.core.errors import InputError
 
 from .core.geometry import quat_slerp, quat_to_rot
 from .core.names import INIT_METHODS, REFINE_METHODS
 from .core.uwb_model import jacobians, range_model, range_variance
-from .state import Kind, State, UpdateResult, Vec, ekf_update, remove_probes, schmidt_update
+from .state import Kind, State, UpdateResult, Vec, chi2_ppf, ekf_update, remove_probes, schmidt_update
 from .uwb_init import InitResult, InitWindow, initialize_anchor
 
 if TYPE_CHECKING:
@@ -605,14 +604,14 @@ class UwbUpdater:
             log.scalars(rl.uwb(a, "residual"), t, arr["residual"])
             log.scalars(rl.uwb(a, "nis"), t, arr["nis"])
             if self.chi2_quantile is not None and len(t):
-                log.constant(rl.uwb(a, "nis_gate"), t, float(chi2.ppf(self.chi2_quantile, 1)), ["gate"])
+                log.constant(rl.uwb(a, "nis_gate"), t, chi2_ppf(self.chi2_quantile, 1), ["gate"])
             rej = arr["rejected"].astype(bool)  # the gated-out ranges as red points at their residual
             log.scalars(rl.uwb(a, "rejected"), t[rej], arr["residual"][rej])
             if rej.any():
                 log.series_static_style(
                     rl.uwb(a, "rejected"), ["rejected"], [rl.COLORS["rejected"]], points=True
                 )
-            gate = float(np.sqrt(chi2.ppf(self.chi2_quantile, 1))) if self.chi2_quantile is not None else 3.0
+            gate = float(np.sqrt(chi2_ppf(self.chi2_quantile, 1))) if self.chi2_quantile is not None else 3.0
             log.residual_band(a, t, arr["residual"], arr["nis"], n_sigma=gate)
             log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
             log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])

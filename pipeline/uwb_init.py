@@ -24,6 +24,7 @@ import numpy as np
 from .core.names import INIT_METHODS
 from .core.uwb_model import jacobians, range_variance, tag_positions
 from .fim import FimReport, assess_observability
+from .state import chi2_ppf
 
 _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
 _ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)
@@ -301,10 +302,8 @@ def noise_inflation(
     nb = int(m.sum())
     if nb < min_blocks:
         return 1.0
-    from scipy.stats import chi2
-
     kappa = float(np.sum(tot[m] ** 2 / cnt[m]) / nb / np.mean(e**2))
-    return kappa if kappa > chi2.ppf(quantile, nb) / nb else 1.0
+    return kappa if kappa > chi2_ppf(quantile, nb) / nb else 1.0
 
 
 def _clean(w: InitWindow, label: str) -> tuple[InitWindow, list[str]]:

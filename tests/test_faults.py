@@ -1305,6 +1305,29 @@ case(
 )
 
 
+def stale_part_next_to_output(c: Ctx) -> list[str]:
+    args = tab()(c)
+    c.write(f".out.mcap.{fi.dead_pid()}.dead0001.part", b"half a recording")
+    return args
+
+
+case(
+    "stale-part-next-to-convert-output-removed",
+    [4],
+    "interrupted runs",
+    stale_part_next_to_output,
+    "ok",
+    check=rec_check(n_ranges=N_ROWS),
+)
+case(
+    "tab-csv-utf16",
+    [3],
+    "encodings",
+    tab(csv_bytes=fi.csv_text(fi.ranges_rows()).encode("utf-16")),
+    names=named("ranges.csv"),
+)
+
+
 # -- the table runner ------------------------------------------------------------------------------------------------
 def _files(root: Path) -> set[str]:
     return {str(p.relative_to(root)) for p in root.rglob("*")}
@@ -1454,14 +1477,23 @@ def test_sigterm_removes_partial_outputs(long_rec: Path, tmp_path: Path) -> None
     assert res.exit_code == 0, res.output
 
 
-def test_sigterm_during_simulate_leaves_no_part(tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_signal_during_simulate_leaves_no_part(tmp_path: Path, sig: int, code: int) -> None:
     out = tmp_path / "s.mcap"
     proc = _spawn("simulate", "-o", str(out))  # 120 s with camera tracks: the writing takes a while
     assert _wait_for(lambda: any(tmp_path.glob(".s.mcap.*.part")), timeout=60, step=0.002)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 143 and "Traceback" not in err, err
+    assert proc.returncode == code and "Traceback" not in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_debug_shows_the_traceback(tmp_path: Path) -> None:
+    """Without --debug an input error is one line (the table); with it, the exception itself."""
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"not an mcap")
+    res = runner.invoke(app, ["--debug", "info", str(bad)])
+    assert res.exit_code != 0 and type(res.exception).__name__ == "InputError"
 
 
 def test_concurrent_runs_on_one_directory(shared: Shared, long_rec: Path, tmp_path: Path) -> None:

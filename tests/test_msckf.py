@@ -183,15 +183,29 @@ def test_triangulation_and_nullspace_noise_free():
         Hx[:, j, :, j, :] = H_pose.reshape(nf, m, 2, 6)[:, j]
     Hx = Hx.reshape(nf, 2 * m, 6 * m)
     r = np.zeros((nf, 2 * m))
-    Ho, ro = nullspace_project(Hf, Hx, r)
+    Hp = H_pose.reshape(nf, m, 2, 6)
+    Ho, ro = nullspace_project(Hf, Hp, C, m, r)
     assert Ho.shape == (nf, 2 * m - 3, 6 * m)
+    Qn = np.linalg.qr(Hf, mode="complete")[0][:, :, 3:]
+    np.testing.assert_allclose(Ho, np.swapaxes(Qn, 1, 2) @ Hx, atol=1e-12)  # the dense product
+    # padded slots (here: the last slot, pointing at clone 0) do not leak into clone 0's columns
+    valid = np.ones((nf, m), bool)
+    valid[:, -1] = False
+    Cp = C.copy()
+    Cp[:, -1] = 0
+    Hp0 = Hp.copy()
+    Hp0[:, -1] = 0.0
+    Ho_p, _ = nullspace_project(Hf, Hp0, Cp, m, r, valid)
+    Hx0 = Hx.reshape(nf, m, 2, m, 6).copy()
+    Hx0[:, -1] = 0.0
+    np.testing.assert_allclose(Ho_p, np.swapaxes(Qn, 1, 2) @ Hx0.reshape(nf, 2 * m, 6 * m), atol=1e-12)
     assert np.abs(np.swapaxes(Ho, 1, 2) @ np.zeros((nf, 2 * m - 3, 1))).max() == 0
     Qn = np.linalg.qr(Hf, mode="complete")[0][:, :, 3:]
     assert np.abs(np.swapaxes(Qn, 1, 2) @ Hf).max() < 1e-10
     # with a wrong feature guess, the projected residual only depends on the pose error (first order)
     dpf = rng.normal(0, 1e-4, (nf, 3))
     uv2 = feature_jacobians(CAM, R[cidx], p[cidx], (pts + dpf)[fidx])[0]
-    _, ro2 = nullspace_project(Hf, Hx, (uv - uv2).reshape(nf, 2 * m))
+    _, ro2 = nullspace_project(Hf, Hp, C, m, (uv - uv2).reshape(nf, 2 * m))
     assert np.abs(ro2).max() < 1e-3 * np.abs(uv - uv2).max()
     Hc, rc = compress(np.concatenate(Ho), np.concatenate(ro))
     assert Hc.shape == (6 * m, 6 * m) and np.abs(rc).max() < 1e-12
@@ -329,6 +343,12 @@ def test_compress_normal_keeps_information():
     np.testing.assert_allclose(Hn.T @ Hn, H.T @ H, atol=1e-9)
     np.testing.assert_allclose(Hn.T @ rn, H.T @ r, atol=1e-9)
     np.testing.assert_allclose(Hq.T @ Hq, H.T @ H, atol=1e-9)
+    # gauge directions that are not coordinate axes (the rank-revealing pivoting must still find them)
+    Q = np.linalg.qr(rng.normal(size=(30, 30)))[0]
+    Hn, rn = compress_normal(H @ Q, r)
+    assert Hn.shape[0] == 26
+    np.testing.assert_allclose(Hn.T @ Hn, Q.T @ H.T @ H @ Q, atol=1e-9)
+    np.testing.assert_allclose(Hn.T @ rn, Q.T @ H.T @ r, atol=1e-9)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -38,9 +38,28 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
+_LIVE: set[Path] = set()  # temporary files of this process not yet renamed or removed
+
+
 def temp_path(target: Path) -> Path:
-    """A fresh temporary sibling of ``target`` (not created)."""
-    return target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.part")
+    """A fresh temporary sibling of ``target`` (not created), registered until `finish` / `discard`."""
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.part")
+    _LIVE.add(tmp)
+    return tmp
+
+
+def discard(tmp: Path) -> None:
+    """Remove a temporary file (and forget it)."""
+    _LIVE.discard(tmp)
+    tmp.unlink(missing_ok=True)
+
+
+def discard_all() -> None:
+    """Remove every temporary file this process still has: on SIGTERM / Ctrl-C the unwinding normally does it, this
+    catches one created in the instant before its owner's cleanup was armed (e.g. inside a constructor)."""
+    for tmp in list(_LIVE):
+        with contextlib.suppress(OSError):
+            discard(tmp)
 
 
 def is_stale(path: Path) -> bool:
@@ -91,6 +110,7 @@ def finish(tmp: Path, target: Path) -> None:
     os.chmod(tmp, FILE_MODE)
     check_output_file(target)  # it may have appeared meanwhile
     os.replace(tmp, target)
+    _LIVE.discard(tmp)
 
 
 @contextlib.contextmanager
@@ -107,7 +127,7 @@ def atomic_path(target: str | os.PathLike) -> Iterator[Path]:
         yield tmp_path
         finish(tmp_path, target)
     except BaseException:
-        tmp_path.unlink(missing_ok=True)
+        discard(tmp_path)
         raise
 
 

@@ -58,6 +58,7 @@ class StageContext:
         self.stages = list(config.run.stages)  # this invocation's stages (Pipeline.run narrows it)
         self.results_text = ""
         self._reader: RecordingReader | None = None
+        self.log_server = None  # rerun logging helper process while Pipeline.run runs (runlog_async)
 
     @property
     def reader(self) -> RecordingReader:
@@ -77,14 +78,15 @@ class StageContext:
 
     def runlog(self, stage: str) -> rl.RunLog:
         path = self.dir.stage_rrd(STAGE_NUMBER[stage], stage) if self.config.run.log else None
-        return rl.RunLog(
-            path,
+        kw = dict(
             recording_id=self.recording_id(),
             run_kind=self.run_kind(),
-            enabled=self.config.run.log,
             blueprint=False,
             time_origin_ns=self.time_origin(),
         )
+        if path is not None and self.log_server is not None:  # the log's calls go to the helper process
+            return self.log_server.open(path, **kw)  # type: ignore[return-value]  (same methods as RunLog)
+        return rl.RunLog(path, enabled=self.config.run.log, **kw)
 
     def time_origin(self) -> int | None:
         """Simulated recordings: the replay's time axis in seconds from the recording's start (same origin for every
@@ -112,6 +114,7 @@ class StageContext:
         - ``uwb.init_method = "auto"``: ri-robust on real recordings, ri on simulated ones;
         - odometry pose source: drift sigmas the recording declares (calibration ``odometry.noise``, e.g. the
           simulator's odometry) for those the config does not set;
+        - MSCKF on a real IMU: the real-IMU vio defaults (`pipeline.real_imu`) for the settings not given;
         - windows, when not given and the poses come from an odometry with a *bounded* error (a SLAM output in
           the world frame, calibration ``odometry.error_model = "bounded"``, e.g. NTU-VIRAL SLICT): the thirds
           of the paper exist so that a drifting VIO is calibrated before it drifts; a bounded pose source does
@@ -128,6 +131,11 @@ class StageContext:
         odometry = self.pose_source() == "odometry"
         if odometry:
             apply_calibration_noise(self.config.odometry, self.reader.calibration)
+        else:  # a real IMU: static initialisation and the real-IMU noise model (pipeline/real_imu.py)
+            from ..real_imu import apply_real_imu_defaults
+
+            for k, v in apply_real_imu_defaults(self.config.vio, self.reader.source).items():
+                _log.info("vio.%s = %s (real-IMU default, pipeline/real_imu.py)", k, v)
         if run.init_window_s is None and run.refine_window_s is None and odometry:
             model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
             if model == "bounded":
@@ -169,6 +177,9 @@ class StageContext:
 
                 res = static_init_from_recording(self.reader, start_ns=self.windows().start_ns)
                 _log.info("vio: static initialisation: %s", res)
+                # the world frame is the initialiser's (gravity-aligned, yaw 0, origin at the start): the
+                # evaluator aligns position and yaw when it finds this
+                self.dir.save_json("static_init.json", res.summary())
                 initial, cov = res.state, res.P
             return MsckfEstimator.from_recording(self.features_reader(), self.config.vio, initial, cov)
         from ..odometry_filter import OdometryEstimator
@@ -180,7 +191,7 @@ class StageContext:
 
     def anchor_errors(self, est: dict) -> str:
         truth = (self.reader.truth or {}).get("anchors")
-        if not truth:
+        if not truth or self.dir.exists("static_init.json"):  # own frame: the evaluator aligns, not here
             return ""
         errs = [
             np.linalg.norm(np.asarray(x)[:3] - np.asarray(truth[str(a)]["position"]))

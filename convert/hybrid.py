@@ -1,0 +1,221 @@
+"""Real-IMU hybrid recordings: a converted recording's real IMU and ground truth, with camera feature tracks and
+UWB ranges simulated along its real ground-truth trajectory (``uwbcal simulate --imu-from REC.mcap``).
+
+Real (copied from the source recording): ``/imu`` (every message inside the ground truth's time span, values and
+stamps unchanged), ``/groundtruth/pose`` and, when present, ``/groundtruth/imu_bias``, and the IMU calibration
+(noise densities as the dataset declares them). Simulated (`convert.simulator.simulate_world`, the simulator's
+own generators): landmarks in a room around the trajectory, ``/cam0/features`` seen by the recording's cam0
+calibration (intrinsics, radtan distortion, T_imu_cam, rate), anchors and ``/uwb/range``. ``uwbcal.source``
+lists which topics are which.
+
+The trajectory the tracks and ranges are simulated along is a cubic B-spline through the ground-truth poses of
+the *IMU* frame: EuRoC's ground truth is the body frame B, which is imu0's frame (imu0 ``T_BS`` is the identity;
+the converter expresses the ground truth in the IMU frame when it is not), and the calibration's ground-truth
+lever arm, if any, is removed first. Its knots are ``knot_dt`` apart; at a knot spacing equal to the ground
+truth's sample interval (EuRoC V1_01 at 20 Hz: 0.05 s) the spline passes through every ground-truth pose, so the
+camera frames (at the same 20 Hz) sit at the real poses. Ground truth and IMU share one clock on EuRoC (the
+ground truth is a batch fit of Vicon and this IMU; the gyro residual against the spline is smallest at 0-5 ms
+lag), so no time offset is applied.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.errors import InputError
+
+from .recording import (
+    META_CALIBRATION,
+    META_SOURCE,
+    META_TRUTH,
+    TOPIC_FEATURES,
+    TOPIC_GT_IMU_BIAS,
+    TOPIC_GT_POSE,
+    TOPIC_IMU,
+    TOPIC_RANGE,
+    RecordingReader,
+)
+from .simulator import (
+    GroundTruthSim,
+    ImuSim,
+    SimConfig,
+    SimData,
+    camera_model,
+    simulate_world,
+    uwb_calibration,
+    world_truth,
+)
+from .trajectory import SplineTrajectory
+
+HYBRID_KNOT_DT = 0.05  # spline knots [s]: 20 Hz resolves a MAV's motion; equal to EuRoC V1_01's GT interval
+
+
+def _gt_imu_frame(reader: RecordingReader) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t_ns, p, q_xyzw) of the IMU frame from /groundtruth/pose and the calibration's ground-truth lever arm."""
+    from pipeline.core.geometry import quat_to_rot
+
+    gt = reader.read_poses(TOPIC_GT_POSE)
+    lever = np.asarray(reader.calibration.get("groundtruth", {}).get("lever_arm", [0.0, 0.0, 0.0]), float)
+    p = gt.p - np.einsum("nij,j->ni", quat_to_rot(gt.q_xyzw), lever) if np.any(lever) else gt.p
+    return gt.t_ns, p, gt.q_xyzw
+
+
+def _camera(calibration: dict, source: str) -> tuple[dict, str]:
+    cams = calibration.get("cameras") or {}
+    if "cam0" not in cams:
+        cam = camera_model()
+        return cam, "the simulator's EuRoC cam0 (the recording has no cam0 calibration)"
+    cam = dict(cams["cam0"])
+    model = cam.get("distortion_model", "radtan")
+    if model != "radtan":
+        raise InputError(
+            f"{source}: cam0 distortion model {model!r}: the simulator projects with radtan only; "
+            "use a recording with a radtan cam0 calibration"
+        )
+    missing = [k for k in ("intrinsics", "distortion", "resolution", "T_imu_cam") if k not in cam]
+    if missing:
+        raise InputError(f"{source}: cam0 calibration lacks {missing}; re-convert the recording")
+    cam.setdefault("rate_hz", 20.0)
+    return cam, "the recording's cam0 calibration"
+
+
+def hybrid_simulate(source: str | Path, cfg: SimConfig, knot_dt: float = HYBRID_KNOT_DT) -> SimData:
+    """The hybrid recording's streams as arrays: real IMU and ground truth of ``source``, simulated tracks and
+    ranges along its ground truth (``cfg``: the simulator's settings; its IMU and trajectory settings unused)."""
+    from .sources import sha256_file
+
+    source = Path(source)
+    reader = RecordingReader(source)
+    src = str(source)
+    topics = reader.topics()
+    for need, what in ((TOPIC_IMU, "a real IMU"), (TOPIC_GT_POSE, "ground-truth poses")):
+        if need not in topics:
+            raise InputError(
+                f"{src}: no '{need}' topic; --imu-from needs a recording with {what} (e.g. uwbcal convert "
+                "euroc FOLDER --groundtruth GT.csv)"
+            )
+    t_gt, p_gt, q_gt = _gt_imu_frame(reader)
+    if len(t_gt) < 4:
+        raise InputError(f"{src}: {TOPIC_GT_POSE}: {len(t_gt)} poses; a trajectory needs at least 4")
+    imu_all = reader.read_imu(TOPIC_IMU)
+    # the span where IMU and ground truth overlap; the spline starts at the first ground-truth pose in it
+    lo = max(int(imu_all.t_ns[0]), int(t_gt[0]))
+    hi = min(int(imu_all.t_ns[-1]), int(t_gt[-1]))
+    keep = (t_gt >= lo) & (t_gt <= hi)
+    if keep.sum() < 4 or (hi - lo) * 1e-9 < 4 * knot_dt:
+        raise InputError(
+            f"{src}: IMU and {TOPIC_GT_POSE} overlap over {max(hi - lo, 0) * 1e-9:.2f} s; need at least "
+            f"{4 * knot_dt:g} s of both"
+        )
+    t_gt, p_gt, q_gt = t_gt[keep], p_gt[keep], q_gt[keep]
+    traj = SplineTrajectory.fit(
+        (t_gt - t_gt[0]) * 1e-9,
+        p_gt,
+        q_gt,
+        knot_dt=knot_dt,
+        t0_ns=int(t_gt[0]),
+        name=f"{reader.source.get('sequence', source.stem)} (ground truth)",
+        source=source,
+    )
+    duration = traj.duration if cfg.duration is None else float(cfg.duration)
+    if duration > traj.duration + 1e-9:
+        raise InputError(
+            f"{src}: duration {duration:g} s: IMU and ground truth overlap over {traj.duration:.1f} s; give a "
+            "shorter --duration"
+        )
+    t_end = traj.t0_ns + int(round(duration * 1e9))
+    m = (imu_all.t_ns >= traj.t0_ns) & (imu_all.t_ns <= t_end)
+
+    bias = None
+    if TOPIC_GT_IMU_BIAS in topics:
+        b = reader.read_imu(TOPIC_GT_IMU_BIAS)
+        mb = (b.t_ns >= traj.t0_ns) & (b.t_ns <= t_end)
+        bias = ImuSim(b.t_ns[mb], b.gyro[mb], b.acc[mb], b.gyro[mb], b.acc[mb])
+    # biases at the IMU stamps (zero where the recording has none): kept with the IMU for reference
+    if bias is not None and len(bias.t_ns) >= 2:
+        bg = np.stack([np.interp(imu_all.t_ns[m], bias.t_ns, bias.gyro[:, k]) for k in range(3)], 1)
+        ba = np.stack([np.interp(imu_all.t_ns[m], bias.t_ns, bias.acc[:, k]) for k in range(3)], 1)
+    else:
+        bg = ba = np.zeros((int(m.sum()), 3))
+    imu = ImuSim(imu_all.t_ns[m], imu_all.gyro[m], imu_all.acc[m], bg, ba)
+    gt_raw = reader.read_poses(TOPIC_GT_POSE)  # written as recorded (the lever arm stays in)
+    g = (gt_raw.t_ns >= traj.t0_ns) & (gt_raw.t_ns <= t_end)
+    v = traj.evaluate((gt_raw.t_ns[g] - traj.t0_ns) * 1e-9).v
+    gt = GroundTruthSim(gt_raw.t_ns[g], gt_raw.p[g], gt_raw.q_xyzw[g], v)
+
+    calibration = reader.calibration
+    cam, cam_note = _camera(calibration, src)
+    world = simulate_world(traj, duration, cam, cfg)
+    data = SimData(
+        config=cfg,
+        trajectory=traj,
+        imu=imu,
+        features=world.features,
+        ranges=world.ranges,
+        groundtruth=gt,
+        anchors=world.anchors,
+        beta=world.beta,
+        gamma=world.gamma,
+        landmarks=world.landmarks,
+        groundtruth_bias=bias,
+    )
+    cal = {
+        "imu": dict(calibration["imu"]) if "imu" in calibration else {},
+        "uwb": uwb_calibration(cfg),
+        "groundtruth": dict(calibration.get("groundtruth", {"lever_arm": [0.0, 0.0, 0.0], "frame": "body"})),
+    }
+    if world.features is not None:
+        cal["cameras"] = {"cam0": cam}
+    truth = world_truth(data, duration)  # no "imu" biases: the real ones are on /groundtruth/imu_bias
+    orig = reader.source
+    real = [TOPIC_IMU, TOPIC_GT_POSE] + ([TOPIC_GT_IMU_BIAS] if bias is not None else [])
+    simulated = ([TOPIC_FEATURES] if world.features is not None else []) + [TOPIC_RANGE]
+    data.metadata = {
+        META_CALIBRATION: cal,
+        META_TRUTH: truth,
+        META_SOURCE: {
+            "dataset": "hybrid",
+            "sequence": str(orig.get("sequence", source.stem)),
+            "real": real,
+            "simulated": simulated,
+            "real_from": {
+                "path": src,
+                "sha256": sha256_file(source),
+                "dataset": orig.get("dataset"),
+                "files": orig.get("files", []),
+            },
+            "simulation": {
+                "seed": int(cfg.seed),
+                "camera": cam_note,
+                "trajectory": f"cubic B-spline through {TOPIC_GT_POSE} (IMU frame), knots {knot_dt:g} s",
+                "landmarks": len(world.landmarks),
+                "anchors": len(world.anchors),
+            },
+            "files": [{"path": src, "sha256": sha256_file(source)}],
+            "converter": orig.get("converter"),
+            "dropped": [],
+            "seed": int(cfg.seed),
+        },
+    }
+    return data
+
+
+def hybrid_to_file(source: str | Path, cfg: SimConfig, output: str | Path) -> str:
+    """Write the hybrid recording; returns a short human-readable summary."""
+    from .simulator import write_recording
+
+    data = hybrid_simulate(source, cfg)
+    counts = write_recording(data, output)
+    src = data.metadata[META_SOURCE]
+    lines = [
+        f"hybrid {src['sequence']} ({data.metadata[META_TRUTH]['duration']:.1f} s, seed {cfg.seed}) -> {output}",
+        f"  real: {', '.join(src['real'])} (from {source}); simulated: {', '.join(src['simulated'])}",
+        *(f"  {topic:<24} {n:>9} messages" for topic, n in sorted(counts.items())),
+    ]
+    if data.features is not None:
+        c = data.features.counts
+        lines.append(f"  features per frame: mean {c.mean():.0f}, min {c.min()}, max {c.max()}")
+    lines.append(f"  anchors: {len(data.anchors)}; ranges {len(data.ranges.t_ns)}")
+    return "\n".join(lines)
