@@ -568,7 +568,7 @@ def convert_bag(
             calib = {k: v for k, v in cal.items() if k != "uwb"}
             if len(raw_ranges) or cal.get("uwb") is not None:
                 calib["uwb"] = _uwb_section(ranges, ant, cal.get("uwb"), drops)
-            if not cal:
+            if not cal and ({TOPIC_IMU, TOPIC_CAM0, TOPIC_CAM1} & set(counts)):
                 drops.note("no --calibration: IMU noise, camera intrinsics and extrinsics unknown")
             for n in tmap.notes:
                 drops.note("topic " + n)

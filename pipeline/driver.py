@@ -3,7 +3,8 @@
 `run_estimator(est, reader, start_ns, end_ns, on_range=, log=)` is how every stage runs a pose source: the
 estimator opens the span (reads and checks what it propagates with, initialises), the driver interleaves its
 frames (camera frames, odometry messages) with the UWB ranges — a frame first when both have the same stamp —
-hands each range to ``on_range`` through the estimator (which brings its state to the range stamp first), and
+hands each range to ``on_range`` through the estimator (which brings its state to the range stamp first; a
+handler with ``epoch`` gets all ranges of one stamp at once, `Estimator.process_ranges`), and
 logs the span's trajectory, covariance and the estimator's own series.
 """
 
@@ -14,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .core.blas import single_blas_thread
-from .estimator import Estimator, RangeHandler, RangeMeasurement
+from .estimator import Estimator, RangeHandler, RangeMeasurement, epoch_handler, same_stamp_end
 
 if TYPE_CHECKING:
     from convert.recording import RecordingReader
@@ -39,19 +40,28 @@ def run_estimator(
         rng = span.ranges
         nr = len(rng) if rng is not None else 0
         j = 0
+        epochs = epoch_handler(on_range)  # dense ranging: the ranges of one stamp in one update
         for frame in span.frames:
             t_frame = frame[0]
             while j < nr and rng.t_ns[j] < t_frame:
-                est.process_range(_range(rng, j), on_range)
-                j += 1
+                j = _deliver(est, rng, j, on_range, epochs)
             est.process_frame(frame)
         while j < nr:
-            est.process_range(_range(rng, j), on_range)
-            j += 1
+            j = _deliver(est, rng, j, on_range, epochs)
         est.close(span)
     if log is not None:
         log_history(log, est.history().arrays(), span.first_record)
         est.log_span(log, span)
+
+
+def _deliver(est: Estimator, rng, j: int, on_range: RangeHandler | None, epochs: bool) -> int:
+    """Range ``j`` (with an epoch handler: every range of its stamp) to the estimator; returns the next index."""
+    k = same_stamp_end(rng.t_ns, j) if epochs else j + 1
+    if k - j == 1:
+        est.process_range(_range(rng, j), on_range)
+    else:
+        est.process_ranges([_range(rng, i) for i in range(j, k)], on_range)
+    return k
 
 
 def _range(rng, j: int) -> RangeMeasurement:

@@ -29,6 +29,17 @@ class RangeMeasurement:
 RangeHandler = Callable[["Estimator", RangeMeasurement], None]
 
 
+def epoch_handler(handler: RangeHandler | None) -> bool:
+    """A handler that also takes all ranges of one stamp at once (``handler.epoch(estimator, batch)``, e.g.
+    `uwb_filter.UwbUpdater`: one stacked update per epoch)."""
+    return callable(getattr(handler, "epoch", None))
+
+
+def same_stamp_end(t_ns: np.ndarray, j: int) -> int:
+    """End (exclusive) of the run of ranges with the stamp of range ``j`` (the ranges are time ordered)."""
+    return int(np.searchsorted(t_ns, t_ns[j], side="right"))
+
+
 @dataclass
 class TrajectoryRecord:
     """Pose estimates with 6x6 pose covariance (error [dtheta, dp]), appended during a run."""
@@ -103,6 +114,11 @@ class Estimator(Protocol):
     def process_frame(self, frame: Any) -> None: ...
 
     def process_range(self, m: RangeMeasurement, on_range: RangeHandler | None) -> None: ...
+
+    def process_ranges(self, batch: list[RangeMeasurement], on_range: RangeHandler) -> None:
+        """All ranges of one stamp (more than one) for an epoch handler (`epoch_handler`): propagate to the stamp
+        and record once, ``on_range.epoch(self, batch)`` once."""
+        ...
 
     def close(self, span: Span) -> None: ...
 

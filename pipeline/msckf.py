@@ -750,6 +750,14 @@ class MsckfEstimator:
             on_range(self, m)
         self._record()  # after the handler: the pose including its update
 
+    def process_ranges(self, batch: list[RangeMeasurement], on_range: RangeHandler) -> None:
+        """Ranges of one stamp for an epoch handler: propagate once, one epoch update, record the pose."""
+        if batch[0].t_ns < self.t_ns:
+            return
+        self.propagate_to(batch[0].t_ns)
+        on_range.epoch(self, batch)
+        self._record()
+
     def process_frame(self, frame: tuple[int, np.ndarray, np.ndarray]) -> None:
         """A camera frame: ZUPT when the interval since the last frame was static, else clone + MSCKF update."""
         t_ns, ids, uv = frame

@@ -412,6 +412,21 @@ class OdometryEstimator:
         if on_range is not None:
             on_range(self, m)
 
+    def process_ranges(self, batch: list[RangeMeasurement], on_range: RangeHandler) -> None:
+        """Ranges of one stamp for an epoch handler: the pose at the stamp recorded once, one epoch update."""
+        self.stats.ranges += len(batch)
+        t_ns = batch[0].t_ns
+        if t_ns < self.t_ns:
+            self.stats.ranges_before_odometry += len(batch)
+            return
+        gaps = self.stats.ranges_in_gaps
+        if not self.propagate_to(t_ns):
+            self.stats.ranges_after_odometry += len(batch)
+            return
+        self.stats.ranges_in_gaps += (self.stats.ranges_in_gaps - gaps) * (len(batch) - 1)
+        self._record()
+        on_range.epoch(self, batch)
+
     def close(self, span: Span) -> None:
         for w in self.stats.warnings():
             _log.warning("%s: %s", span.source, w)

@@ -106,6 +106,10 @@ class UpdateResult:
     nis: float
     dof: int
     gate: float | None = None
+    # per-row updates (``ekf_update(..., per_row=True)``, m > 1): each row's marginal NIS r_i^2 / S_ii and
+    # whether it was used (not gated out)
+    row_nis: np.ndarray | None = None
+    row_accepted: np.ndarray | None = None
 
 
 class Kind(enum.Enum):
@@ -474,6 +478,42 @@ def _stacked_jacobian(
     return idx, Hd
 
 
+@dataclass
+class _Rows:
+    row_nis: np.ndarray
+    row_accepted: np.ndarray
+    gate: float | None
+
+
+def _per_row(S, r, R, PHt, chi2_gate, robust, robust_R):
+    """Per-row gate and robust weights of a stacked update (see `ekf_update`); returns the kept rows' S (with
+    the robust inflation on its diagonal), r, PHt and the row figures."""
+    d = np.diag(S).copy()
+    row_nis = r * r / d
+    gate = chi2_ppf(chi2_gate, 1) if chi2_gate is not None else None
+    keep = row_nis <= gate if gate is not None else np.ones(len(r), bool)
+    if robust is not None:
+        kind, c = robust
+        s_w = d if robust_R is None else d - np.diag(R) + np.asarray(robust_R, float)
+        e = np.abs(r) / np.sqrt(np.maximum(s_w, 1e-300))
+        c = np.asarray(c, float)
+        if kind == "huber":
+            wt = np.where(e <= c, 1.0, c / np.maximum(e, 1e-300))
+        elif kind == "cauchy":
+            wt = 1.0 / (1.0 + (e / c) ** 2)
+        else:
+            raise ValueError(f"unknown robust update loss {kind!r} (huber or cauchy)")
+        S = S + np.diag(np.where(wt < 1.0, d / wt - d, 0.0))
+    idx = np.flatnonzero(keep)
+    return S[np.ix_(idx, idx)], r[idx], PHt[:, idx], _Rows(row_nis, keep, gate)
+
+
+def _result(nis: float, m: int, gate: float | None, rows: _Rows | None) -> UpdateResult:
+    if rows is None:
+        return UpdateResult(True, nis, m, gate)
+    return UpdateResult(True, nis, m, rows.gate, rows.row_nis, rows.row_accepted)
+
+
 def ekf_update(
     state: State,
     H: Mapping[str, np.ndarray],
@@ -483,7 +523,8 @@ def ekf_update(
     schmidt: Iterable[str] = (),
     chi2_gate: float | None = None,
     robust: tuple[str, float] | None = None,
-    robust_R: float | None = None,
+    robust_R: float | np.ndarray | None = None,
+    per_row: bool = False,
 ) -> UpdateResult:
     """The one EKF update: ``r = sum_v H[v] dx_v + n``, n ~ N(0, R).
 
@@ -498,6 +539,12 @@ def ekf_update(
     (1/w - 1) S: a large residual still informs, with a bounded (Huber) or vanishing (Cauchy) influence.
     ``robust_R`` replaces R in the variance that whitens e (e.g. the per-sample noise when R is inflated for
     time-correlated errors, so that the loss keeps its scale in metres).
+
+    ``per_row`` (m > 1 rows of independent scalar measurements, R diagonal; a stacked epoch of ranges): the gate
+    and the robust loss act on each row with its marginal innovation variance S_ii — a row whose NIS r_i^2 / S_ii
+    exceeds the 1-dof ``chi2_gate`` is dropped, the others update together; the robust weight w_i inflates S_ii
+    to S_ii / w_i (``robust`` scale ``c`` and ``robust_R`` may then be per-row arrays). With one row the result is
+    that of the scalar update, bit for bit.
     """
     r = np.asarray(r, float).reshape(-1)
     m = r.shape[0]
@@ -511,6 +558,12 @@ def ekf_update(
     PHt = state.P[:, idx] @ Hd.T
     S = Hd @ PHt[idx, :]
     S = 0.5 * (S + S.T) + R
+    rows = None
+    if per_row and m > 1:
+        S, r, PHt, rows = _per_row(S, r, R, PHt, chi2_gate, robust, robust_R)
+        if not rows.row_accepted.any():
+            return UpdateResult(False, float("nan"), 0, rows.gate, rows.row_nis, rows.row_accepted)
+        m, chi2_gate, robust = int(r.shape[0]), None, None
     try:
         cho = np.linalg.cholesky(S)
     except np.linalg.LinAlgError as exc:
@@ -544,7 +597,7 @@ def ekf_update(
         P = state.P - KHP - KHP.T + K @ S @ K.T
         np.multiply(P + P.T, 0.5, out=state.P)  # symmetric, written into the state's buffer
         state.boxplus(K @ r)
-        return UpdateResult(True, nis, m, gate)
+        return _result(nis, m, gate, rows)
     # Schmidt: only the estimated rows e of K are non-zero, so only rows and columns e of P change
     # (P_ee - (KHP)_ee - (KHP)_ee^T + K_e S K_e^T, P_ec - (KHP)_ec); the considered block stays as it is.
     mask = np.ones(n, bool)
@@ -562,7 +615,7 @@ def ekf_update(
     dx = np.zeros(n)
     dx[e] = K_e @ r
     state.boxplus(dx)
-    return UpdateResult(True, nis, m, gate)
+    return _result(nis, m, gate, rows)
 
 
 def schmidt_update(

@@ -10,7 +10,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -525,6 +525,10 @@ class UwbUpdater:
     def __call__(self, estimator: Any, meas: RangeMeasurement) -> UpdateResult | None:
         return self.update(estimator.state, meas)
 
+    def epoch(self, estimator: Any, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
+        """All ranges of one stamp: `update_epoch` (the estimators' range loop hands them over together)."""
+        return self.update_epoch(estimator.state, batch)
+
     def update(self, state: State, meas: RangeMeasurement) -> UpdateResult | None:
         name = anchor_var(meas.anchor)
         in_state = name in state
@@ -587,6 +591,76 @@ class UwbUpdater:
         rec.residual.append(r)
         rec.nis.append(res.nis)
         rec.rejected.append(not res.accepted)
+        return res
+
+    def update_epoch(self, state: State, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
+        """All ranges of one epoch (the same stamp, hence the same pose) in one stacked `ekf_update`: block
+        Jacobians (the pose block of every row, each anchor's block on its rows), per-row gate / robust weight
+        on the marginal innovation variance (``per_row``), one Joseph update. One range: exactly `update`.
+        Mode ``none`` records each range as `update` does. The records get the anchor state after the epoch."""
+        if len(batch) == 1 or self.mode == "none":
+            res = None
+            for meas in batch:
+                res = self.update(state, meas)
+            return res
+        rows, names, xs_cur, xs_lin = [], [], [], []
+        for meas in batch:
+            name = anchor_var(meas.anchor)
+            if self.mode == "frozen" and meas.anchor in self.frozen:
+                x_cur = x_lin = self.frozen[meas.anchor]
+            elif name in state:
+                x_cur, x_lin = state.value(name).x, state.fej(name).x
+            else:
+                self.counts["skipped"] += 1
+                continue
+            rows.append(meas)
+            names.append(name)
+            xs_cur.append(x_cur)
+            xs_lin.append(x_lin)
+        if len(rows) <= 1:
+            return self.update(state, rows[0]) if rows else None
+        k = len(rows)
+        pose_var = self.pose_var or state.nav
+        pose, pose_lin = state.value(pose_var), state.fej(pose_var)
+        p_T = np.stack([_lever_arm(self.arms, m.tag, m.antenna) for m in rows])
+        X_cur, X_lin = np.stack(xs_cur), np.stack(xs_lin)
+        J = jacobians(pose_lin.R, pose_lin.p, p_T, X_lin)
+        same_pose = pose_lin is pose or (
+            np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R)
+        )
+        h = J.h if same_pose and np.array_equal(X_lin, X_cur) else range_model(pose.R, pose.p, p_T, X_cur)
+        r = np.array([m.distance for m in rows], float) - h
+        sig = self.sigma * X_cur[:, 3]
+        R0 = sig**2
+        R = (np.array([self.inflation.get(m.anchor, 1.0) for m in rows]) * R0)[None, :]
+        robust = None if self.robust is None else (self.robust[0], self.robust[1] / sig)
+        H_imu = np.zeros((k, state.dim(pose_var)))
+        H_imu[:, 0:6] = J.H_I
+        H: dict[str, np.ndarray] = {pose_var: H_imu}
+        options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0, "per_row": True}
+        anchors = [n for _, n in state.of_kind(Kind.ANCHOR)]
+        if self.mode == "frozen":  # the anchors considered: the ranges correct the pose only
+            res = ekf_update(state, H, r, R, schmidt=anchors, **options)
+        else:
+            for i, name in enumerate(names):
+                H.setdefault(name, np.zeros((k, 5)))[i] = J.H_U[i]
+            if self.mode == "skf":  # the navigation state considered: only the anchors are estimated
+                res = schmidt_update(state, H, r, R, estimated=anchors, **options)
+            else:
+                res = ekf_update(state, H, r, R, **options)
+        ok = res.row_accepted
+        self.counts["accepted"] += int(ok.sum())
+        self.counts["rejected"] += int(k - ok.sum())
+        after = {n: (state.value(n).x.copy(), state.cov(n).copy()) for n in set(names) if n in state}
+        for i, (meas, name) in enumerate(zip(rows, names, strict=True)):
+            rec = self.records.setdefault(meas.anchor, AnchorRecord())
+            rec.t_ns.append(int(meas.t_ns))
+            x, P = after.get(name, (np.asarray(xs_cur[i], float).copy(), np.zeros((5, 5))))
+            rec.x.append(x)
+            rec.cov.append(P)
+            rec.residual.append(float(r[i]))
+            rec.nis.append(float(res.row_nis[i]))
+            rec.rejected.append(not bool(ok[i]))
         return res
 
     def arrays(self) -> dict[Any, dict[str, np.ndarray]]:

@@ -27,9 +27,11 @@ class RangeJacobians:
 def _broadcast(R: np.ndarray, p: np.ndarray, p_T: np.ndarray, x_U: np.ndarray):
     R = np.asarray(R, float).reshape(-1, 3, 3)
     p = np.asarray(p, float).reshape(-1, 3)
-    n = max(R.shape[0], p.shape[0])
-    p_T = np.broadcast_to(np.asarray(p_T, float).reshape(-1, 3), (n, 3))
-    x_U = np.broadcast_to(np.asarray(x_U, float).reshape(-1, 5), (n, 5))
+    p_T = np.asarray(p_T, float).reshape(-1, 3)
+    x_U = np.asarray(x_U, float).reshape(-1, 5)
+    n = max(R.shape[0], p.shape[0], p_T.shape[0], x_U.shape[0])  # one pose, many ranges: broadcast the pose
+    p_T = np.broadcast_to(p_T, (n, 3))
+    x_U = np.broadcast_to(x_U, (n, 5))
     return np.broadcast_to(R, (n, 3, 3)), np.broadcast_to(p, (n, 3)), p_T, x_U
 
 
