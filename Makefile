@@ -16,7 +16,7 @@ lint: setup
 	$(UV) run ruff format --check .
 
 test: lint
-	$(UV) run pytest -n $(PYTEST_WORKERS)
+	$(UV) run pytest -n $(PYTEST_WORKERS) --dist loadgroup
 
 format: setup
 	$(UV) run ruff check --fix .

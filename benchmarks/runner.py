@@ -1,5 +1,7 @@
-"""`uwbcal bench`: every case runs in its own process; we report wall time, real-time factor, peak memory and
-the ratio to the case's baseline measured in the same invocation (machines are noisy: ratios, not seconds).
+"""`uwbcal bench`: every case runs in its own process; we report wall time, CPU time (user + system of the case
+and its finished children: less sensitive to other load than wall time), real-time factor (data seconds / wall),
+peak memory and the ratio to the case's baseline measured in the same invocation (machines are noisy: ratios,
+not seconds).
 
 ``--against TREE`` also runs every case on another checkout of uwbcal (e.g. a ``git worktree`` of main) in the
 same invocation, alternating the two trees case by case, and reports the speed-up of this tree over it."""
@@ -8,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -23,6 +26,7 @@ from .cases import CASES
 class BenchResult:
     case: str
     wall_s: float
+    cpu_s: float | None  # the case's timed part (as the case reports it)
     peak_rss_mb: float
     data_s: float | None
     realtime_factor: float | None
@@ -31,6 +35,7 @@ class BenchResult:
     extra: dict
     ok: bool
     error: str | None = None
+    process_cpu_s: float | None = None  # the whole case process incl. its children (setup too)
 
 
 def _run_in_child(name: str, quick: bool, tree: Path | None = None) -> BenchResult:
@@ -45,10 +50,13 @@ def _run_in_child(name: str, quick: bool, tree: Path | None = None) -> BenchResu
             [str(tree)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
         )
         env.setdefault("UWBCAL_DATA", str(data_root()))  # the other tree's ../shared/data may not exist
+    c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tree, env=env)
     out, err = proc.communicate()
     wall = time.perf_counter() - t0
+    c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    proc_cpu = (c1.ru_utime + c1.ru_stime) - (c0.ru_utime + c0.ru_stime)
     # ru_maxrss of RUSAGE_CHILDREN is the max over all children so far; read this child's own figure from it
     # via the value the child reports about itself (it measures its own peak incl. grandchildren it waited on).
     payload: dict = {}
@@ -58,11 +66,12 @@ def _run_in_child(name: str, quick: bool, tree: Path | None = None) -> BenchResu
             break
     if proc.returncode != 0 or not payload:
         tail = (err or out).strip().splitlines()[-3:]
-        return BenchResult(name, wall, 0.0, None, None, None, None, {}, False, " | ".join(tail))
+        return BenchResult(name, wall, None, 0.0, None, None, None, None, {}, False, " | ".join(tail))
     data_s = payload.get("data_s")
     return BenchResult(
         case=name,
         wall_s=payload.get("wall_s", wall),
+        cpu_s=payload.get("cpu_s"),
         peak_rss_mb=payload.get("peak_rss_mb", 0.0),
         data_s=data_s,
         realtime_factor=(data_s / payload["wall_s"]) if data_s and payload.get("wall_s") else None,
@@ -70,6 +79,7 @@ def _run_in_child(name: str, quick: bool, tree: Path | None = None) -> BenchResu
         ratio_to_baseline=None,
         extra=payload.get("extra", {}),
         ok=True,
+        process_cpu_s=proc_cpu,
     )
 
 
@@ -110,7 +120,7 @@ def run_benchmarks(
     load = os.getloadavg()
     lines = [
         f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1/5/15 min)",
-        f"{'case':<28} {'wall s':>8} {'RTF':>8} {'peak MB':>9} {'ratio':>7}  baseline / note",
+        f"{'case':<28} {'wall s':>8} {'cpu s':>8} {'RTF':>8} {'peak MB':>9} {'ratio':>7}  baseline / note",
     ]
     for r in results.values():
         if not r.ok:
@@ -121,17 +131,23 @@ def run_benchmarks(
         note = r.baseline or ""
         if r.extra:
             note += " " + ", ".join(f"{k}={v}" for k, v in r.extra.items())
-        lines.append(f"{r.case:<28} {r.wall_s:8.2f} {rtf} {r.peak_rss_mb:9.0f} {ratio}  {note.strip()}")
+        cpu = f"{r.cpu_s:8.2f}" if r.cpu_s is not None else f"{'-':>8}"
+        lines.append(f"{r.case:<28} {r.wall_s:8.2f} {cpu} {rtf} {r.peak_rss_mb:9.0f} {ratio}  {note.strip()}")
     if other_tree is not None:
         lines += ["", f"against {other_tree} (same invocation, alternating):"]
-        lines.append(f"{'case':<28} {'this s':>8} {'other s':>8} {'speed-up':>9}  other's note")
+        lines.append(
+            f"{'case':<28} {'this s':>8} {'other s':>8} {'speed-up':>9} {'cpu speed-up':>13}  other's note"
+        )
         for n, r in results.items():
             o = other[n]
             if not (r.ok and o.ok):
                 lines.append(f"{n:<28} FAILED: {(r.error if not r.ok else o.error)}")
                 continue
             note = ", ".join(f"{k}={v}" for k, v in o.extra.items())
-            lines.append(f"{n:<28} {r.wall_s:8.2f} {o.wall_s:8.2f} {o.wall_s / r.wall_s:8.2f}x  {note}")
+            # whole case processes (setup included): the older tree may not report its timed CPU
+            rc, oc = r.process_cpu_s, o.process_cpu_s
+            cpu = f"{oc / rc:12.2f}x" if rc and oc else f"{'-':>13}"
+            lines.append(f"{n:<28} {r.wall_s:8.2f} {o.wall_s:8.2f} {o.wall_s / r.wall_s:8.2f}x {cpu}  {note}")
     if output:
         doc = {
             "machine": {

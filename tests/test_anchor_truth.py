@@ -21,7 +21,8 @@ from evaluate.evaluation import render_metrics
 from evaluate.metrics import anchor_errors, inter_anchor_distance_errors
 from pipeline.core.errors import InputError
 
-T0 = 1_700_000_000_000_000_000
+from support import T0
+
 TRUTH = {"0": [0.0, 0.0, 1.0], "1": [4.0, 0.0, 1.0], "2": [4.0, 3.0, 1.0], "3": [0.0, 3.0, 2.0]}
 
 

@@ -20,9 +20,8 @@ def _micro(data_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def micro_rec(data_dir, tmp_path_factory) -> tuple[Path, str]:
-    out = tmp_path_factory.mktemp("euroc") / "v1.mcap"
-    return out, convert_euroc(_micro(data_dir), out)
+def micro_rec(euroc_micro) -> tuple[Path, str]:
+    return euroc_micro  # the session's one conversion (conftest)
 
 
 def test_real_micro_counts_and_drops(micro_rec, data_dir):
@@ -251,6 +250,7 @@ def test_bag_wrong_type_on_known_topic(tmp_path):
             w.write(
                 c, 10 + k, ts.serialize_ros1(ts.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String")
             )
+    assert content.imu_t  # the good bag next to it does hold IMU messages on /imu0
     with pytest.raises(InputError, match="no IMU messages"):
         convert_euroc(bag, tmp_path / "w.mcap")
-    assert content.imu_t
+    assert not (tmp_path / "w.mcap").exists()  # atomic: nothing half-written is left behind

@@ -33,9 +33,8 @@ def test_embedded_msg_matches_meta(data_dir):
     assert ros1_typestore().generate_msgdef(UWB_RANGE_ROS1)[1] == "1065ab177c929b8c39cb8fde961d3e9e"
 
 
-def test_eee01_folder_every_row_accounted(data_dir, tmp_path):
-    out = tmp_path / "eee.mcap"
-    text = convert_ntu_viral(_seq(data_dir), out)
+def test_eee01_folder_every_row_accounted(data_dir, eee_01):
+    out, text = eee_01  # the session's one conversion (conftest)
     rec = RecordingReader(out)
     src = rec.source
     rows = len((_seq(data_dir) / "uwb_ranges.csv").read_text().strip().splitlines()) - 1

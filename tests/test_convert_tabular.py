@@ -12,7 +12,7 @@ from convert.sources import Drops, clean_ranges, order_and_dedup, parse_antennas
 from convert.tabular import convert_tabular
 from pipeline.core.errors import InputError
 
-T0 = 1_609_059_013_000_000_000
+from support import T0
 
 
 def _tum(path: Path, n: int = 50) -> np.ndarray:

@@ -14,7 +14,8 @@ from pipeline.frontend import (
     track_frames,
 )
 
-T0 = 1_400_000_000_000_000_000
+from support import T0
+
 W, H = 320, 240
 PINHOLE = {
     "intrinsics": [250.0, 250.0, 160.0, 120.0],
@@ -203,12 +204,8 @@ def test_real_euroc_excerpt_tracks_enough_features(data_dir):
 
 
 @pytest.fixture(scope="module")
-def euroc_recording(data_dir, tmp_path_factory):
-    from convert.euroc import convert_euroc
-
-    path = tmp_path_factory.mktemp("euroc") / "v101.mcap"
-    convert_euroc(data_dir / "euroc/V1_01_micro", path)
-    return path
+def euroc_recording(euroc_micro):
+    return euroc_micro[0]  # the session's one conversion (conftest)
 
 
 def test_real_euroc_recording_to_features_with_stereo(euroc_recording, tmp_path):

@@ -8,7 +8,7 @@ from cli import app
 from convert.info import recording_info, stamp_problems
 from convert.recording import META_CALIBRATION, META_SOURCE, RecordingWriter
 
-T0 = 1_600_000_000_000_000_000
+from support import T0
 
 
 def _write(path, t_imu, gyro, ranges=None, dropped=None, **kw):

@@ -23,9 +23,9 @@ from pipeline.odometry_filter import (
     clean_odometry,
     increment_noise,
 )
-from pipeline.state import ekf_update
+from pipeline.state import Pose, ekf_update
 
-T0 = 1_600_000_000_000_000_000
+from support import T0
 
 
 def _trajectory(n=200, dt_s=0.1, seed=0):
@@ -322,3 +322,77 @@ def test_fit_drift_noise_recovers_a_random_walk_per_metre():
     assert got["initial_sigma_p"] == pytest.approx(0.01, rel=1e-6)
     with pytest.raises(InputError, match="two poses"):
         fit_drift_noise({"t_ns": np.arange(1), "p": p[:1], "q_xyzw": q[:1], "cov": cov[:1]})
+
+
+# -- the bounded (Gauss-Markov) error model of a SLAM output --------------------------------------------------------
+def test_resolve_error_model_precedence():
+    from pipeline.odometry_filter import resolve_error_model
+
+    cal = {"odometry": {"error_model": "bounded", "correlation_time_s": 4.0}}
+    assert resolve_error_model(OdometryFilterConfig(), cal) == ("bounded", 4.0)
+    assert resolve_error_model(OdometryFilterConfig(), None) == ("drift", 10.0)
+    assert resolve_error_model(OdometryFilterConfig(), {"odometry": {}}) == ("drift", 10.0)
+    assert resolve_error_model(OdometryFilterConfig(error_model="drift"), cal) == ("drift", 4.0)
+    assert resolve_error_model(OdometryFilterConfig(correlation_time_s=2.5), cal) == ("bounded", 2.5)
+    with pytest.raises(InputError, match="odometry.error_model 'slam'"):
+        resolve_error_model(OdometryFilterConfig(), {"odometry": {"error_model": "slam"}})
+
+
+def test_bounded_step_decays_the_offset_and_its_jacobian_is_exact():
+    """The estimate's offset from the odometry (body-frame attitude, world position) decays by phi and is carried
+    onto the new odometry pose; F matches finite differences of the step."""
+    from pipeline.odometry_filter import bounded_step
+
+    rng = np.random.default_rng(11)
+    R_ref, p_ref = exp_so3(rng.normal(size=3)), rng.normal(size=3)
+    R_od, p_od = R_ref @ exp_so3(0.3 * rng.normal(size=3)), p_ref + rng.normal(size=3)
+    phi = 0.8
+    # no offset: the estimate is the odometry
+    R_new, p_new, F = bounded_step(R_ref, p_ref, R_ref, p_ref, R_od, p_od, phi)
+    np.testing.assert_allclose(R_new, R_od, atol=1e-12)
+    np.testing.assert_allclose(p_new, p_od, atol=1e-12)
+    # an offset (theta, dp) at the reference becomes (phi dR^T theta, phi dp) at the new stamp
+    theta, dp = np.array([0.02, -0.01, 0.03]), np.array([0.3, -0.2, 0.1])
+    R_new, p_new, _ = bounded_step(R_ref, p_ref, R_ref @ exp_so3(theta), p_ref + dp, R_od, p_od, phi)
+    dR = R_ref.T @ R_od
+    np.testing.assert_allclose(log_so3(R_od.T @ R_new), phi * dR.T @ theta, atol=1e-12)
+    np.testing.assert_allclose(p_new - p_od, phi * dp, atol=1e-12)
+    # F: finite differences of the step w.r.t. the estimate's error [dtheta_body, dp]
+    eps = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        x = Pose(R_ref, p_ref).boxplus(d)
+        Ra, pa, _ = bounded_step(R_ref, p_ref, x.R, x.p, R_od, p_od, phi)
+        num = np.concatenate([log_so3(R_od.T @ Ra), pa - p_od]) / eps
+        np.testing.assert_allclose(num, F[:, k], atol=1e-6)
+    np.testing.assert_allclose(
+        F, np.block([[phi * dR.T, np.zeros((3, 3))], [np.zeros((3, 3)), phi * np.eye(3)]])
+    )
+
+
+def test_bounded_model_covariance_relaxes_to_the_stationary_one(tmp_path):
+    """Gauss-Markov with P_ss = the initial sigmas (messages without covariance) and phi = exp(-dt/tau) per step:
+    from any P0 the covariance is P_k = P_ss + exp(-2 t_k / tau) (P0 - P_ss) (closed form; P_ss is stationary),
+    and without updates the estimate is the odometry itself."""
+    t, R, p = _trajectory(n=61, dt_s=0.1)
+    rd = _write(tmp_path / "b.mcap", t, R, p, cov=np.zeros((len(t), 6, 6)))
+    cfg = OdometryFilterConfig(
+        error_model="bounded", correlation_time_s=2.0, initial_sigma_p=0.05, initial_sigma_theta_deg=2.0
+    )
+    est = OdometryEstimator.from_recording(rd, cfg)
+    assert est.error_model == "bounded" and est.correlation_time_s == 2.0
+    P_ss = np.diag([np.radians(2.0) ** 2] * 3 + [0.05**2] * 3)
+    od = rd.read_odometry()
+    est.initialize(int(od.t_ns[0]), quat_to_rot(od.q_xyzw[0]), od.p[0])
+    np.testing.assert_allclose(est.state.P, P_ss, rtol=1e-12)  # starts stationary
+    P0 = np.diag([np.radians(10.0) ** 2] * 3 + [0.5**2] * 3)  # then pretend a large initial error
+    est.state.P = P0.copy()
+    for k in range(1, len(t)):
+        est.advance(int(od.t_ns[k]), quat_to_rot(od.q_xyzw[k]), od.p[k])
+        tk = (od.t_ns[k] - od.t_ns[0]) * 1e-9
+        np.testing.assert_allclose(
+            est.state.P, P_ss + np.exp(-2 * tk / 2.0) * (P0 - P_ss), rtol=1e-9, atol=1e-15
+        )
+    np.testing.assert_allclose(est.pose.p, od.p[-1], atol=1e-12)
+    assert _rot_err(est.pose.R, quat_to_rot(od.q_xyzw[-1])) < 1e-12

@@ -2,31 +2,27 @@
 
 import csv
 import json
+import shutil
+from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from cli import app
-from convert.simulator import SimConfig, simulate_to_file
 from pipeline.runlog import read_rrd_summary
 
 runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory):
-    d = tmp_path_factory.mktemp("pipe")
-    rec = d / "sim.mcap"
-    simulate_to_file(SimConfig(duration=45.0, seed=3), rec)
-    return rec
+def sim(sim_recording):
+    return sim_recording  # conftest: simulated once per session
 
 
 @pytest.fixture(scope="module")
-def run_dir(sim, tmp_path_factory):
-    out = tmp_path_factory.mktemp("run") / "run"
-    res = runner.invoke(app, ["run", str(sim), "-o", str(out), "--init", "ri", "--refine", "skf"])
-    assert res.exit_code == 0, res.output
-    return out
+def run_dir(sim_run):
+    return sim_run  # conftest: run once per session (read-only here)
 
 
 def test_run_directory_contract(run_dir):
@@ -48,11 +44,11 @@ def test_run_directory_contract(run_dir):
     m = json.loads((run_dir / "metrics.json").read_text())
     assert set(m["prmse_m"]) == {"init", "refine", "localize", "all"}
     assert set(m["ormse_deg"]) == {"init", "refine", "localize", "all"}
-    assert len(m["anchors"]) == 4 and m["anchor_error_m"] > 0
+    assert len(m["anchors"]) == 4
     assert {"mean", "dof", "bounds"} <= set(m["nees_pose"])
     assert isinstance(m["warnings"], list)
-    # the simulated VIO with SKF keeps the trajectory accurate, and refinement improves on the init window's guess
-    assert m["prmse_m"]["all"] < 0.5
+    # the simulated VIO with SKF keeps the trajectory accurate (the run's PRMSE is ~0.04 m)
+    assert m["prmse_m"]["all"] < 0.1
     cfg = (run_dir / "config.toml").read_text()
     assert 'init_method = "ri"' in cfg and 'refine_method = "skf"' in cfg
 
@@ -106,7 +102,8 @@ def test_vio_extent(run_dir, sim, tmp_path):
         assert z["t_ns"][-1] * 1e-9 > win["refine_end_s"]
 
 
-def test_stage_rerun_alone_keeps_other_artefacts(run_dir, sim):
+def test_stage_rerun_alone_keeps_other_artefacts(run_dir, sim, tmp_path):
+    run_dir = Path(shutil.copytree(run_dir, tmp_path / "copy"))
     before = (run_dir / "vio.npz").stat().st_mtime_ns
     res = runner.invoke(
         app, ["run", str(sim), "-o", str(run_dir), "--stages", "init,evaluate", "--init", "lsi"]
@@ -161,6 +158,125 @@ def test_bad_config_and_recording(sim, tmp_path):
     res = runner.invoke(app, ["run", str(garbage), "-o", str(tmp_path / "r2")])
     assert res.exit_code == 2 and "g.mcap" in res.output
     assert not (tmp_path / "r2").exists()
+
+
+# -- the artefacts agree with each other and with the run -------------------------------------------------------------
+def _truth_anchors(sim) -> dict[str, np.ndarray]:
+    from convert.recording import RecordingReader
+
+    return {
+        a: np.r_[t["position"], t["beta"], t["gamma"]]
+        for a, t in RecordingReader(sim).truth["anchors"].items()
+    }
+
+
+def _anchors_csv(run_dir) -> list[dict]:
+    with open(run_dir / "anchors.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _xyzbg(row: dict) -> np.ndarray:
+    return np.array([float(row[k]) for k in ("x", "y", "z", "beta", "gamma")])
+
+
+def test_refinement_beats_the_initialisation_on_the_anchors(run_dir, sim):
+    """Against the simulation's true anchors: the refined anchors (SKF over the refine window) are closer than
+    the init window's ri estimates, on average by a wide margin and for most anchors."""
+    truth = _truth_anchors(sim)
+    rows = _anchors_csv(run_dir)
+    init = {r["anchor"]: _xyzbg(r) for r in rows if r["stage"] == "init" and r["method"] == "ri"}
+    ref = {r["anchor"]: _xyzbg(r) for r in rows if r["stage"] == "refine"}
+    assert set(init) == set(ref) == set(truth)
+    e_init = {a: np.linalg.norm(init[a][:3] - truth[a][:3]) for a in truth}
+    e_ref = {a: np.linalg.norm(ref[a][:3] - truth[a][:3]) for a in truth}
+    print("init", e_init, "refine", e_ref)
+    assert np.mean(list(e_ref.values())) < 0.5 * np.mean(list(e_init.values()))
+    assert sum(e_ref[a] < e_init[a] for a in truth) >= 3
+
+
+def test_nees_inside_the_bounds(run_dir):
+    """The run's pose and anchor NEES (time/anchor averages, single-run chi2 bounds as metrics.json states them)."""
+    m = json.loads((run_dir / "metrics.json").read_text())
+    for key in ("nees_pose", "nees_position", "nees_orientation", "nees_anchor"):
+        lo, hi = m[key]["bounds"]
+        assert lo < m[key]["mean"] < hi, (key, m[key])
+
+
+def test_artefacts_agree_with_each_other_and_the_run(run_dir, sim):
+    """anchors.csv (refine rows) = anchor_states.json = metrics.json anchors; metrics' anchor errors recomputed
+    from the truth; trajectory.npz segments follow windows.json (thirds of the recording, as the config leaves
+    the window lengths unset) and metrics' PRMSE is recomputed from it; run.rrd is there and not empty."""
+    import tomllib
+
+    from convert.recording import RecordingReader
+
+    truth = _truth_anchors(sim)
+    rows = {r["anchor"]: _xyzbg(r) for r in _anchors_csv(run_dir) if r["stage"] == "refine"}
+    states = json.loads((run_dir / "anchor_states.json").read_text())
+    m = json.loads((run_dir / "metrics.json").read_text())
+    assert set(rows) == set(states) == set(m["anchors"]) == set(truth)
+    for a, x in rows.items():
+        np.testing.assert_allclose(x, states[a]["x"], atol=1e-6)  # csv keeps 6 decimals
+        P = np.asarray(states[a]["P"])
+        assert P.shape == (5, 5) and np.allclose(P, P.T) and np.linalg.eigvalsh(P).min() > 0
+        np.testing.assert_allclose(m["anchors"][a]["estimate"], x[:3], atol=1e-12)
+        assert m["anchors"][a]["error_m"] == pytest.approx(np.linalg.norm(x[:3] - truth[a][:3]), abs=1e-9)
+        e = truth[a] - np.asarray(states[a]["x"])
+        assert m["anchors"][a]["nees"] == pytest.approx(e @ np.linalg.solve(P, e), rel=1e-9)
+    assert m["anchor_error_m"] == pytest.approx(
+        np.mean([m["anchors"][a]["error_m"] for a in truth]), rel=1e-12
+    )
+    # windows: thirds of the recording unless config.toml sets their lengths
+    cfg = tomllib.loads((run_dir / "config.toml").read_text())
+    win = json.loads((run_dir / "windows.json").read_text())
+    init_s = cfg["run"].get("init_window_s") or (win["end_s"] - win["start_s"]) / 3
+    refine_s = cfg["run"].get("refine_window_s") or (win["end_s"] - win["start_s"]) / 3
+    assert win["init_end_s"] - win["start_s"] == pytest.approx(init_s, abs=1e-6)
+    assert win["refine_end_s"] - win["init_end_s"] == pytest.approx(refine_s, abs=1e-6)
+    with np.load(run_dir / "trajectory.npz") as z:
+        t, seg, p = z["t_ns"] * 1e-9, z["segment"], z["p"]
+    assert np.all(np.diff(t) > 0)
+    assert t[0] >= win["start_s"] - 1e-6 and t[-1] <= win["end_s"] + 1e-6
+    expected = (t >= win["init_end_s"] - 1e-9).astype(int) + (t >= win["refine_end_s"] - 1e-9)
+    np.testing.assert_array_equal(seg, expected)
+    assert m["alignment"] == "none"
+    gt = RecordingReader(sim).read_poses()
+    i = np.searchsorted(gt.t_ns, z_t := np.round(t * 1e9).astype(np.int64))
+    ok = (i < len(gt.t_ns)) & (gt.t_ns[np.minimum(i, len(gt.t_ns) - 1)] == z_t)
+    assert ok.sum() == m["matched_poses"]
+    err = np.linalg.norm(p[ok] - gt.p[i[ok]], axis=1)
+    assert m["prmse_m"]["all"] == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-6)
+    for k, name in enumerate(("init", "refine", "localize")):
+        sel = seg[ok] == k
+        assert m["prmse_m"][name] == pytest.approx(np.sqrt(np.mean(err[sel] ** 2)), rel=1e-6)
+    assert (run_dir / "run.rrd").stat().st_size > 10_000
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limit (README, Known limits): the demo's pose NEES (120 s, MSCKF, 15 clones) is 16.3 above the "
+    "95% bound 14.45; vio.max_clones = 20 brings it inside but is not the default. Strict: passes -> remove this",
+)
+def test_demo_pose_nees_inside_the_bounds(demo_run):
+    m = json.loads((demo_run[0] / "metrics.json").read_text())
+    lo, hi = m["nees_pose"]["bounds"]
+    assert lo < m["nees_pose"]["mean"] < hi, m["nees_pose"]
+
+
+def test_demo_refinement_beats_the_initialisation(demo_run):
+    """The demo (120 s, default config, ri-robust or auto init): refined anchors beat the init window's."""
+    out = demo_run[0]
+    rows = _anchors_csv(out)
+    cfg = (out / "config.toml").read_text()
+    truth = _truth_anchors(out / "recording.mcap")
+    method = next(r["method"] for r in rows if r["stage"] == "refine").split("+")[0]
+    assert f'init_method = "{method}"' in cfg
+    init = {r["anchor"]: _xyzbg(r) for r in rows if r["stage"] == "init" and r["method"] == method}
+    ref = {r["anchor"]: _xyzbg(r) for r in rows if r["stage"] == "refine"}
+    e_init = np.mean([np.linalg.norm(init[a][:3] - truth[a][:3]) for a in truth])
+    e_ref = np.mean([np.linalg.norm(ref[a][:3] - truth[a][:3]) for a in truth])
+    print(f"demo anchors: init {e_init:.3f} m, refine {e_ref:.3f} m")
+    assert e_ref < e_init
 
 
 def _chunks(rrd, entity):

@@ -22,7 +22,7 @@ from convert.recording import (
 )
 from pipeline.core.errors import InputError
 
-T0 = 1_403_636_580_838_555_648
+from support import T0
 
 
 @pytest.fixture

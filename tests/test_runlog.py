@@ -11,7 +11,8 @@ import pytest
 from pipeline import runlog as L
 from pipeline.core.errors import InputError
 
-T0 = 1_403_636_579_000_000_000  # EuRoC-like absolute stamp: ns must survive the round trip exactly
+from support import T0
+
 N = 200
 ANCHORS = {"a0": [5.0, 5.0, 2.0], "a1": [-5.0, 5.0, 1.0], "7": [5.0, -5.0, 3.0]}
 

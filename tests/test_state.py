@@ -1,7 +1,5 @@
 """The state container and the one EKF update: closed forms, Schmidt behaviour, initialisation."""
 
-import copy
-
 import numpy as np
 import pytest
 
@@ -139,16 +137,75 @@ def test_considered_variables_and_pose_probes():
     name = add_probe(s, 1_000)
     assert s.probes == [(1_000, name)] and name in s.considered
     np.testing.assert_allclose(s.cov(name), s.cov("imu"), atol=1e-15)  # a copy of the pose at its time
-    ref = copy.deepcopy(s)
-    ref.considered.clear()  # the same state, the probe made Schmidt by the update instead
+    P0, x0 = s.P.copy(), s.value("imu")
     H = rng.normal(size=(2, 6))
     r = rng.normal(size=2)
     ekf_update(s, {"imu": H}, r, 0.1)
-    ekf_update(ref, {"imu": H}, r, 0.1, schmidt=[name])
-    np.testing.assert_allclose(s.P, ref.P, atol=1e-14)
-    np.testing.assert_array_equal(s.value(name).p, ref.value(name).p)
+    # the Schmidt-Kalman update written out (Joseph form with the probe's gain rows zeroed), independently of
+    # ekf_update's Schmidt branch
+    Hf = np.hstack([H, np.zeros((2, 6))])
+    Rm = 0.1 * np.eye(2)
+    S = Hf @ P0 @ Hf.T + Rm
+    K = P0 @ Hf.T @ np.linalg.inv(S)
+    K[6:] = 0.0
+    A = np.eye(12) - K @ Hf
+    np.testing.assert_allclose(s.P, A @ P0 @ A.T + K @ Rm @ K.T, atol=1e-13)
+    np.testing.assert_array_equal(s.P[6:, 6:], P0[6:, 6:])  # the probe's own block: untouched
+    assert np.abs(s.P[:6, 6:] - P0[:6, 6:]).max() > 1e-4  # its cross-covariance did follow the update
+    np.testing.assert_allclose(log_so3(x0.R.T @ s.value("imu").R), (K @ r)[0:3], atol=1e-12)
+    np.testing.assert_allclose(s.value("imu").p, x0.p + (K @ r)[3:6], atol=1e-12)
+    np.testing.assert_array_equal(s.value(name).p, x0.p)
     remove_probes(s)
     assert s.probes == [] and not s.considered and s.names == ["imu"]
+
+
+# -- the robust (IRLS-weighted) update: closed form -----------------------------------------------------------------
+def _robust_case(seed=6):
+    rng = np.random.default_rng(seed)
+    s = _two_var_state(rng)
+    H = rng.normal(size=(1, 5))
+    return s, H, s.P.copy()
+
+
+@pytest.mark.parametrize("loss", ["huber", "cauchy"])
+@pytest.mark.parametrize("sigmas", [0.5, 2.0, 8.0])
+def test_robust_update_is_the_reweighted_kalman_update(loss, sigmas):
+    """A one-row update with robust=(loss, c) equals the plain update with S -> S / w: gain w K, P - w K S K^T,
+    state w K r; w from the whitened innovation e = |r| / sqrt(S) (Huber: min(1, c/e); Cauchy: 1/(1+(e/c)^2))."""
+    c = 1.5
+    s, H, P0 = _robust_case()
+    R = 0.2
+    S = float((H @ P0 @ H.T)[0, 0]) + R
+    r = np.array([sigmas * np.sqrt(S)])
+    w = min(1.0, c / sigmas) if loss == "huber" else 1.0 / (1.0 + (sigmas / c) ** 2)
+    res = ekf_update(s, {"a": H[:, :3], "b": H[:, 3:]}, r, R, robust=(loss, c))
+    K = (P0 @ H.T / S)[:, 0]
+    assert res.accepted and res.nis == pytest.approx(sigmas**2)
+    np.testing.assert_allclose(s.P, P0 - w * S * np.outer(K, K), atol=1e-12)
+    np.testing.assert_allclose(np.r_[s.value("a").x, s.value("b").x], w * K * r[0], atol=1e-12)
+    if loss == "huber" and sigmas < c:  # inside the Huber threshold: exactly the plain update
+        ref = _robust_case()[0]
+        ekf_update(ref, {"a": H[:, :3], "b": H[:, 3:]}, r, R)
+        np.testing.assert_allclose(s.P, ref.P, atol=1e-14)
+
+
+def test_robust_update_whitens_with_robust_R():
+    """robust_R replaces R in the whitening variance only: e = |r| / sqrt(S - R + robust_R); the update itself
+    still uses R."""
+    s, H, P0 = _robust_case(7)
+    c = 1.0
+    HPH = float((H @ P0 @ H.T)[0, 0])
+    R, R_w = 20.0 * HPH, 0.01 * HPH  # R inflated (e.g. for correlated errors), R_w the per-sample noise
+    S = HPH + R
+    r = np.array([2.0 * np.sqrt(HPH + R_w)])
+    e = abs(r[0]) / np.sqrt(HPH + R_w)
+    w = min(1.0, c / e)
+    assert w < 1.0 and abs(r[0]) / np.sqrt(S) < c  # the inflated R alone would not have down-weighted it
+    ekf_update(s, {"a": H[:, :3], "b": H[:, 3:]}, r, R, robust=("huber", c), robust_R=R_w)
+    K = (P0 @ H.T / S)[:, 0]
+    np.testing.assert_allclose(s.P, P0 - w * S * np.outer(K, K), atol=1e-12)
+    with pytest.raises(ValueError, match="unknown robust"):
+        ekf_update(_robust_case()[0], {"a": H[:, :3], "b": H[:, 3:]}, np.array([5.0]), R, robust=("l1", 1.0))
 
 
 def test_propagate_is_phi_p_phi_t_plus_q_on_the_joint_covariance():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.stats import chi2
@@ -15,6 +17,7 @@ from pipeline.uwb_filter import (
     UwbConfig,
     UwbUpdater,
     add_anchor_to_state,
+    add_initialised_anchors,
     anchor_var,
     initialize_anchors,
     windows_from_trajectory,
@@ -51,8 +54,21 @@ def _propagate(state: State, dR: np.ndarray, q_pos: float) -> None:
 
 
 def _simulate_run(
-    seed: int, mode: str, *, init_s=30.0, refine_s=30.0, beta_sigma=1e-3, sig_th0=0.01, sig_p0=0.1, rw=0.02
+    seed: int,
+    mode: str,
+    *,
+    init_s=30.0,
+    refine_s=30.0,
+    beta_sigma=1e-3,
+    sig_th0=0.01,
+    sig_p0=0.1,
+    rw=0.02,
+    refuse=(),
+    withhold=(),
 ):
+    """One init + refine run. ``refuse``: anchors whose initialisation is marked refused (the pipeline's
+    `add_initialised_anchors` then leaves them out; their ranges still reach the updater). ``withhold``: anchors
+    whose refinement ranges are never passed to the updater (the same random draws are made)."""
     rng = np.random.default_rng(seed)
     dt = 0.1
     t = np.arange(0.0, init_s + refine_s, dt)
@@ -84,13 +100,21 @@ def _simulate_run(
             rg = {kk: np.asarray(vv) for kk, vv in ranges.items()}
             wins = windows_from_trajectory(tr, rg, CALIB)
             res = initialize_anchors(wins, cfg, CALIB)
+            if refuse:
+                res = {a: replace(r, status="refused") if a in refuse else r for a, r in res.items()}
+                warns = add_initialised_anchors(state, res, cfg, CALIB)
+                assert warns == [f"refine: anchor {a} not initialised (refused); left out" for a in refuse]
             for a, r in res.items():
+                if refuse:
+                    break
                 assert r.ok, r.warnings
                 add_anchor_to_state(
                     state, a, r, sigma_range=0.1, gamma_prior=(0.5, 0.3), beta_prior=(1.0, beta_sigma)
                 )
-                e = truth[a] - state.value(anchor_var(a)).x
-                nees_init[a] = float(e @ np.linalg.solve(state.cov(anchor_var(a)), e))
+            for a in res:
+                if anchor_var(a) in state:
+                    e = truth[a] - state.value(anchor_var(a)).x
+                    nees_init[a] = float(e @ np.linalg.solve(state.cov(anchor_var(a)), e))
             updater = UwbUpdater.from_config(cfg, CALIB)
         v = state.value("imu")
         for j, (a, xa) in enumerate(truth.items()):
@@ -101,7 +125,7 @@ def _simulate_run(
             if updater is None:
                 for kk, vv in zip(ranges, (m.t_ns, 1, ant, a, d), strict=True):
                     ranges[kk].append(vv)
-            else:
+            elif a not in withhold:
                 updater(_Est(state), m)
         if updater is None:
             v = state.value("imu")
@@ -112,12 +136,14 @@ def _simulate_run(
                 traj["cov"].append(state.cov("imu")[:6, :6].copy())
     nees_end = {}
     for a in truth:
+        if anchor_var(a) not in state:
+            continue
         e = truth[a] - state.value(anchor_var(a)).x
         nees_end[a] = float(e @ np.linalg.solve(state.cov(anchor_var(a)), e))
     v = state.value("imu")
     ep = np.r_[log_so3(v.R.T @ R_true), p_true - v.p]
     nees_pose = float(ep @ np.linalg.solve(state.cov("imu")[:6, :6], ep))
-    return nees_init, nees_end, nees_pose, updater
+    return nees_init, nees_end, nees_pose, updater, state
 
 
 @pytest.mark.parametrize("mode", ["ekf", "skf"])
@@ -125,7 +151,7 @@ def test_anchor_nees_consistent_monte_carlo(mode):
     runs = 25
     init, end, pose = [], [], []
     for s in range(runs):
-        ni, ne, npo, upd = _simulate_run(100 + s, mode)
+        ni, ne, npo, upd, _ = _simulate_run(100 + s, mode)
         init += list(ni.values())
         end += list(ne.values())
         pose.append(npo)
@@ -136,6 +162,25 @@ def test_anchor_nees_consistent_monte_carlo(mode):
     assert lo < np.mean(end) < hi
     lo6, hi6 = chi2.ppf([0.025, 0.975], 6 * runs) / runs
     assert lo6 < np.mean(pose) < hi6
+
+
+@pytest.mark.parametrize("mode", ["ekf", "skf"])
+def test_anchor_left_out_of_refinement(mode):
+    """An anchor whose initialisation is refused stays out of the state: its ranges are skipped (counted), it
+    gets no record, and the filter ends exactly where it ends when those ranges never arrive."""
+    _, ne, _, upd, st = _simulate_run(200, mode, init_s=20.0, refine_s=10.0, refuse=(9,))
+    _, ne_ref, _, upd_ref, st_ref = _simulate_run(
+        200, mode, init_s=20.0, refine_s=10.0, refuse=(9,), withhold=(9,)
+    )
+    assert anchor_var(9) not in st.names and anchor_var(7) in st.names and set(ne) == {7}
+    assert (
+        9 not in upd.records and len(upd.records[7].t_ns) == upd.counts["accepted"] + upd.counts["rejected"]
+    )
+    assert upd.counts["skipped"] == 100 and upd_ref.counts["skipped"] == 0  # 10 s of ranges at 10 Hz
+    assert st.names == st_ref.names
+    np.testing.assert_array_equal(st.P, st_ref.P)
+    np.testing.assert_array_equal(st.value(anchor_var(7)).x, st_ref.value(anchor_var(7)).x)
+    np.testing.assert_array_equal(st.value("imu").p, st_ref.value("imu").p)
 
 
 def test_methods_mapping():
@@ -266,4 +311,5 @@ def test_log_and_summaries_write_an_rrd(tmp_path):
     with RunLog(path, anchors=[3, 5]) as log:
         upd.log(log)
     assert path.is_file() and path.stat().st_size > 0
-    assert read_rrd_summary(path) is not None
+    s = read_rrd_summary(path)  # one residual row per range the updater processed, for the anchor it was for
+    assert s.rows["uwb/3/residual"] == len(upd.records[3].t_ns) == 5 and "uwb/5/residual" not in s.rows

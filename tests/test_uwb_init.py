@@ -3,8 +3,7 @@
 import numpy as np
 import pytest
 
-from evaluate.ri_vs_lsi import ri_vs_lsi_sweep, simulate_window, smooth_trajectory
-from pipeline.core.geometry import exp_so3
+from evaluate.ri_vs_lsi import ANCHOR_RI_VS_LSI, ri_vs_lsi_sweep, simulate_window, smooth_trajectory
 from pipeline.uwb_init import (
     InitWindow,
     initialize_anchor,
@@ -138,4 +137,10 @@ def test_simulate_window_is_reproducible():
     a = simulate_window(np.random.default_rng(3), 0.2)
     b = simulate_window(np.random.default_rng(3), 0.2)
     assert np.array_equal(a.d, b.d) and np.array_equal(a.P_pose, b.P_pose)
-    assert np.allclose(exp_so3(np.zeros(3)), np.eye(3))
+    c = simulate_window(np.random.default_rng(4), 0.2)
+    assert not np.array_equal(a.d[: len(c.d)], c.d[: len(a.d)])  # the seed matters
+    # the window is a draw of what it claims: without pose error, range - gamma - |tag - anchor| ~ N(0, sigma_d)
+    z = simulate_window(np.random.default_rng(5), 0.0, gamma=0.2, sigma_d=0.1)
+    tag = z.p + np.einsum("nij,nj->ni", z.R, z.p_T)
+    e = z.d - 0.2 - np.linalg.norm(tag - ANCHOR_RI_VS_LSI, axis=1)
+    assert abs(e.mean()) < 4 * 0.1 / np.sqrt(len(e)) and 0.09 < e.std() < 0.11

@@ -16,15 +16,11 @@ from convert.recording import MergedReader, RecordingReader
 
 
 @pytest.fixture(scope="module")
-def euroc_vi(data_dir, tmp_path_factory):
-    from convert.euroc import convert_folder
+def euroc_vi(euroc_micro, tmp_path_factory):
     from pipeline.frontend import FrontendConfig, run_frontend
 
-    d = tmp_path_factory.mktemp("euroc_vio")
-    rec, fe = d / "v101.mcap", d / "fe.mcap"
-    convert_folder(
-        data_dir / "euroc/V1_01_micro", rec, groundtruth=data_dir / "euroc/groundtruth/V1_01_easy.csv"
-    )
+    rec = euroc_micro[0]  # the session's one conversion (conftest), with the V1_01_easy ground truth
+    fe = tmp_path_factory.mktemp("euroc_vio") / "fe.mcap"
     run_frontend(RecordingReader(rec), fe, FrontendConfig())
     return RecordingReader(rec), MergedReader(RecordingReader(rec), RecordingReader(fe))
 

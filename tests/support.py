@@ -1,0 +1,107 @@
+"""Constants and helpers shared by the tests (imported as ``from support import ...``)."""
+
+import numpy as np
+
+from convert.euroc import EUROC_CAMERAS, EUROC_IMU
+from convert.recording import META_CALIBRATION, META_TRUTH, RecordingWriter
+from pipeline.camera import Camera
+from pipeline.core.geometry import exp_so3, log_so3, quat_to_rot, rot_to_quat
+from pipeline.imu import GRAVITY
+
+# One absolute start stamp for every synthetic recording: EuRoC-like (whole seconds, > 2**53 ns, so a float64
+# round trip of a stamp would lose nanoseconds and a test would see it).
+T0 = 1_403_636_579_000_000_000
+
+CAM = Camera.from_calibration({"cameras": EUROC_CAMERAS})
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# a small visual-inertial simulator (independent of convert/simulator.py)
+# ---------------------------------------------------------------------------------------------------------------
+def _traj(t: np.ndarray):
+    """Smooth 3-D motion: position, acceleration and rotation (world_from_imu) at times t [s]."""
+    w = 0.5
+    p = np.stack([3 * np.cos(w * t), 3 * np.sin(w * t), 1.2 + 0.3 * np.sin(2 * w * t)], axis=1)
+    acc = np.stack(
+        [-3 * w * w * np.cos(w * t), -3 * w * w * np.sin(w * t), -1.2 * w * w * np.sin(2 * w * t)], 1
+    )
+    yaw = w * t + np.pi  # look towards the centre-ish / walls
+    rot = np.stack([0.1 * np.sin(1.3 * t), 0.1 * np.cos(0.9 * t), yaw], axis=1)
+    # imu z up, x forward; camera looks along imu x (EuRoC T_imu_cam has the camera z ~ imu x)
+    return p, acc, rot
+
+
+def body_rotation(rot: np.ndarray) -> np.ndarray:
+    rz = exp_so3(np.column_stack([np.zeros(len(rot)), np.zeros(len(rot)), rot[:, 2]]))
+    ry = exp_so3(np.column_stack([np.zeros(len(rot)), rot[:, 1], np.zeros(len(rot))]))
+    rx = exp_so3(np.column_stack([rot[:, 0], np.zeros(len(rot)), np.zeros(len(rot))]))
+    # EuRoC mounting: the camera looks along the IMU z axis, the IMU x axis points up
+    R_mount = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
+    return rz @ ry @ rx @ R_mount
+
+
+def simulate_vi(path, duration=20.0, seed=0, pixel_sigma=1.0, noise=True, n_landmarks=700):
+    rng = np.random.default_rng(seed)
+    rate = 200.0
+    t = np.arange(0, duration + 1e-9, 1 / rate)
+    t_ns = (t * 1e9).round().astype(np.int64) + 1_000_000_000
+    p, acc_w, rot = _traj(t)
+    R = body_rotation(rot)
+    h = 1e-5
+    Rp, Rm = body_rotation(_traj(t + h)[2]), body_rotation(_traj(t - h)[2])
+    wB = log_so3(np.swapaxes(Rm, 1, 2) @ Rp) / (2 * h)
+    aB = np.einsum("kji,kj->ki", R, acc_w - GRAVITY)
+    cal = dict(EUROC_IMU)
+    dt = 1 / rate
+    bg0 = rng.normal(0, 2e-3, 3) if noise else np.zeros(3)
+    ba0 = rng.normal(0, 2e-2, 3) if noise else np.zeros(3)
+    bg = bg0 + (
+        np.cumsum(rng.normal(0, cal["gyroscope_random_walk"] * np.sqrt(dt), (len(t), 3)), 0) if noise else 0
+    )
+    ba = ba0 + (
+        np.cumsum(rng.normal(0, cal["accelerometer_random_walk"] * np.sqrt(dt), (len(t), 3)), 0)
+        if noise
+        else 0
+    )
+    gyro = (
+        wB + bg + (rng.normal(0, cal["gyroscope_noise_density"] / np.sqrt(dt), (len(t), 3)) if noise else 0)
+    )
+    acc = (
+        aB
+        + ba
+        + (rng.normal(0, cal["accelerometer_noise_density"] / np.sqrt(dt), (len(t), 3)) if noise else 0)
+    )
+    # landmarks on a cylinder wall around the motion
+    ang = rng.uniform(0, 2 * np.pi, n_landmarks)
+    rad = rng.uniform(6.0, 9.0, n_landmarks)
+    L = np.column_stack([rad * np.cos(ang), rad * np.sin(ang), rng.uniform(-1.0, 4.0, n_landmarks)])
+    calib = {"imu": cal, "cameras": {"cam0": EUROC_CAMERAS["cam0"]}}
+    with RecordingWriter(path) as w:
+        w.set_metadata(META_CALIBRATION, calib)
+        w.set_metadata(
+            META_TRUTH, {"imu": {"gyro_bias": bg0.tolist(), "accel_bias": ba0.tolist()}, "seed": seed}
+        )
+        w.write_imu_batch(t_ns, gyro, acc)
+        w.write_pose_batch(t_ns, p, rot_to_quat(R))
+        for i in range(0, len(t), 10):  # 20 Hz
+            Rc = R[i] @ CAM.R_imu_cam
+            pc = p[i] + R[i] @ CAM.p_imu_cam
+            P = (L - pc) @ Rc
+            vis = P[:, 2] > 0.3
+            uv = CAM.project(P[vis])
+            inside = (uv[:, 0] > 5) & (uv[:, 0] < 747) & (uv[:, 1] > 5) & (uv[:, 1] < 475)
+            ids = np.flatnonzero(vis)[inside]
+            uv = uv[inside] + (rng.normal(0, pixel_sigma, uv[inside].shape) if noise else 0)
+            w.write_features(int(t_ns[i]) + 1, ids, uv)  # camera a little after the IMU sample
+    return t_ns, p, R
+
+
+def errors_vs_truth(est, t_ns, p, R):
+    """(history arrays, orientation errors, position errors) of an estimator against the truth at its stamps."""
+    h = est.history().arrays()
+    idx = np.clip(np.searchsorted(t_ns, h["t_ns"], side="right") - 1, 0, len(t_ns) - 1)
+    Rh = quat_to_rot(h["q_xyzw"])
+    # GT at the (1 ns later) stamps: interpolation error is negligible
+    dth = log_so3(np.swapaxes(Rh, 1, 2) @ R[idx])
+    dp = p[idx] - h["p"]
+    return h, dth, dp
