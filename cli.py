@@ -295,13 +295,22 @@ def convert_tabular(
             "uwbcal evaluate then reports anchor errors against it."
         ),
     ] = None,
+    pose_error: Annotated[
+        str,
+        typer.Option(
+            help="Error model of the poses: bounded (in the anchors' world frame: ground truth, SLAM with a map) "
+            "or drift (dead-reckoning odometry whose error grows).",
+        ),
+    ] = "bounded",
 ) -> None:
     """Convert any odometry (TUM) plus UWB ranges (CSV)."""
     from convert.tabular import convert_tabular as run
 
     _output_file(output)
 
-    typer.echo(run(poses, ranges, output, antennas=antennas, anchors_truth=anchors_truth))
+    typer.echo(
+        run(poses, ranges, output, antennas=antennas, anchors_truth=anchors_truth, pose_error=pose_error)
+    )
 
 
 @convert_app.command("bag")

@@ -46,12 +46,20 @@ def convert_tabular(
     sigma_pos: float = 0.05,
     sigma_rot_deg: float = 1.0,
     max_range: float = MAX_RANGE_M,
+    pose_error: str = "bounded",
 ) -> str:
     """Convert a TUM trajectory and a ranges CSV into one recording; returns a human summary.
 
     ``anchors_truth``: a surveyed ``anchor,x,y,z`` CSV in the poses' frame, written as ``uwbcal.truth``
     (``{"kind": "surveyed", "anchors": {id: {"position"}}, "anchors_frame": "odometry", "anchors_file"}``) so that
-    ``uwbcal evaluate`` reports anchor errors against it."""
+    ``uwbcal evaluate`` reports anchor errors against it.
+
+    ``pose_error`` is declared as the calibration's ``odometry.error_model``: ``bounded`` (default) for poses in
+    the world frame the anchors are calibrated in (ground truth, a SLAM output with a map: their error stays
+    near the message covariance), ``drift`` for a dead-reckoning odometry whose error grows with distance.
+    """
+    if pose_error not in ("bounded", "drift"):
+        raise InputError(f"--pose-error {pose_error!r}: expected bounded or drift")
     from .ntu_viral import find_antennas, uwb_section
 
     poses, ranges = Path(poses), Path(ranges)
@@ -109,7 +117,10 @@ def convert_tabular(
         advance(len(t_pose))
         write_ranges(w, r, TOPIC_RANGE)
         advance(len(r))
-        w.set_metadata(META_CALIBRATION, {"uwb": uwb})
+        w.set_metadata(
+            META_CALIBRATION,
+            {"uwb": uwb, "odometry": {"error_model": pose_error, "source": f"tabular {poses.name}"}},
+        )
         if truth is not None:
             w.set_metadata(META_TRUTH, truth)
         w.set_metadata(

@@ -141,6 +141,13 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
             for aid, r in (init.get("methods") or {}).get(init.get("chosen"), {}).items():
                 if aid in anchors and isinstance(r, dict) and r.get("fim") is not None:
                     anchors[aid]["fim"] = r["fim"]  # log det, condition number, weakest direction
+                if aid in anchors and r.get("verdict"):
+                    anchors[aid]["verdict"] = r["verdict"]
+                    anchors[aid]["join_s"] = r.get("join_s")
+                if aid in anchors and not anchors[aid].get("determined", True):
+                    metrics["warnings"].append(
+                        f"anchor {aid} not determined: {anchors[aid].get('reason', '')}"
+                    )
         metrics["anchors"] = anchors
         vals = [a["nees"] for a in anchors.values() if "nees" in a]
         if vals:

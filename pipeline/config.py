@@ -42,6 +42,13 @@ class RunSection(BaseModel):
         "(a VIO-only baseline beside the UWB-aided estimate, at extra VIO cost); init: always stop there",
     )
 
+    schedule: Literal["auto", "windows", "per-anchor"] = Field(
+        "auto",
+        description="anchor initialisation schedule: windows = the paper's (every anchor from the first window); "
+        "per-anchor = each anchor as soon as its own ranges determine it, joining the refinement then (refine "
+        "runs to the end); auto: per-anchor when some anchor is ranged mostly after the first window or the poses "
+        "have a bounded error (odometry error_model bounded), else windows",
+    )
     coupling: Literal["tight", "loose"] = Field(
         "tight",
         description="MSCKF pose source: tight = the anchors join the MSCKF state (the paper's filter); loose = "

@@ -241,7 +241,23 @@ def init_summary(r) -> dict:
     }
     if r.fim is not None:
         out["fim"] = r.fim.summary()
+    if r.verdict:
+        out["verdict"] = r.verdict
+        out["reason"] = r.reason
+    if r.link_offsets:
+        out["link_offsets_m"] = {str(k): v for k, v in r.link_offsets.items()}
+    out["join_s"] = None if r.join_ns is None else r.join_ns * 1e-9
     return out
+
+
+def undetermined_row(anchor, method: str, stage: str) -> dict:
+    """anchors.csv row of an anchor that was not determined: empty coordinates (DESIGN §9)."""
+    return {
+        "anchor": str(anchor),
+        "method": method,
+        "stage": stage,
+        **dict.fromkeys(("x", "y", "z", "beta", "gamma"), ""),
+    }
 
 
 def write_anchors(run_dir: RunDir, rows: list[dict], replace_stage: str) -> None:

@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.core.errors import InputError
 
+from .anchor_search import SearchResult, search_anchor
 from .core.geometry import quat_slerp, quat_to_rot
 from .core.names import INIT_METHODS, REFINE_METHODS
 from .core.uwb_model import jacobians, range_model, range_variance
@@ -95,6 +96,42 @@ class UwbConfig(BaseModel):
         "X_I; 1, 2 and 5 s give the same anchor NEES); None: random-walk approximation from the poses' marginal "
         "covariances",
     )
+    search: bool = Field(
+        True,
+        description="global search (consensus over closed forms, verified by residuals; anchor_search) as the "
+        "initialiser's start and observability verdict; false: the paper's multi-start (closed form, mirror, "
+        "perturbed)",
+    )
+    bias: Literal["auto", "per-anchor", "per-link"] = Field(
+        "auto",
+        description="range offset model: per-anchor (one gamma) or per-link (gamma + an offset per (tag, antenna) "
+        "link, estimated at init, fixed after); auto: per-link when an anchor is ranged over several links and "
+        "their offsets differ beyond their uncertainty",
+    )
+    anchor_z_prior: dict[str, float] | dict[str, dict[str, float]] | None = Field(
+        None,
+        description="prior on anchor heights: {mean, sigma} for all anchors, or {anchor id: {mean, sigma}}",
+    )
+    max_init_ranges: int = Field(
+        2000, ge=50, description="dense ranging: the init window of an anchor is evenly subsampled to this"
+    )
+    max_sigma_horizontal_m: float = Field(
+        1.0,
+        gt=0,
+        description="an anchor whose horizontal sigma after the search exceeds this is not (yet) determined",
+    )
+    join_sigma_m: float = Field(
+        0.3,
+        gt=0,
+        description="per-anchor schedule: an anchor joins the refinement at the first prefix of its ranges whose "
+        "horizontal sigma is below this and below join_ratio x its median range (a start good enough for the "
+        "filter's first-estimate Jacobians); one that never gets there but is determined by all its ranges is "
+        "initialised from all of them",
+    )
+    join_ratio: float = Field(0.02, gt=0, description="see join_sigma_m (about 1 degree of bearing)")
+    min_duration_s: float = Field(
+        5.0, ge=0, description="an anchor ranged over a shorter time span is not determined"
+    )
     correlation_block_s: float | None = Field(
         10.0,
         gt=0,
@@ -121,6 +158,18 @@ class UwbConfig(BaseModel):
     def init_beta_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
         """The beta prior the initialiser estimates beta under, or None (beta fixed to 1)."""
         return self.beta_prior(calibration) if self.estimate_beta else None
+
+    def z_prior(self, anchor: Any) -> tuple[float, float] | None:
+        """(mean, sigma) of the anchor's height from ``anchor_z_prior``, or None."""
+        zp = self.anchor_z_prior
+        if not zp:
+            return None
+        if "mean" in zp:
+            return float(zp["mean"]), float(zp.get("sigma", 1.0))  # type: ignore[arg-type]
+        one = zp.get(str(anchor))
+        if isinstance(one, dict) and "mean" in one:
+            return float(one["mean"]), float(one.get("sigma", 1.0))
+        return None
 
     def gamma_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
         uwb = (calibration or {}).get("uwb", {}) or {}
@@ -203,11 +252,17 @@ def windows_from_trajectory(
         pT[(tag == key[0]) & (ant == key[1])] = _lever_arm(arms, *key)
     anchors = np.asarray(ranges["anchor"])[idx]
     d = np.asarray(ranges["distance"], float)[idx]
+    link = link_id(tag, ant)
     out = {}
     for a in np.unique(anchors):
         m = anchors == a
-        out[int(a)] = InitWindow(d[m], pT[m], R[m], p[m], cov[m], t[idx][m])
+        out[int(a)] = InitWindow(d[m], pT[m], R[m], p[m], cov[m], t[idx][m], link[m])
     return out
+
+
+def link_id(tag, antenna):
+    """One id per (tag, antenna) pair: tag * 256 + antenna (vectorised)."""
+    return np.asarray(tag, np.int64) * 256 + np.asarray(antenna, np.int64)
 
 
 def auto_init_method(dataset: str | None) -> str:
@@ -225,15 +280,22 @@ def initialize_anchors(
     config: UwbConfig,
     calibration: Mapping | None = None,
     method: str | None = None,
+    searches: dict[Any, SearchResult] | None = None,
 ) -> dict[Any, InitResult]:
     """Run the configured initialiser on every anchor window (``auto``: see `auto_init_method`; the pipeline
     resolves it from the recording's source, here it means ri)."""
     sigma = config.sigma(calibration) * config.sigma_scale
     out = {}
+    searches = searches if searches is not None else {}
     for a, w in windows.items():
         if config.pose_sigma_floor_m > 0:
-            w = InitWindow(w.d, w.p_T, w.R, w.p, w.P_pose.copy(), w.t_ns)
+            w = InitWindow(w.d, w.p_T, w.R, w.p, w.P_pose.copy(), w.t_ns, w.link)
             w.P_pose[:, 3:6, 3:6] += np.eye(3) * config.pose_sigma_floor_m**2
+        sr = None
+        if config.search:
+            sr = searches.get(a)
+            if sr is None:
+                sr = searches[a] = search_window(w, config, sigma, calibration)
         out[a] = initialize_anchor(
             w,
             _method(method or config.init_method),
@@ -249,8 +311,49 @@ def initialize_anchors(
             force=config.force,
             residual_factor=config.residual_factor,
             correlation_block_s=config.correlation_block_s,
+            search=sr,
+            per_link=config.bias == "per-link"
+            or (config.bias == "auto" and sr is not None and per_link_supported(sr)),
+            max_ranges=config.max_init_ranges,
+            z_prior=config.z_prior(a),
         )
     return out
+
+
+def search_window(
+    w: InitWindow, config: UwbConfig, sigma: float, calibration: Mapping | None = None
+) -> SearchResult:
+    """`anchor_search.search_anchor` on an init window with the configured thresholds and the recording's
+    gamma prior."""
+    from .anchor_search import _not_determined
+
+    if len(w) == 0:
+        return _not_determined("no ranges", 0, np.zeros(0, np.int64))
+    if w.t_ns is not None and (w.t_ns.max() - w.t_ns.min()) * 1e-9 < config.min_duration_s:
+        span = (w.t_ns.max() - w.t_ns.min()) * 1e-9
+        return _not_determined(
+            f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
+        )
+    return search_anchor(
+        w.tag_xyz,
+        w.d,
+        w.links(),
+        t_ns=w.t_ns,
+        sigma_range=sigma,
+        min_ranges=max(config.min_ranges, 30),
+        max_sigma_horizontal=config.max_sigma_horizontal_m,
+        gamma_prior=config.gamma_prior(calibration),
+    )
+
+
+def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:
+    """Several links whose offsets differ beyond their uncertainty (the per-link model is then supported)."""
+    if not sr.ok or len(sr.gamma) < 2:
+        return False
+    sd = np.sqrt(np.maximum(np.diag(sr.cov)[3:], 0.0))
+    g = sr.gamma
+    i, j = np.triu_indices(len(g), 1)
+    return bool(np.any(np.abs(g[i] - g[j]) > z * np.hypot(sd[i], sd[j])))
 
 
 # -----------------------------------------------------------------------------------------------------------------
@@ -416,6 +519,13 @@ def add_anchor_to_state(
         beta_prior=beta_prior,
         pose_var=pose_var,
     )
+    if not result.verdict.get("height_observable", True):
+        # unobservable height: independent of everything, with the init's honest sigma (the range updates
+        # leave it alone, UwbUpdater.fixed_height)
+        J = {v: np.where(np.arange(5)[:, None] == 2, 0.0, M) for v, M in J.items()}
+        Q = Q.copy()
+        Q[2, :] = Q[:, 2] = 0.0
+        Q[2, 2] = float(result.cov[2, 2])
     state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
 
 
@@ -428,6 +538,8 @@ def add_initialised_anchors(
     for a, r in results.items():
         if not r.ok:
             warns.append(f"refine: anchor {a} not initialised ({r.status}); left out")
+            continue
+        if r.join_ns is not None:  # joins later (UwbUpdater.schedule)
             continue
         add_anchor_to_state(
             state,
@@ -498,6 +610,15 @@ class UwbUpdater:
         self.robust = robust
         self.records: dict[Any, AnchorRecord] = {}
         self.counts = {"accepted": 0, "rejected": 0, "skipped": 0, "recorded": 0}
+        # per-link bias: anchor -> {link id: offset relative to the anchor's gamma}, subtracted from the range
+        self.link_offsets: dict[Any, dict[int, float]] = {}
+        # per-anchor schedule: anchors that join the state at their first range at or after result.join_ns
+        self.pending: dict[Any, InitResult] = {}
+        self.join_kw: dict = {}
+        self.joined: dict[Any, int] = {}
+        # anchors whose height the init found unobservable: range updates leave it alone (no z column), so a
+        # tilting tag's lever arm cannot walk it to either side of the motion plane
+        self.fixed_height: set = set()
 
     @classmethod
     def from_config(
@@ -525,13 +646,31 @@ class UwbUpdater:
     def __call__(self, estimator: Any, meas: RangeMeasurement) -> UpdateResult | None:
         return self.update(estimator.state, meas)
 
+    def schedule(self, results: Mapping[Any, InitResult], join_kw: dict) -> None:
+        """Anchors initialised later than the refinement's start join the state at their ``join_ns``."""
+        self.pending = {a: r for a, r in results.items() if r.ok and r.join_ns is not None}
+        self.join_kw = dict(join_kw)
+        self.fixed_height = {
+            a for a, r in results.items() if r.ok and not r.verdict.get("height_observable", True)
+        }
+        self.link_offsets = {a: r.link_offsets for a, r in results.items() if r.ok and r.link_offsets}
+
+    def _join(self, state: State, meas: RangeMeasurement) -> bool:
+        r = self.pending.get(meas.anchor)
+        if r is None or r.join_ns is None or meas.t_ns < r.join_ns or self.mode in ("frozen",):
+            return False
+        add_anchor_to_state(state, meas.anchor, r, pose_var=self.pose_var, **self.join_kw)
+        del self.pending[meas.anchor]
+        self.joined[meas.anchor] = int(meas.t_ns)
+        return True
+
     def epoch(self, estimator: Any, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
         """All ranges of one stamp: `update_epoch` (the estimators' range loop hands them over together)."""
         return self.update_epoch(estimator.state, batch)
 
     def update(self, state: State, meas: RangeMeasurement) -> UpdateResult | None:
         name = anchor_var(meas.anchor)
-        in_state = name in state
+        in_state = name in state or (bool(self.pending) and self._join(state, meas))
         if self.mode == "frozen" and meas.anchor in self.frozen:
             x_cur = x_lin = self.frozen[meas.anchor]
         elif in_state:
@@ -551,12 +690,17 @@ class UwbUpdater:
             pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
         ) and (x_lin is x_cur or np.array_equal(x_lin, x_cur))
         h = J.h[0] if same else range_model(pose.R, pose.p, p_T, x_cur)[0]
-        r = float(meas.distance - h)
+        d = meas.distance
+        if self.link_offsets:
+            d -= self.link_offsets.get(meas.anchor, {}).get(int(meas.tag) * 256 + int(meas.antenna), 0.0)
+        r = float(d - h)
         R0 = (self.sigma * x_cur[3]) ** 2
         R = self.inflation.get(meas.anchor, 1.0) * R0
         robust = None
         if self.robust is not None:  # scale in sigmas of the per-sample noise, as at init
             robust = (self.robust[0], self.robust[1] / (self.sigma * x_cur[3]))
+        if meas.anchor in self.fixed_height:
+            J.H_U[:, 2] = 0.0
         H_imu = np.zeros((1, state.dim(pose_var)))
         H_imu[:, 0:6] = J.H_I
         res: UpdateResult | None = None
@@ -608,7 +752,7 @@ class UwbUpdater:
             name = anchor_var(meas.anchor)
             if self.mode == "frozen" and meas.anchor in self.frozen:
                 x_cur = x_lin = self.frozen[meas.anchor]
-            elif name in state:
+            elif name in state or (bool(self.pending) and self._join(state, meas)):
                 x_cur, x_lin = state.value(name).x, state.fej(name).x
             else:
                 self.counts["skipped"] += 1
@@ -629,7 +773,15 @@ class UwbUpdater:
             np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R)
         )
         h = J.h if same_pose and np.array_equal(X_lin, X_cur) else range_model(pose.R, pose.p, p_T, X_cur)
-        r = np.array([m.distance for m in rows], float) - h
+        d = np.array([m.distance for m in rows], float)
+        if self.link_offsets:  # per-link bias: the link's offset relative to the anchor's gamma
+            d -= np.array(
+                [
+                    self.link_offsets.get(m.anchor, {}).get(int(m.tag) * 256 + int(m.antenna), 0.0)
+                    for m in rows
+                ]
+            )
+        r = d - h
         sig = self.sigma * X_cur[:, 3]
         R0 = sig**2
         R = (np.array([self.inflation.get(m.anchor, 1.0) for m in rows]) * R0)[None, :]
@@ -644,6 +796,8 @@ class UwbUpdater:
         else:
             for i, name in enumerate(names):
                 H.setdefault(name, np.zeros((k, 5)))[i] = J.H_U[i]
+                if rows[i].anchor in self.fixed_height:  # an unobservable height is left alone
+                    H[name][i, 2] = 0.0
             if self.mode == "skf":  # the navigation state considered: only the anchors are estimated
                 res = schmidt_update(state, H, r, R, estimated=anchors, **options)
             else:

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .anchor_search import SearchResult, plane_frame, subsample
 from .core.names import INIT_METHODS
 from .core.uwb_model import jacobians, range_variance, tag_positions
 from .fim import FimReport, assess_observability
@@ -41,6 +42,7 @@ class InitWindow:
     p: np.ndarray  # (N,3)
     P_pose: np.ndarray  # (N,6,6) pose covariance, error [dtheta, dp]
     t_ns: np.ndarray | None = None
+    link: np.ndarray | None = None  # (N,) link id of each range (tag * 256 + antenna); None: one link
 
     def __post_init__(self) -> None:
         self.d = np.asarray(self.d, float).reshape(-1)
@@ -51,13 +53,19 @@ class InitWindow:
         self.P_pose = np.broadcast_to(np.asarray(self.P_pose, float).reshape(-1, 6, 6), (n, 6, 6)).copy()
         if self.t_ns is not None:
             self.t_ns = np.asarray(self.t_ns, np.int64).reshape(n)
+        if self.link is not None:
+            self.link = np.asarray(self.link, np.int64).reshape(n)
 
     def __len__(self) -> int:
         return self.d.shape[0]
 
     def subset(self, mask: np.ndarray) -> InitWindow:
         t = None if self.t_ns is None else self.t_ns[mask]
-        return InitWindow(self.d[mask], self.p_T[mask], self.R[mask], self.p[mask], self.P_pose[mask], t)
+        lk = None if self.link is None else self.link[mask]
+        return InitWindow(self.d[mask], self.p_T[mask], self.R[mask], self.p[mask], self.P_pose[mask], t, lk)
+
+    def links(self) -> np.ndarray:
+        return np.zeros(len(self), np.int64) if self.link is None else self.link
 
     @property
     def tag_xyz(self) -> np.ndarray:
@@ -68,7 +76,7 @@ class InitWindow:
 class InitResult:
     anchor: str
     method: str
-    status: str  # "ok" | "warning" | "refused" | "skipped"
+    status: str  # "ok" | "warning" | "refused" | "skipped" | "not determined"
     x: np.ndarray  # (5,) [p_a, beta, gamma] (beta = 1 unless estimated)
     cov: np.ndarray  # (5,5) inverse information (beta fixed: its prior variance, uncorrelated)
     costs: list[float] = field(default_factory=list)  # cost per iteration of the winning start
@@ -84,6 +92,15 @@ class InitResult:
     weights: np.ndarray | None = None  # (N,) robust weights of the window's ranges (1 when not robust)
     window: InitWindow | None = None  # the (cleaned) window the estimate was computed from
     params: tuple[int, ...] = tuple(_AG)  # indices of x_U that were estimated (beta fixed: _AG)
+    verdict: dict = field(
+        default_factory=dict
+    )  # observability verdict (height, mirror, reason) for the report
+    link_offsets: dict = field(default_factory=dict)  # link id -> offset relative to gamma (per-link bias)
+    join_ns: int | None = None  # when the anchor joins the refinement (per-anchor schedule)
+
+    @property
+    def reason(self) -> str:
+        return str(self.verdict.get("reason", ""))
 
     @property
     def ok(self) -> bool:
@@ -92,11 +109,7 @@ class InitResult:
 
 # ---------------------------------------------------------------------------------------------------------------
 # closed form
-def _plane_frame(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Centroid, rows = principal axes (last = normal of the best-fit plane), principal extents (std dev)."""
-    c = xyz.mean(axis=0)
-    _, s, Vt = np.linalg.svd(xyz - c, full_matrices=False)
-    return c, Vt, s / np.sqrt(len(xyz))
+_plane_frame = plane_frame
 
 
 def multilateration(
@@ -340,6 +353,10 @@ def initialize_anchor(
     seed: int = 0,
     residual_factor: float = 3.0,
     correlation_block_s: float | None = 10.0,
+    search: SearchResult | None = None,
+    per_link: bool = False,
+    max_ranges: int | None = None,
+    z_prior: tuple[float, float] | None = None,
 ) -> InitResult:
     """Estimate (p_a, gamma) (beta = 1, prior sigma ``beta_sigma``) of one anchor with ``method`` in
     lsi | ri | ri-robust; with ``beta_prior`` (mean, sigma), (p_a, beta, gamma) under that prior.
@@ -348,6 +365,13 @@ def initialize_anchor(
     ``force``), "warning" (static/planar window, suspicious post-fit residuals, gamma far from its prior,
     many outliers) or "ok". ``correlation_block_s``: block length of the time-correlation check of the residuals
     (`noise_inflation`; None: off), whose kappa scales the range part of the covariance.
+
+    ``search`` (`anchor_search.search_anchor` on this window): its verdict decides — "not determined" (with
+    its reason) when it could not place the anchor; otherwise it starts the solver beside the closed forms (and its mirror when the
+    two fit equally), its per-link offsets correct the ranges (``per_link``), and a height it found
+    unobservable is reported at its value with its honest sigma (the FIM verdict then covers the in-plane
+    parameters). ``max_ranges``: the window is evenly subsampled to this many ranges (dense ranging).
+    ``z_prior`` (mean, sigma): a prior on the anchor's height, fused into the estimate.
     """
     if method not in INIT_METHODS:
         raise ValueError(f"unknown init method {method!r}; one of {', '.join(INIT_METHODS)}")
@@ -358,6 +382,33 @@ def initialize_anchor(
     if len(w) < max(min_ranges, 5):
         warns.append(f"{anchor}: only {len(w)} usable ranges (< {max(min_ranges, 5)}); anchor skipped")
         return InitResult(anchor, method, "skipped", nan5, np.full((5, 5), np.nan), warnings=warns, window=w)
+
+    verdict: dict = {}
+    link_offsets: dict = {}
+    if search is not None:
+        verdict = search_verdict(search)
+        if not search.ok:
+            warns.append(f"{anchor}: not determined: {search.reason}")
+            return InitResult(
+                anchor,
+                method,
+                "not determined",
+                nan5,
+                np.full((5, 5), np.nan),
+                warnings=warns,
+                window=w,
+                verdict=verdict,
+            )
+        if max_ranges is not None and len(w) > max_ranges:
+            keep = np.zeros(len(w), bool)
+            keep[subsample(len(w), max_ranges)] = True
+            w = w.subset(keep)
+        if per_link and len(search.links) > 1:
+            off = search.gamma - float(np.mean(search.gamma))
+            link_offsets = {int(lk): float(o) for lk, o in zip(search.links, off, strict=True)}
+            corr = np.array([link_offsets.get(int(lk), 0.0) for lk in w.links()])
+            w = InitWindow(w.d - corr, w.p_T, w.R, w.p, w.P_pose, w.t_ns, w.link)
+        n_perturbed = 0
 
     kw = dict(
         weighted=weighted,
@@ -376,7 +427,12 @@ def initialize_anchor(
 
     xyz = w.tag_xyz
     starts: list[tuple[str, np.ndarray]] = []
-    for lbl, cands in (
+    if search is not None:
+        g0 = float(np.mean(search.gamma))
+        starts.append(("search", full(np.r_[search.p, g0])))
+        if search.mirror_p is not None:
+            starts.append(("search-mirror", full(np.r_[search.mirror_p, g0])))
+    for lbl, cands in (  # beside the search: the lowest cost wins, `_stay_in_basin` guards the basin
         ("closed-form", multilateration(xyz, w.d)),
         ("closed-form-gamma-prior", multilateration(xyz, w.d, gamma_prior[0]) if gamma_prior else []),
     ):
@@ -414,6 +470,19 @@ def initialize_anchor(
     if not est_beta:
         cov[3, 3] = beta_sigma**2
 
+    if search is not None:
+        x, cov, moved = _stay_in_basin(x, cov, search, b0)
+        if moved:
+            warns.append(
+                f"{anchor}: the {method} fit left the search's basin by {moved:.2f} m horizontally (a direction "
+                "the window cannot see, e.g. range scale against distance); the search's estimate is kept"
+            )
+    if search is not None and not search.height_observable:
+        x, cov = _honest_height(x, cov, search)
+    if z_prior is not None:
+        x, cov = _fuse_z_prior(x, cov, z_prior)
+        verdict["z_prior"] = [float(z_prior[0]), float(z_prior[1])]
+
     outlier = np.abs(best.e) > OUTLIER_SIGMAS
     n_rej = int(outlier.sum())
     res = InitResult(
@@ -437,7 +506,10 @@ def initialize_anchor(
         window=w,
         params=tuple(idx),
         noise_inflation=kappa,
+        verdict=verdict,
+        link_offsets=link_offsets,
     )
+    height_free = search is not None and not search.height_observable
     fim = assess_observability(
         w.R,
         w.p,
@@ -445,12 +517,19 @@ def initialize_anchor(
         w.P_pose if weighted else np.zeros((6, 6)),
         x,
         sigma_range**2,
+        params=(0, 1, 4) if height_free else (0, 1, 2, 4),
         weights=res.weights,
         force=force,
         label=anchor,
     )
     res.fim = fim
+    if height_free:  # the geometric planar warning is the search's, stated once
+        fim.warnings = [m for m in fim.warnings if "planar window" not in m]
+        fim.status = "warning" if fim.status == "ok" else fim.status
+        res.warnings.append(verdict["message"])
     res.warnings.extend(fim.warnings)
+    if verdict:
+        verdict["fim_status"] = fim.status
     if fim.status == "refused":
         res.status = "refused"
         return res
@@ -480,3 +559,93 @@ def initialize_anchor(
             }
         )
     return res
+
+
+def search_verdict(search: SearchResult) -> dict:
+    """The observability verdict of a search, for init.json / metrics.json and the run summary."""
+    out: dict = {
+        "status": search.status,
+        "reason": search.reason,
+        "planar_motion": bool(search.planar),
+        "height_observable": bool(search.height_observable),
+        "mirror_ambiguity": bool(search.mirror),
+    }
+    if not search.ok:
+        return out
+    out["sigma_height_m"] = float(search.sigma_h)
+    out["sigma_horizontal_m"] = float(search.sigma_horizontal)
+    out["residual_sigma_m"] = float(search.scale)
+    if search.mirror_p is not None:
+        out["mirror_position"] = [float(v) for v in search.mirror_p]
+    if not search.height_observable:
+        why = "planar tag motion" if search.planar else "weak out-of-plane geometry"
+        msg = (
+            f"height unobservable ({why}): reported at {search.p[2]:.2f} +- {search.sigma_h:.2f} m (the basin "
+            "above the motion plane; its sigma reaches the mirror below); horizontal position estimated"
+        )
+        if search.mirror:
+            msg += "; the mirror across the motion plane fits equally (two basins)"
+        out["message"] = msg
+    return out
+
+
+def _stay_in_basin(
+    x: np.ndarray,
+    cov: np.ndarray,
+    search: SearchResult,
+    beta0: float,
+    chi2_2dof: float = 11.8,
+    min_move_m: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The initialiser's (x, cov), unless its horizontal position left the search's basin (squared
+    Mahalanobis distance in the motion plane > ``chi2_2dof`` under the search's covariance, and more than
+    ``min_move_m``: a different basin, not a prior pulling within one): then the search's
+    estimate (beta at ``beta0``, gamma the links' mean) and covariance. Returns (x, cov, horizontal move [m]
+    when replaced, else 0)."""
+    n = search.normal / np.linalg.norm(search.normal)
+    T = np.eye(3) - np.outer(n, n)
+    dp = T @ (x[:3] - search.p)
+    P = T @ search.cov[:3, :3] @ T + 1e-12 * np.outer(n, n)
+    try:
+        d2 = float(dp @ np.linalg.pinv(P, hermitian=True) @ dp)
+    except np.linalg.LinAlgError:
+        d2 = 0.0
+    if not np.isfinite(d2) or d2 <= chi2_2dof or float(np.linalg.norm(dp)) <= min_move_m:
+        return x, cov, 0.0
+    L = len(search.gamma)
+    xs = np.r_[search.p, beta0, float(np.mean(search.gamma))]
+    cs = np.zeros((5, 5))
+    cs[:3, :3] = search.cov[:3, :3]
+    wg = np.full(L, 1.0 / L)
+    cs[4, 4] = float(wg @ search.cov[3:, 3:] @ wg)
+    cs[:3, 4] = cs[4, :3] = search.cov[:3, 3:] @ wg
+    cs[3, 3] = cov[3, 3] if np.isfinite(cov[3, 3]) and cov[3, 3] > 0 else 0.05**2
+    return xs, cs, float(np.linalg.norm(dp))
+
+
+def _honest_height(x: np.ndarray, cov: np.ndarray, search: SearchResult) -> tuple[np.ndarray, np.ndarray]:
+    """The anchor moved along the motion-plane normal to the search's height, whose sigma replaces the
+    normal direction's variance (and its correlations)."""
+    n = search.normal / np.linalg.norm(search.normal)
+    x = x.copy()
+    x[:3] = x[:3] - n * float(n @ (x[:3] - search.p))
+    T = np.eye(5)
+    T[:3, :3] -= np.outer(n, n)
+    cov = T @ cov @ T.T
+    cov[:3, :3] += search.sigma_h**2 * np.outer(n, n)
+    return x, cov
+
+
+def _fuse_z_prior(
+    x: np.ndarray, cov: np.ndarray, z_prior: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman fusion of a prior z ~ N(mean, sigma^2) on the anchor height into (x, cov)."""
+    H = np.zeros(5)
+    H[2] = 1.0
+    S = float(H @ cov @ H) + float(z_prior[1]) ** 2
+    if not np.isfinite(S) or S <= 0:
+        return x, cov
+    K = cov @ H / S
+    x = x + K * (float(z_prior[0]) - x[2])
+    cov = cov - np.outer(K, H @ cov)
+    return x, 0.5 * (cov + cov.T)

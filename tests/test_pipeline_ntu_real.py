@@ -1,9 +1,11 @@
 """Issue #6: `uwbcal convert ntu-viral` + `uwbcal run` with the defaults (SLICT odometry as the pose source, no
 initial guess) puts every anchor within 0.15 m of published_anchors.csv.
 
-Defaults that matter (all resolved from the recording and written into config.toml): ri-robust init, gamma prior
-0.75 +- 0.01 m and beta prior 1 +- 0.001 from the converter's calibration, the bounded (SLAM) odometry error
-model, init over the first 2/3 of the recording and SKF refinement over the rest. ~15-20 s per sequence.
+Defaults that matter (all resolved from the recording and written into config.toml): ri-robust init from the
+global search, gamma prior 0.75 +- 0.01 m and beta prior 1 +- 0.001 from the converter's calibration, the bounded
+(SLAM) odometry error model, the per-anchor schedule (the first third does not pin every anchor down: each joins
+the SKF refinement once its own ranges do, the rest of the flight refines it; no 2/3 window). ~15-20 s per
+sequence.
 """
 
 import numpy as np
@@ -29,7 +31,8 @@ def test_default_run_matches_published_anchors(data_dir, tmp_path, seq, request)
     pipe = Pipeline(cfg, tmp_path / "run", evaluate_stage)
     pipe.run(progress=lambda *_: None)
     resolved = pipe.dir.file("config.toml").read_text()
-    assert 'init_method = "ri-robust"' in resolved and "init_window_s" in resolved
+    assert 'init_method = "ri-robust"' in resolved and 'schedule = "per-anchor"' in resolved
+    assert "init_window_s" not in resolved  # the thirds, no 2/3 special case
     pub = pl.read_csv(root / "published_anchors.csv").filter(pl.col("site") == seq[:3])
     rows = pl.read_csv(pipe.dir.file("anchors.csv")).filter(pl.col("stage") == "refine")
     errors = {}

@@ -80,7 +80,9 @@ def _simulate_run(
     state = State(use_fej=True)
     state.add("imu", Pose(R_nom[0], p_nom[0] - e0[3:]), P0, kind=Kind.NAV)
     truth = {a: np.r_[pa, rng.normal(1.0, beta_sigma), rng.normal(0.5, 0.3)] for a, pa in ANCHORS.items()}
-    cfg = UwbConfig(init_method="ri", refine_method=mode, beta_sigma=beta_sigma, n_perturbed_starts=0)
+    cfg = UwbConfig(  # the paper's initialisation (multi-start), whose consistency this checks
+        init_method="ri", refine_method=mode, beta_sigma=beta_sigma, n_perturbed_starts=0, search=False
+    )
     traj = {"t_ns": [], "p": [], "q_xyzw": [], "cov": []}
     ranges = {k: [] for k in ("t_ns", "tag", "antenna", "anchor", "distance")}
     updater = None

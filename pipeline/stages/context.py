@@ -136,7 +136,31 @@ class StageContext:
 
             for k, v in apply_real_imu_defaults(self.config.vio, self.reader.source).items():
                 _log.info("vio.%s = %s (real-IMU default, pipeline/real_imu.py)", k, v)
-        if run.init_window_s is None and run.refine_window_s is None and odometry:
+        if run.schedule == "auto":
+            from ..schedule import choose_schedule
+
+            rng = self.reader.read_ranges()
+            init_end = self.windows().init_end_ns
+            run.schedule, why = choose_schedule(  # type: ignore[assignment]
+                rng.t_ns, rng.anchor, init_end, min_ranges=max(uwb.min_ranges, 30)
+            )
+            if run.schedule == "windows" and odometry and uwb.search:
+                model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
+                if model == "bounded":
+                    # poses in the anchors' frame that do not drift (ground truth, SLAM with a map): the thirds
+                    # guard against drift that is not there; every anchor joins when its own ranges pin it
+                    # down and is refined to the end of the data
+                    run.schedule = "per-anchor"  # type: ignore[assignment]
+                    why = "bounded pose source: anchors refined to the end of the data"
+            _log.info("run.schedule = %s: %s", run.schedule, why)
+        if run.schedule == "per-anchor" and run.refine_window_s is None:
+            # late anchors are refined from their own join time: refinement runs to the end
+            win = self.windows()
+            run.refine_window_s = round((win.end_ns - win.init_end_ns) * 1e-9 + 1.0, 3)
+            if run.vio_extent == "auto":
+                run.vio_extent = "full"  # the late anchors' init windows need the poses up to their join
+        # (with the search the per-anchor schedule does this per anchor, from the data)
+        if run.init_window_s is None and run.refine_window_s is None and odometry and not uwb.search:
             model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
             if model == "bounded":
                 win = self.windows()

@@ -25,16 +25,32 @@ def run(ctx: StageContext) -> StageResult:
             f"{ctx.recording}: no UWB ranges in the initialisation window "
             f"({win.start_ns * 1e-9:.1f}-{win.init_end_ns * 1e-9:.1f} s)"
         )
-    windows = windows_from_trajectory(vio, vars(rng), cal, win.start_ns, win.init_end_ns)
-    results = {m: initialize_anchors(windows, ctx.config.uwb, cal, method=m) for m in INIT_METHODS}
+    per_anchor = ctx.config.run.schedule == "per-anchor"
+    if per_anchor:  # the late anchors' windows run up to their join time
+        rng = ctx.reader.read_ranges(start_ns=win.start_ns, end_ns=win.end_ns + 1)
+    end = win.end_ns + 1 if per_anchor else win.init_end_ns
+    windows = windows_from_trajectory(vio, vars(rng), cal, win.start_ns, end)
+    windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor)
+    results = {
+        m: initialize_anchors(windows, ctx.config.uwb, cal, method=m, searches=searches) for m in INIT_METHODS
+    }
+    for res in results.values():
+        for a, r in res.items():
+            j = joins.get(a)
+            r.join_ns = j if (j is not None and j > win.init_end_ns) else None
     ctx.dir.save_pickle("init.pkl", results)
     chosen = ctx.config.uwb.init_method
     summary = {m: {str(a): rd.init_summary(r) for a, r in res.items()} for m, res in results.items()}
     ctx.dir.save_json("init.json", {"chosen": chosen, "window": win.as_dict(), "methods": summary})
     rows = [rd.anchor_row(a, m, "init", r.x) for m, res in results.items() for a, r in res.items() if r.ok]
+    rows += [rd.undetermined_row(a, chosen, "init") for a, r in results[chosen].items() if not r.ok]
     rd.write_anchors(ctx.dir, rows, replace_stage="init")
     warns = [f"init {chosen} anchor {a}: {w}" for a, r in results[chosen].items() for w in r.warnings]
-    warns += [f"init {chosen} anchor {a}: {r.status}" for a, r in results[chosen].items() if not r.ok]
+    warns += [
+        f"init {chosen} anchor {a}: {r.status}"
+        for a, r in results[chosen].items()
+        if not r.ok and r.status != "not determined"  # its warning states the reason
+    ]
     with ctx.runlog("init") as log:
         log.stage("init", win.start_ns)
         ctx.log_truth_anchors(log)
@@ -61,4 +77,37 @@ def run(ctx: StageContext) -> StageResult:
             log.text(w, "WARN", win.init_end_ns)
     ok = sum(r.ok for r in results[chosen].values())
     errs = ctx.anchor_errors({a: r.x for a, r in results[chosen].items() if r.ok})
-    return StageResult("init", f"{chosen}: {ok}/{len(results[chosen])} anchors initialised{errs}", warns)
+    res = results[chosen]
+    late = sum(r.join_ns is not None for r in res.values() if r.ok)
+    weak = sum(not r.verdict.get("height_observable", True) for r in res.values() if r.ok)
+    nd = [str(a) for a, r in res.items() if not r.ok]
+    extra = f" ({late} joining later)" if late else ""
+    extra += f"; height unobservable for {weak}" if weak else ""
+    extra += f"; not determined: {', '.join(nd)}" if nd else ""
+    sched = ctx.config.run.schedule
+    return StageResult("init", f"{chosen} [{sched}]: {ok}/{len(res)} anchors initialised{extra}{errs}", warns)
+
+
+def _schedule(ctx: StageContext, windows: dict, init_end_ns: int, per_anchor: bool):
+    """Per anchor: the window its initialisation uses, its search result and its join time
+    (`schedule.join_time`); without the search (the paper's multi-start) the first window for every anchor."""
+    from ..schedule import join_time
+    from ..uwb_filter import search_window
+
+    cfg = ctx.config.uwb
+    if not cfg.search:
+        return {a: w.subset(w.t_ns < init_end_ns) for a, w in windows.items()}, None, {}
+    sigma = cfg.sigma(ctx.reader.calibration) * cfg.sigma_scale
+    out_w, searches, joins = {}, {}, {}
+    for a, w in windows.items():
+        j = join_time(
+            w,
+            init_end_ns,
+            lambda sub: search_window(sub, cfg, sigma, ctx.reader.calibration),
+            per_anchor=per_anchor,
+            min_ranges=max(cfg.min_ranges, 30),
+            join_sigma=cfg.join_sigma_m if per_anchor else None,
+            join_ratio=cfg.join_ratio,
+        )
+        out_w[a], searches[a], joins[a] = j.window, j.search, j.join_ns
+    return out_w, searches, joins

@@ -22,6 +22,10 @@ def run(ctx: StageContext) -> StageResult:
     updater = UwbUpdater.from_config(
         ctx.config.uwb, ctx.reader.calibration, mode="frozen", anchors=anchors, inflation=inflation
     )
+    updater.link_offsets = {
+        rd.anchor_key(a): {int(k): float(v) for k, v in s.get("link_offsets", {}).items()}
+        for a, s in states.items()
+    }
     with ctx.runlog("localize") as log:
         log.stage("localize", win.refine_end_ns)
         run_estimator(est, ctx.features_reader(), win.refine_end_ns, win.end_ns, on_range=updater, log=log)

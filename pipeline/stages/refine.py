@@ -3,6 +3,8 @@ every range of the refinement window -> anchor_states.json, refine.npz/.mcap, th
 
 from __future__ import annotations
 
+import numpy as np
+
 from .. import rundir as rd
 from .. import runlog as rl
 from ..driver import run_estimator
@@ -20,6 +22,14 @@ def run(ctx: StageContext) -> StageResult:
     warns = add_initialised_anchors(est.state, results, cfg, cal)
     inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
     updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
+    updater.schedule(  # late anchors join at their time; per-link offsets; heights left alone where unobservable
+        results,
+        {
+            "sigma_range": cfg.sigma(cal) * cfg.sigma_scale,
+            "gamma_prior": cfg.gamma_prior(cal),
+            "beta_prior": cfg.beta_prior(cal),
+        },
+    )
     with ctx.runlog("refine") as log:
         log.stage("refine", win.init_end_ns)
         run_estimator(
@@ -46,14 +56,36 @@ def run(ctx: StageContext) -> StageResult:
     ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
     rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
     states = {
-        str(a): {"x": est.state.value(n).x, "P": est.state.cov(n), "noise_inflation": inflation.get(a, 1.0)}
+        str(a): {
+            "x": est.state.value(n).x,
+            "P": est.state.cov(n),
+            "noise_inflation": inflation.get(a, 1.0),
+            "link_offsets": {str(k): v for k, v in updater.link_offsets.get(a, {}).items()},
+        }
         for a, n in est.state.anchors.items()
     }
+    for a, r in updater.pending.items():  # determined only by all their ranges: nothing left to refine with
+        states[str(a)] = {
+            "x": r.x,
+            "P": r.cov,
+            "noise_inflation": float(r.noise_inflation),
+            "link_offsets": {str(k): v for k, v in r.link_offsets.items()},
+        }
+    if updater.pending:
+        warns.append(
+            f"refine: anchors {sorted(updater.pending)} were determined only by all their ranges; reported at "
+            "their initial estimate"
+        )
+    for a, s in states.items():  # a height the data cannot see stays as uncertain as at init
+        r = results.get(rd.anchor_key(a))
+        if r is not None and not r.verdict.get("height_observable", True):
+            s["P"] = _keep_height_sigma(s["P"], r.cov)
     ctx.dir.save_json("anchor_states.json", states)
     label = f"{cfg.init_method}+{cfg.refine_method}"
     rd.write_anchors(
         ctx.dir,
-        [rd.anchor_row(a, label, "refine", s["x"]) for a, s in states.items()],
+        [rd.anchor_row(a, label, "refine", s["x"]) for a, s in states.items()]
+        + [rd.undetermined_row(a, label, "refine") for a, r in results.items() if not r.ok],
         replace_stage="refine",
     )
     ctx.assemble_trajectory()
@@ -64,3 +96,14 @@ def run(ctx: StageContext) -> StageResult:
     return StageResult(
         "refine", f"{cfg.refine_method}: {c['accepted']} range updates, {c['rejected']} rejected{errs}", warns
     )
+
+
+def _keep_height_sigma(P, P_init) -> np.ndarray:
+    """The anchor covariance with its z variance at least that of ``P_init`` (its correlations scaled)."""
+    P = np.asarray(P, float).copy()
+    vz, v0 = P[2, 2], float(np.asarray(P_init)[2, 2])
+    if np.isfinite(v0) and v0 > vz > 0:
+        f = np.sqrt(v0 / vz)
+        P[2, :] *= f
+        P[:, 2] *= f
+    return P
