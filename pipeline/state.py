@@ -136,9 +136,10 @@ class State:
     The covariance lives in a preallocated buffer whose capacity doubles when it is full; a variable occupies a
     block of it (its *slot*). Removing a variable zeroes its slot and frees it for the next variable of the same
     dimension (the MSCKF's clone window: one clone leaves, the next takes its slot), so adding and removing a
-    clone touches only that clone's rows and columns, never the whole matrix. A free slot is a block of zero
-    rows and columns: it takes part in no product that changes another variable. ``P`` is the view of the slots
-    in use (up to the last one); the order of the slots is not the order of ``names``.
+    clone touches only that clone's rows and columns, never the whole matrix; when free slots make up more than
+    half of P (the init window's pose probes dropped at once) the slots in use are packed (`_compact`). A free
+    slot is a block of zero rows and columns: it takes part in no product that changes another variable. ``P``
+    is the view of the slots in use (up to the last one); the order of the slots is not the order of ``names``.
     """
 
     def __init__(self, use_fej: bool = True, capacity: int = 32) -> None:
@@ -399,6 +400,26 @@ class State:
         del self._info[name]
         if self._nav == name:
             self._nav = None
+        if sum(f.stop - f.start for f in self._free) > self._n // 2:
+            self._compact()
+
+    def _compact(self) -> None:
+        """Close the free slots when they are more than half of P (e.g. after the pose probes are dropped): one
+        copy of the slots in use, in their order, to the front of the buffer; amortised over the removals."""
+        order = sorted(self._names, key=lambda n: self._slices[n].start)
+        idx = self.index(order)
+        P = self.P[np.ix_(idx, idx)]
+        n = len(idx)
+        self._buf[:n, :n] = P
+        self._buf[n : self._n, : self._n] = 0.0
+        self._buf[: self._n, n : self._n] = 0.0
+        start = 0
+        for name in order:
+            d = self._slices[name].stop - self._slices[name].start
+            self._slices[name] = slice(start, start + d)
+            start += d
+        self._n = n
+        self._free = []
 
     def boxplus(self, dx: np.ndarray, names: Iterable[str] | None = None) -> None:
         for n in names if names is not None else self._names:

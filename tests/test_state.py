@@ -264,3 +264,24 @@ def test_clone_window_reuses_slots_without_reallocating():
         s.augment(f"clone/{100 + k}", s.value("imu").pose, {"imu": J}, kind=Kind.CLONE, key=100 + k)
         assert all(np.array_equal(s.cov(n), c) for n, c in before.items())
     assert s._buf.shape[0] >= s.size and s._buf is not buf
+
+
+def test_dropping_most_of_the_state_packs_the_covariance():
+    """Probes dropped at once leave more free slots than used ones: the state packs them (P shrinks to the
+    variables left) and keeps every remaining block."""
+    from pipeline.state import add_probe, remove_probes
+
+    rng = np.random.default_rng(10)
+    s = State()
+    s.add("imu", ImuState(np.eye(3), np.zeros(3), np.zeros(3)), _random_spd(rng, 15), kind=Kind.NAV)
+    for k in range(40):
+        add_probe(s, k)
+    s.add("anchor/1", Vec(np.ones(5)), _random_spd(rng, 5), kind=Kind.ANCHOR, key=1)
+    ekf_update(
+        s, {"imu": rng.normal(size=(3, 15)), "anchor/1": rng.normal(size=(3, 5))}, rng.normal(size=3), 1.0
+    )
+    keep = {(a, b): s.cov(a, b).copy() for a in ("imu", "anchor/1") for b in ("imu", "anchor/1")}
+    remove_probes(s)
+    assert s.names == ["imu", "anchor/1"] and s.anchors == {1: "anchor/1"}
+    assert s.size <= 2 * 20  # 40 probes (240 rows) gone: at most as many free rows as used ones are left
+    assert all(np.array_equal(s.cov(a, b), c) for (a, b), c in keep.items())
