@@ -31,6 +31,8 @@ _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
 _ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)
 OUTLIER_SIGMAS = 3.0
 
+BASIN_REJECT_CHI2 = 13.8  # chi2(2 dof) at 99.9 %
+
 
 @dataclass
 class InitWindow:
@@ -470,7 +472,7 @@ def initialize_anchor(
     if not est_beta:
         cov[3, 3] = beta_sigma**2
 
-    if search is not None:
+    if search is not None and not _data_reject_search_point(w, search, full, best.cost, kappa, kw):
         x, cov, moved = _stay_in_basin(x, cov, search, b0)
         if moved:
             warns.append(
@@ -587,6 +589,21 @@ def search_verdict(search: SearchResult) -> dict:
             msg += "; the mirror across the motion plane fits equally (two basins)"
         out["message"] = msg
     return out
+
+
+def _data_reject_search_point(
+    w, search: SearchResult, full, best_cost: float, kappa: float, kw: dict
+) -> bool:
+    """True when the window's own cost rejects the search's point against the fit (difference over a 2-dof
+    chi2 at 99.9 %, in units of the correlation-inflated noise): the fit then left the search's basin because
+    the data demand it (e.g. a range scale beta != 1, which the search's model lacks), not along a direction the
+    window cannot see, and `_stay_in_basin` must not pull it back."""
+    th = full(np.r_[search.p, float(np.mean(search.gamma))])
+    c = kw["robust_scale"] / kw["sigma_range"]
+    cost = ri_cost(
+        w, th, kw["weighted"], kw["sigma_range"] ** 2, kw["gamma_prior"], kw["robust"], c, kw["beta_prior"]
+    )[0]
+    return bool(np.isfinite(cost) and (cost - best_cost) / max(kappa, 1.0) > BASIN_REJECT_CHI2)
 
 
 def _stay_in_basin(
