@@ -126,6 +126,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     # -- anchors ---------------------------------------------------------------------------------------------
     cfg = tomllib.loads((run_dir / "config.toml").read_text())  # parsed by run_recording_path already
     run_anchors = read_run_anchors(run_dir, (cfg.get("uwb") or {}).get("init_method"))
+    own_frame = run_anchors.estimates  # the frame of the run's trajectory, which the range check uses
     if static_frame and al is not None and ref is not None and ref.kind == "simulated":
         # estimated in the static initialiser's frame: compared (and reported) after the trajectory's alignment
         run_anchors = aligned_anchors(run_anchors, al)
@@ -134,7 +135,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         anchors, top, warns = anchor_metrics(run_anchors, ref)
         metrics.update(top)
         metrics["warnings"].extend(warns)
-        metrics["warnings"].extend(range_quality(reader, traj, run_anchors.estimates))
+        metrics["warnings"].extend(range_quality(reader, traj, own_frame))
         init_path = run_dir / "init.json"
         if init_path.is_file():
             init = read_json(init_path)
