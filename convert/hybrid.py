@@ -148,18 +148,8 @@ def hybrid_simulate(source: str | Path, cfg: SimConfig, knot_dt: float = HYBRID_
     calibration = reader.calibration
     cam, cam_note = _camera(calibration, src)
     world = simulate_world(traj, duration, cam, cfg)
-    data = SimData(
-        config=cfg,
-        trajectory=traj,
-        imu=imu,
-        features=world.features,
-        ranges=world.ranges,
-        groundtruth=gt,
-        anchors=world.anchors,
-        beta=world.beta,
-        gamma=world.gamma,
-        landmarks=world.landmarks,
-        groundtruth_bias=bias,
+    data = SimData.from_world(
+        world, config=cfg, trajectory=traj, imu=imu, groundtruth=gt, groundtruth_bias=bias
     )
     cal = {
         "imu": dict(calibration["imu"]) if "imu" in calibration else {},

@@ -245,6 +245,20 @@ class SimData:
         None  # written as /groundtruth/imu_bias (hybrid recordings: real biases)
     )
 
+    @classmethod
+    def from_world(cls, world: WorldSim, **streams) -> SimData:
+        """The world's landmarks, anchors and measurements beside the given streams (config, trajectory, imu,
+        groundtruth, ...): the one assembly `simulate` and the hybrid recordings share."""
+        return cls(
+            features=world.features,
+            ranges=world.ranges,
+            anchors=world.anchors,
+            beta=world.beta,
+            gamma=world.gamma,
+            landmarks=world.landmarks,
+            **streams,
+        )
+
 
 # ---------------------------------------------------------------------------------------------------------------
 # pure generation
@@ -583,19 +597,7 @@ def simulate(cfg: SimConfig, *, advance=None) -> SimData:
         t_odo = sample_times(t0, duration, cfg.odometry_rate)
         odometry = simulate_odometry(traj, t_odo, cfg.odometry_noise_scale, stream(cfg.seed, "odometry"))
 
-    data = SimData(
-        config=cfg,
-        odometry=odometry,
-        trajectory=traj,
-        imu=imu,
-        features=world.features,
-        ranges=world.ranges,
-        groundtruth=gt,
-        anchors=world.anchors,
-        beta=world.beta,
-        gamma=world.gamma,
-        landmarks=world.landmarks,
-    )
+    data = SimData.from_world(world, config=cfg, odometry=odometry, trajectory=traj, imu=imu, groundtruth=gt)
     data.metadata = _metadata(data, cam, duration)
     return data
 
