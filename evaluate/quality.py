@@ -12,6 +12,7 @@ import numpy as np
 
 from convert.recording import TOPIC_RANGE
 from pipeline.core.geometry import quat_to_rot
+from pipeline.uwb_filter import range_lever_arms
 
 MIN_RANGES = 10  # fewer ranges of an anchor: no verdict
 BIAS_SIGMAS = 3.0  # |median residual| > max(3 sigma_range, BIAS_FLOOR_M): biased
@@ -30,16 +31,6 @@ def degenerate_anchors(anchor: np.ndarray, distance: np.ndarray) -> list[str]:
             f"anchor {a}: all {len(d)} ranges are {what}: degenerate ranging (dead or stuck radio); its "
             "calibration is meaningless — fix the ranging or drop the anchor"
         )
-    return out
-
-
-def _lever_arms(cal: dict, tag: np.ndarray, antenna: np.ndarray) -> np.ndarray:
-    tags = (cal.get("uwb") or {}).get("tags") or {}
-    out = np.zeros((len(tag), 3))
-    for t, k in {(int(a), int(b)) for a, b in zip(tag.tolist(), antenna.tolist(), strict=True)}:
-        ants = (tags.get(str(t)) or {}).get("antennas") or []
-        if k < len(ants):
-            out[(tag == t) & (antenna == k)] = np.asarray(ants[k], float)
     return out
 
 
@@ -63,7 +54,9 @@ def biased_anchors(
             continue
         i = np.clip(np.searchsorted(traj_t, ranges.t_ns[m]), 0, len(traj_t) - 1)
         R = quat_to_rot(traj_q[i])
-        tag_w = traj_p[i] + np.einsum("nij,nj->ni", R, _lever_arms(cal, ranges.tag[m], ranges.antenna[m]))
+        tag_w = traj_p[i] + np.einsum(
+            "nij,nj->ni", R, range_lever_arms(cal, ranges.tag[m], ranges.antenna[m])
+        )
         pred = e["beta"] * np.linalg.norm(np.asarray(e["position"]) - tag_w, axis=1) + e["gamma"]
         med = float(np.median(ranges.distance[m] - pred))
         if abs(med) > max(BIAS_SIGMAS * sigma, BIAS_FLOOR_M):

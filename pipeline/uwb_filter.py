@@ -202,6 +202,16 @@ def _lever_arm(arms: Mapping[tuple[int, int], np.ndarray], tag: int, antenna: in
         ) from None
 
 
+def range_lever_arms(calibration: Mapping, tag: np.ndarray, antenna: np.ndarray) -> np.ndarray:
+    """p_T of every range (N, 3) from its (tag, antenna), one lookup per distinct link."""
+    arms = lever_arms(calibration)
+    tag, antenna = np.asarray(tag), np.asarray(antenna)
+    out = np.zeros((len(tag), 3))
+    for key in {(int(a), int(b)) for a, b in zip(tag.tolist(), antenna.tolist(), strict=True)}:
+        out[(tag == key[0]) & (antenna == key[1])] = _lever_arm(arms, *key)
+    return out
+
+
 # -----------------------------------------------------------------------------------------------------------------
 def interpolate_poses(traj: Mapping[str, np.ndarray], t_ns: np.ndarray):
     """Pose (R, p) and 6x6 covariance linearly interpolated (slerp for R) at ``t_ns``; mask of stamps inside."""
@@ -244,12 +254,9 @@ def windows_from_trajectory(
     idx = idx[inside]
     if pose_cov is not None:
         cov = np.broadcast_to(np.asarray(pose_cov, float), (len(idx), 6, 6))
-    arms = lever_arms(calibration)
     tag = np.asarray(ranges["tag"])[idx]
     ant = np.asarray(ranges["antenna"])[idx]
-    pT = np.zeros((len(idx), 3))
-    for key in {(int(a), int(b)) for a, b in zip(tag, ant, strict=True)}:
-        pT[(tag == key[0]) & (ant == key[1])] = _lever_arm(arms, *key)
+    pT = range_lever_arms(calibration, tag, ant)
     anchors = np.asarray(ranges["anchor"])[idx]
     d = np.asarray(ranges["distance"], float)[idx]
     link = link_id(tag, ant)
