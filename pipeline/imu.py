@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 
-from .core.geometry import exp_so3, jr_so3, skew
+from .core.geometry import exp_jr_so3, skew
 from .state import ImuState
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -132,7 +132,8 @@ def propagate(
     a = acc - x.ba
     wdt = w * dt[:, None]
     wboth = np.concatenate([wdt, 0.5 * wdt])  # full and half steps in one call each (numpy overhead)
-    dR, dRh = np.split(exp_so3(wboth), 2)
+    E, Jboth = exp_jr_so3(wboth)  # rotations and right Jacobians of the full and half steps
+    dR, dRh = np.split(E, 2)
     R = np.empty((n + 1, 3, 3))
     R[0] = x.R
     for k in range(n):
@@ -157,7 +158,7 @@ def propagate(
     Phi[3:6, 6:9] = T * np.eye(3)
 
     # -- bias columns --------------------------------------------------------------------------------------------
-    Jr, Jrh = np.split(jr_so3(wboth), 2)
+    Jr, Jrh = np.split(Jboth, 2)
     C = np.zeros((n + 1, 3, 3))
     C[1:] = np.cumsum(R[1:] @ Jr * dt[:, None, None], axis=0)
     A = -np.swapaxes(R, 1, 2) @ C  # d dtheta_k / d bg (body frame of R_k)
