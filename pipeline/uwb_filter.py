@@ -115,7 +115,7 @@ class UwbConfig(BaseModel):
     bias: Literal["auto", "per-anchor", "per-link"] = Field(
         "auto",
         description="range offset model: per-anchor (one gamma) or per-link (gamma + an offset per (tag, antenna) "
-        "link, estimated at init, fixed after); auto: per-link when an anchor is ranged over several links and "
+        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links and "
         "their offsets differ beyond their uncertainty",
     )
     anchor_z_prior: dict[str, float] | dict[str, dict[str, float]] | None = Field(
