@@ -121,6 +121,7 @@ class Kind(enum.Enum):
     CLONE = "clone"  # MSCKF stochastic clone of the pose at a camera frame (key: t_ns)
     PROBE = "probe"  # considered pose of the initialisation window (key: t_ns)
     ANCHOR = "anchor"  # UWB anchor [p_a, beta, gamma] (key: anchor id)
+    LINK = "link"  # per-link range offsets of an anchor [delta_l, ...] relative to its gamma (key: anchor id)
     OTHER = "other"
 
 
