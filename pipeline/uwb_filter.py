@@ -371,11 +371,10 @@ def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:
     each offset alone."""
     if not sr.ok or len(sr.gamma) < 2:
         return False
-    P = np.asarray(sr.cov)[3:, 3:]
+    sd = np.sqrt(np.maximum(np.diag(sr.cov)[3:], 0.0))
     g = sr.gamma
     i, j = np.triu_indices(len(g), 1)
-    sd = np.sqrt(np.maximum(P[i, i] + P[j, j] - 2.0 * P[i, j], 0.0))
-    return bool(np.any(np.abs(g[i] - g[j]) > z * sd))
+    return bool(np.any(np.abs(g[i] - g[j]) > z * np.hypot(sd[i], sd[j])))
 
 
 # -----------------------------------------------------------------------------------------------------------------
