@@ -3,7 +3,8 @@
 Inputs are the output folders of ``uwbcal experiment table1`` (run at the calibrated
 ``vio_noise_scale``; ``prior=both`` holds the two conventions in one folder) and of ``uwbcal experiment
 ri-vs-lsi-drift``; the outputs are small Markdown tables and PNGs for ``docs/results/``. Run as
-``python -m evaluate.paper_conditions --table1 DIR [--table1 DIR] --drift DIR -o docs/results``.
+``python -m evaluate.paper_conditions --table1 DIR [--table1 DIR ...] --drift DIR [--drift DIR ...] -o
+docs/results`` (several folders of one experiment are pooled: chunks of seeds, or one folder per level).
 """
 
 from __future__ import annotations
@@ -116,17 +117,21 @@ def table1_report(folders: list[Path], out_dir: Path) -> str:
     return "\n".join(parts)
 
 
-def drift_report(folder: Path, out_dir: Path) -> tuple[str, pl.DataFrame]:
-    """Markdown section + plot for the ri-vs-lsi-drift sweep."""
+def drift_report(folders: list[Path], out_dir: Path) -> tuple[str, pl.DataFrame]:
+    """Markdown section + plot for the ri-vs-lsi-drift sweep (one folder, or one per level or chunk)."""
     from .plots import plot_ri_vs_lsi_drift
     from .ri_vs_lsi_drift import summarise
 
-    per_run, config, summary = _read(folder, "ri-vs-lsi-drift")
-    table = summarise(per_run)
+    runs, lines = [], []
+    for folder in folders:
+        per_run, config, summary = _read(folder, "ri-vs-lsi-drift")
+        runs.append(per_run)
+        lines.append(_run_line(config, summary))
+    table = summarise(pl.concat(runs, how="diagonal_relaxed"))
     plot_ri_vs_lsi_drift(out_dir / "ri_vs_lsi_drift.png", table)
     text = "\n".join(
         [
-            _run_line(config, summary) + ".",
+            "Runs: " + "; ".join(lines) + ".",
             "",
             "Anchor error over seeds × anchors per drift level k; `ri_gain_m` = mean of LSI − RI per (seed, "
             "anchor) with its 95 % t interval, `ri_wins` the share of pairs RI wins.",
@@ -147,7 +152,7 @@ def first_paying_level(table: pl.DataFrame) -> dict | None:
     return None
 
 
-def write_report(table1: list[Path], drift: Path | None, out_dir: Path) -> list[Path]:
+def write_report(table1: list[Path], drift: list[Path], out_dir: Path) -> list[Path]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
@@ -159,7 +164,7 @@ def write_report(table1: list[Path], drift: Path | None, out_dir: Path) -> list[
         )
         written += [out_dir / "table1_paper_drift.md", out_dir / "table1_paper_drift.png"]
         write_text_atomic(written[0], head + text)
-    if drift is not None:
+    if drift:
         text, table = drift_report(drift, out_dir)
         pay = first_paying_level(table)
         verdict = (
@@ -182,7 +187,9 @@ def write_report(table1: list[Path], drift: Path | None, out_dir: Path) -> list[
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m evaluate.paper_conditions", description=__doc__)
     ap.add_argument("--table1", action="append", default=[], type=Path, metavar="DIR", help="table1 folder")
-    ap.add_argument("--drift", type=Path, default=None, help="ri-vs-lsi-drift folder")
+    ap.add_argument(
+        "--drift", action="append", default=[], type=Path, metavar="DIR", help="ri-vs-lsi-drift folder"
+    )
     ap.add_argument("-o", "--output", type=Path, required=True)
     a = ap.parse_args(argv)
     try:

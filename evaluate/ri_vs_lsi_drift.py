@@ -64,7 +64,8 @@ def drift_job(p: dict) -> dict:
     rows = []
     with tempfile.TemporaryDirectory(prefix="uwbcal-drift-") as tmp:
         rec = Path(tmp) / "sim.mcap"
-        sim = SimConfig(trajectory=p["trajectory"], seed=p["seed"], duration=p.get("duration"), n_anchors=4)
+        traj = p["trajectory"] or None  # "": the built-in trajectory
+        sim = SimConfig(trajectory=traj, seed=p["seed"], duration=p.get("duration"), n_anchors=4)
         simulate_to_file(degrade.sim(sim), rec)
         run = {"recording": str(rec), "log": False, "schedule": "windows", "vio_extent": "init"}
         cfg = load_config(None, merge_dicts(merge_dicts(PAPER_INIT, degrade.config()), {"run": run}))

@@ -166,3 +166,19 @@ def test_report_from_experiment_folders(tmp_path, capsys):
     assert main(["--drift", str(tmp_path / "missing"), "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert "missing" in err and err.count("\n") == 1
+
+
+def test_ri_vs_lsi_drift_experiment_on_a_short_simulation(tmp_path):
+    """Two drift levels x one seed on the built-in trajectory: every initialiser's error per anchor, the VIO's own
+    sigma grows with the level, the same seed at both levels."""
+    from evaluate.ri_vs_lsi_drift import ri_vs_lsi_drift
+
+    table, extra = ri_vs_lsi_drift(
+        tmp_path, 1, 1, None, 0, vio_noise_scales="1,3", trajectory="", duration=20.0
+    )
+    runs = extra["per_run"]
+    assert set(runs["method"]) == {"lsi", "ri", "ri-robust"} and runs["seed"].n_unique() == 1
+    assert runs.height == 2 * 3 * runs["anchor"].n_unique()
+    assert table["vio_sigma_m"][1] > 2 * table["vio_sigma_m"][0]
+    assert (tmp_path / "ri_vs_lsi_drift.png").read_bytes()[:8] == PNG
+    assert set(extra["summary"]) == {f"k{k}.{m}.anchor_error_m" for k in (1, 3) for m in ("lsi", "ri")}
