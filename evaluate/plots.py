@@ -232,7 +232,7 @@ def plot_ri_vs_lsi_drift(
         ax.plot(x, table[f"{m}_mean_m"].to_numpy(), "o-", color=c, lw=1.5, ms=4, label=f"{m.upper()} mean")
         ax.plot(x, table[f"{m}_p90_m"].to_numpy(), "s--", color=c, lw=1.0, ms=3, label=f"{m.upper()} 90 %")
     for xi, k in zip(x, table["vio_noise_scale"].to_numpy(), strict=True):
-        ax.annotate(f"k={k:g}", (xi, 1.0), xycoords=("data", "axes fraction"), xytext=(0, -10),
+        ax.annotate(f"k={k:g}", (xi, 0.0), xycoords=("data", "axes fraction"), xytext=(0, 4),
                     textcoords="offset points", ha="center", fontsize=7, color="0.4")  # fmt: skip
     ax.set_xscale("log")
     ax.set_yscale("log")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import polars as pl
@@ -10,7 +11,7 @@ import pytest
 
 from convert.simulator import SimConfig
 from evaluate.paired import paired_difference
-from evaluate.paper_conditions import first_paying_level, main, skf_vs_ekf
+from evaluate.paper_conditions import first_paying_level, main, skf_vs_ekf, table1_claims
 from evaluate.ri_vs_lsi_drift import parse_levels, summarise
 from evaluate.vio_degrade import VioDegrade
 from pipeline.core.errors import InputError
@@ -128,11 +129,25 @@ def test_skf_vs_ekf_is_paired_per_seed():
     assert d.height == 4 and (d["seeds"] == 5).all()
     r = {(x["sigma_i"], x["sigma_u"]): x for x in d.iter_rows(named=True)}
     # pairs differ by exactly 0.1 at sigma_I >= 0.3 (the seed-to-seed spread cancels): a zero-width interval
-    assert r[(0.3, 1.0)]["anchor_error_m_ekf_minus_skf"] == pytest.approx(0.1)
-    assert r[(0.3, 1.0)]["anchor_error_m_ci_lo"] == pytest.approx(0.1)
-    assert r[(0.1, 1.0)]["anchor_error_m_ekf_minus_skf"] == pytest.approx(0.0)
-    assert r[(0.1, 1.0)]["anchor_error_m_paper_diff"] == pytest.approx(0.271 - 0.312)
-    assert r[(0.5, 0.9)]["prmse_m_paper_diff"] == pytest.approx(0.679 - 0.495)
+    assert r[(0.3, 1.0)]["anchor_d_m"] == pytest.approx(0.1)
+    assert r[(0.3, 1.0)]["anchor_lo"] == pytest.approx(0.1)
+    assert r[(0.1, 1.0)]["anchor_d_m"] == pytest.approx(0.0)
+    assert r[(0.1, 1.0)]["anchor_paper_d"] == pytest.approx(0.271 - 0.312)
+    assert r[(0.5, 0.9)]["prmse_paper_d"] == pytest.approx(0.679 - 0.495)
+    claims = {(c["cell"], c["claim"]): c["holds"] for c in table1_claims(d).iter_rows(named=True)}
+    # EKF is worse by exactly 0.1 at sigma_I >= 0.3 (SKF claims hold), equal at 0.1 (zero-width interval at 0)
+    assert claims[("σ_I=0.3, σ_U=1", "SKF better anchors")] == "yes"
+    assert claims[("σ_I=0.5, σ_U=0.9", "SKF better PRMSE")] == "yes"
+    assert claims[("σ_I=0.1, σ_U=1", "EKF better PRMSE")] == "unclear"
+    flipped = d.with_columns(
+        -pl.col("anchor_d_m"),
+        -pl.col("anchor_hi").alias("anchor_lo"),
+        -pl.col("anchor_lo").alias("anchor_hi"),
+    )
+    assert (
+        table1_claims(flipped).filter(pl.col("claim") == "SKF better anchors")["holds"].to_list()
+        == ["no"] * 3
+    )
 
 
 def _folder(path, name: str, per_run: pl.DataFrame, **config):
@@ -156,6 +171,7 @@ def test_report_from_experiment_folders(tmp_path, capsys):
     assert "--param vio_noise_scale=5.0" in md and "12 s wall" in md
     assert "0.379" in md and "0.271" in md  # the paper's numbers beside ours
     assert "own position σ 0.050 m, actual RMSE 0.070 m" in md
+    assert re.search(r"\| σ_I=0.3, σ_U=1 +\| SKF better anchors +\|.*\| yes +\|", md)
     dmd = (out / "ri_vs_lsi_drift.md").read_text()
     assert "RI pays" in dmd and "from k = 4" in dmd
     for png in ("table1_paper_drift.png", "ri_vs_lsi_drift.png"):
