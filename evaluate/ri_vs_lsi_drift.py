@@ -96,7 +96,7 @@ def drift_job(p: dict) -> dict:
 
 def summarise(per_run: pl.DataFrame, a: str = "lsi", b: str = "ri") -> pl.DataFrame:
     """Per level: the VIO's mean own sigma and RMSE, and per method the mean, median and 90th percentile of the
-    anchor error (over seeds x anchors); ``b_gain_m`` = mean of the paired difference a - b (positive: b better),
+    anchor error (over seeds x anchors; ``{method}_failed``: anchors it left undetermined); ``b_gain_m`` = mean of the paired difference a - b (positive: b better),
     ``b_gain_lo/hi`` its 95 % t interval over the (seed, anchor) pairs, ``b_wins`` the share of pairs b wins."""
     from .paired import paired_difference
 
@@ -108,8 +108,10 @@ def summarise(per_run: pl.DataFrame, a: str = "lsi", b: str = "ri") -> pl.DataFr
             "vio_rmse_m": float(g["vio_rmse_m"].mean()),
         }
         for m in (a, b):
-            e = g.filter(pl.col("method") == m)["anchor_error_m"].drop_nans().to_numpy()
+            all_e = g.filter(pl.col("method") == m)["anchor_error_m"]
+            e = all_e.drop_nans().to_numpy()
             row |= {
+                f"{m}_failed": len(all_e) - len(e),
                 f"{m}_mean_m": float(e.mean()) if len(e) else float("nan"),
                 f"{m}_median_m": float(np.median(e)) if len(e) else float("nan"),
                 f"{m}_p90_m": float(np.quantile(e, 0.9)) if len(e) else float("nan"),

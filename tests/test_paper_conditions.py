@@ -95,7 +95,15 @@ def test_drift_summary_and_where_ri_pays():
     assert t["vio_sigma_m"].to_list() == pytest.approx([0.02, 0.08, 0.16])
     assert t["ri_gain_m"].to_list() == pytest.approx([0.0, 0.3, 0.8], abs=0.02)
     assert (t["lsi_p90_m"] >= t["lsi_median_m"]).all()
-    assert t["ri_wins"][2] == 1.0
+    assert t["ri_wins"][2] == 1.0 and t["lsi_failed"].to_list() == [0, 0, 0]
+    failed = _drift_runs(np.random.default_rng(0)).with_row_index()
+    failed = failed.with_columns(
+        pl.when(pl.col("index") == 0)
+        .then(float("nan"))
+        .otherwise(pl.col("anchor_error_m"))
+        .alias("anchor_error_m")
+    )
+    assert summarise(failed.drop("index"))["lsi_failed"].to_list() == [1, 0, 0]
     pay = first_paying_level(t)
     assert pay is not None and pay["vio_noise_scale"] == 4.0
 
