@@ -245,23 +245,42 @@ def compress_normal(H: np.ndarray, r: np.ndarray, rel_tol: float = 1e-12) -> tup
     return Hc, rc
 
 
+def _camera_points(
+    cam: Camera, R_wi: np.ndarray, p_wi: np.ndarray, pf: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IMU-frame and camera-frame points (K, 3) of world points ``pf`` seen from IMU poses ``R_wi, p_wi``, and
+    ``R_wi^T``."""
+    Rt = np.swapaxes(R_wi, 1, 2)
+    p_i = np.einsum("kij,kj->ki", Rt, pf - p_wi)
+    p_c = (p_i - cam.p_imu_cam) @ cam.R_imu_cam
+    return p_i, p_c, Rt
+
+
+def predict_pixels(
+    cam: Camera, R_wi: np.ndarray, p_wi: np.ndarray, pf: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel prediction (K, 2) and camera-frame points (K, 3): `feature_jacobians` without the Jacobians (the
+    residual at the current estimates when the Jacobians are taken at the first estimates)."""
+    p_c = _camera_points(cam, R_wi, p_wi, pf)[1]
+    return cam.project(p_c), p_c
+
+
 def feature_jacobians(
     cam: Camera,
     R_wi: np.ndarray,
     p_wi: np.ndarray,
     pf: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    pixels: bool = True,
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
     """Pixel prediction and Jacobians of one observation per row.
 
     ``R_wi, p_wi`` (K, 3, 3)/(K, 3): the clone (IMU) pose of each observation; ``pf`` (K, 3): the feature in the
-    world. Returns ``uv`` (K, 2), ``H_pose`` (K, 2, 6) wrt the clone error [dtheta, dp] (right perturbation),
-    ``H_f`` (K, 2, 3) wrt the feature, and the camera-frame points (K, 3).
+    world. Returns ``uv`` (K, 2; None with ``pixels=False``), ``H_pose`` (K, 2, 6) wrt the clone error
+    [dtheta, dp] (right perturbation), ``H_f`` (K, 2, 3) wrt the feature, and the camera-frame points (K, 3).
     """
-    Rt = np.swapaxes(R_wi, 1, 2)
-    p_i = np.einsum("kij,kj->ki", Rt, pf - p_wi)
+    p_i, p_c, Rt = _camera_points(cam, R_wi, p_wi, pf)
     Rci = cam.R_imu_cam.T
-    p_c = (p_i - cam.p_imu_cam) @ Rci.T
-    uv, Jp = cam.project_jacobian(p_c)
+    uv, Jp = cam.project_jacobian(p_c, pixels)
     JR = Jp @ Rci
     H_pose = np.empty((len(pf), 2, 6))
     H_pose[:, :, 0:3] = JR @ skew(p_i)
@@ -648,12 +667,14 @@ class MsckfEstimator:
         )
         Cf = C.reshape(-1)
         pf_rep = np.repeat(pts, M, axis=0)
-        uv_hat, H_pose, H_f, p_c = feature_jacobians(cam, Rc[Cf], pc[Cf], pf_rep)
         if self.state.use_fej:  # residual at the current clone estimates, Jacobians at the first estimates
+            uv_hat, p_c = predict_pixels(cam, Rc[Cf], pc[Cf], pf_rep)
             fej = [self.state.fej(n) for n in names]
             Rf = np.stack([c.R for c in fej])
             pff = np.stack([c.p for c in fej])
-            _, H_pose, H_f, _ = feature_jacobians(cam, Rf[Cf], pff[Cf], pf_rep)
+            _, H_pose, H_f, _ = feature_jacobians(cam, Rf[Cf], pff[Cf], pf_rep, pixels=False)
+        else:
+            uv_hat, H_pose, H_f, p_c = feature_jacobians(cam, Rc[Cf], pc[Cf], pf_rep)
         vflat = valid.reshape(-1)
         depth_ok = ((p_c[:, 2] > cfg.min_depth) & (p_c[:, 2] < cfg.max_depth)) | ~vflat
         good = ok & np.isfinite(pts).all(axis=1) & depth_ok.reshape(nf, M).all(axis=1)
