@@ -135,7 +135,7 @@ def table1_report(folders: list[Path], out_dir: Path) -> str:
         _, table = table1_beside_paper(g)
         cells[prior] = table
         diff = skf_vs_ekf(g)
-        drift = (
+        drift = f"{g['seed'].n_unique()} seeds. " + (
             f"VIO over the initialisation window: own position σ {g['vio_sigma_m'].mean():.3f} m, actual RMSE "
             f"{g['vio_rmse_m'].mean():.3f} m (per axis, mean over seeds)."
             if "vio_sigma_m" in g.columns

@@ -178,7 +178,7 @@ def test_report_from_experiment_folders(tmp_path, capsys):
     assert "### prior = fixed" in md and "### prior = tuned" in md
     assert "--param vio_noise_scale=5.0" in md and "12 s wall" in md
     assert "0.379" in md and "0.271" in md  # the paper's numbers beside ours
-    assert "own position σ 0.050 m, actual RMSE 0.070 m" in md
+    assert "5 seeds. VIO over the initialisation window: own position σ 0.050 m, actual RMSE 0.070 m" in md
     assert re.search(r"\| σ_I=0.3, σ_U=1 +\| SKF better anchors +\|.*\| yes +\|", md)
     dmd = (out / "ri_vs_lsi_drift.md").read_text()
     assert "RI pays" in dmd and "from k = 4" in dmd
