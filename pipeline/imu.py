@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 
-from .core.geometry import exp_jr_so3, skew
+from .core.geometry import I3, exp_jr_so3, skew
 from .state import ImuState
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -155,7 +155,7 @@ def propagate(
     Phi[0:3, 0:3] = R[-1].T @ x0.R
     Phi[6:9, 0:3] = -skew(v[-1] - x0.v - GRAVITY * T) @ x0.R
     Phi[3:6, 0:3] = -skew(p[-1] - x0.p - x0.v * T - 0.5 * GRAVITY * T * T) @ x0.R
-    Phi[3:6, 6:9] = T * np.eye(3)
+    Phi[3:6, 6:9] = T * I3
 
     # -- bias columns --------------------------------------------------------------------------------------------
     Jr, Jrh = Jboth[:n], Jboth[n:]
@@ -198,8 +198,8 @@ def propagate(
     Q[0:9, 0:9] = np.einsum("kij,klj,k->il", Gg, Gg, noise.sigma_g**2 / deff) + np.einsum(
         "kij,klj,k->il", Ga, Ga, noise.sigma_a**2 / deff
     )
-    Q[9:12, 9:12] = noise.sigma_bg**2 * T * np.eye(3)
-    Q[12:15, 12:15] = noise.sigma_ba**2 * T * np.eye(3)
+    Q[9:12, 9:12] = noise.sigma_bg**2 * T * I3
+    Q[12:15, 12:15] = noise.sigma_ba**2 * T * I3
     return Propagation(x1, Phi, Q)
 
 
@@ -220,15 +220,15 @@ def propagate_static(x: ImuState, T: float, noise: ImuNoise, x_fej: ImuState | N
     Phi[0:3, 0:3] = x1.R.T @ x0.R
     Phi[6:9, 0:3] = -skew(x1.v - x0.v) @ x0.R
     Phi[3:6, 0:3] = -skew(x1.p - x0.p - x0.v * T) @ x0.R
-    Phi[3:6, 6:9] = T * np.eye(3)
+    Phi[3:6, 6:9] = T * I3
     Q = np.zeros((15, 15))
     qa = noise.sigma_a**2
     Q[0:3, 0:3] = noise.sigma_g**2 * T * np.eye(3)
     Q[3:6, 3:6] = qa * T**3 / 3.0 * np.eye(3)
     Q[3:6, 6:9] = Q[6:9, 3:6] = qa * T**2 / 2.0 * np.eye(3)
     Q[6:9, 6:9] = qa * T * np.eye(3)
-    Q[9:12, 9:12] = noise.sigma_bg**2 * T * np.eye(3)
-    Q[12:15, 12:15] = noise.sigma_ba**2 * T * np.eye(3)
+    Q[9:12, 9:12] = noise.sigma_bg**2 * T * I3
+    Q[12:15, 12:15] = noise.sigma_ba**2 * T * I3
     return Propagation(x1, Phi, Q)
 
 

@@ -13,6 +13,8 @@ import math
 import numpy as np
 
 _EPS = 1e-10
+I3 = np.eye(3)  # read-only: the hot paths add it, never change it (np.eye costs a call each time)
+I3.flags.writeable = False
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -99,7 +101,7 @@ def exp_jr_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     th = np.where(small_e, 1.0, theta)
     sin, cos = np.sin(th), np.cos(th)
     one_m_cos = 1.0 - cos
-    eye = np.eye(3)
+    eye = I3
     a = np.where(small_e, 1.0 - t2 / 6.0, sin / th)
     b = np.where(small_e, 0.5 - t2 / 24.0, one_m_cos / th**2)
     R = eye + a * K + b * KK
