@@ -360,6 +360,7 @@ def search_window(
         min_ranges=max(config.min_ranges, 30),
         max_sigma_horizontal=config.max_sigma_horizontal_m,
         gamma_prior=config.gamma_prior(calibration),
+        beta_prior=config.init_beta_prior(calibration),
     )
 
 
