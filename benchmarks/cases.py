@@ -34,6 +34,19 @@ def _calibration(work: Path, quick: bool) -> tuple[float | None, dict]:
     return None, {}
 
 
+def _calibration_x2(work: Path, quick: bool) -> tuple[float | None, dict]:
+    """The calibration workload in two processes at once: the machine's own ceiling for two jobs (ratio to
+    ``calibration`` 1.0 = two independent cores; a ``--jobs 2`` speed-up cannot exceed 2 / this ratio)."""
+    import multiprocessing as mp
+
+    procs = [mp.get_context("fork").Process(target=_calibration, args=(work, quick)) for _ in range(2)]
+    for proc in procs:
+        proc.start()
+    for proc in procs:
+        proc.join()
+    return None, {}
+
+
 def _simulate_mh01(work: Path, quick: bool) -> tuple[float | None, dict]:
     from convert.simulator import SimConfig, simulate_to_file
 
@@ -147,6 +160,9 @@ def _growth(anchors: int, length: float):
 
 CASES: dict[str, Case] = {
     "calibration": Case(_calibration, None, "fixed numpy/Python workload (machine yardstick)"),
+    "calibration_x2": Case(
+        _calibration_x2, "calibration", "the yardstick twice at once (ratio: 1.0 = two free cores)"
+    ),
     "simulate_mh01": Case(_simulate_mh01, "calibration", "simulate the 182 s of MH_01_easy"),
     "convert_bag": Case(_convert_bag, None, "ROS1 bag -> MCAP beside rosbags-convert (ratio in extra)"),
     "vio_mh01": Case(_vio_mh01, "calibration", "MSCKF VIO on simulated MH_01_easy"),

@@ -83,6 +83,14 @@ def _run_in_child(name: str, quick: bool, tree: Path | None = None) -> BenchResu
     )
 
 
+def _cases_of(tree: Path) -> set[str]:
+    """The case names another checkout's ``benchmarks/cases.py`` registers (an older tree may lack new ones)."""
+    import re
+
+    text = (tree / "benchmarks" / "cases.py").read_text()
+    return set(re.findall(r'^\s+"(\w+)": Case\(', text, flags=re.M))
+
+
 def _check_tree(tree: Path) -> Path:
     from pipeline.core.errors import InputError
 
@@ -110,8 +118,9 @@ def run_benchmarks(
             needed.append(b)
     results: dict[str, BenchResult] = {}
     other: dict[str, BenchResult] = {}
+    other_cases = _cases_of(other_tree) if other_tree is not None else set()
     for n in needed + names:
-        if other_tree is not None:  # alternate the trees so that load changes hit both alike
+        if n in other_cases:  # alternate the trees so that load changes hit both alike
             other[n] = _run_in_child(n, quick, other_tree)
         results[n] = _run_in_child(n, quick)
     for r in results.values():
@@ -139,7 +148,10 @@ def run_benchmarks(
             f"{'case':<28} {'this s':>8} {'other s':>8} {'speed-up':>9} {'cpu speed-up':>13}  other's note"
         )
         for n, r in results.items():
-            o = other[n]
+            o = other.get(n)
+            if o is None:
+                lines.append(f"{n:<28} (not a case of {other_tree.name})")
+                continue
             if not (r.ok and o.ok):
                 lines.append(f"{n:<28} FAILED: {(r.error if not r.ok else o.error)}")
                 continue

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import mcap.writer
 import numpy as np
 import zstandard
 from mcap.data_stream import ReadDataStream
@@ -29,7 +28,6 @@ from mcap.reader import make_reader
 from mcap.records import Channel as McapChannel
 from mcap.records import Metadata as McapMetadata
 from mcap.records import Schema as McapSchema
-from mcap.writer import CompressionType, Writer
 
 from pipeline.core.atomic import discard, finish, prepare_output_file, temp_path
 from pipeline.core.errors import InputError
@@ -47,6 +45,7 @@ from pipeline.core.topics import (  # noqa: F401  (re-exported: the recording fo
 )
 
 from . import msgs
+from .mcap_chunks import PipelinedWriter
 
 META_CALIBRATION = "uwbcal.calibration"
 META_SOURCE = "uwbcal.source"
@@ -100,30 +99,6 @@ def schema_mismatches(topics: dict[str, TopicInfo]) -> dict[str, str]:
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _CHUNK_SIZE = 4 * 1024 * 1024
-ZSTD_LEVEL = 1
-
-
-class _ZstdLevel:
-    """Stands in for the ``zstandard`` module inside ``mcap.writer``, whose chunks are compressed with the
-    module-level ``zstandard.compress`` at level 3 (~80 MB/s on camera images). Level 1 keeps 96-99 % of the
-    compression ratio at ~3.5x the speed (measured on EuRoC and synthetic frames), so that converting a bag runs
-    at I/O speed. Only ``compress`` is used by the writer; anything else is the real module's."""
-
-    def __init__(self, module, level: int) -> None:
-        self._module = module
-        self._level = level
-
-    def compress(self, data: bytes) -> bytes:
-        # a compressor per chunk: ZstdCompressor objects must not be shared between threads
-        return self._module.ZstdCompressor(level=self._level).compress(data)
-
-    def __getattr__(self, name: str):
-        return getattr(self._module, name)
-
-
-if getattr(mcap.writer, "zstandard", None) is zstandard:
-    mcap.writer.zstandard = _ZstdLevel(zstandard, ZSTD_LEVEL)
-
 OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = 0x03, 0x04, 0x05, 0x06, 0x07
 OP_METADATA, OP_DATA_END, OP_FOOTER, OP_HEADER = 0x0C, 0x0F, 0x02, 0x01
 _REC_HEAD = struct.Struct("<BQ")
@@ -159,7 +134,7 @@ class RecordingWriter:
         self.path = prepare_output_file(path)
         self._tmp = temp_path(self.path)
         self._file = open(self._tmp, "xb")  # noqa: SIM115 (closed in close/abort)
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer = PipelinedWriter(self._file, chunk_size=chunk_size)
         self._writer.start(profile="ros2", library="uwbcal")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, tuple[int, str]] = {}
@@ -437,6 +412,7 @@ class RecordingWriter:
             return
         self._closed = True
         try:
+            self._writer.abort()
             self._file.close()
         finally:
             discard(self._tmp)

@@ -10,7 +10,7 @@ else the chosen initialiser's ``cov`` in ``init.json``) and ``uwbcal.truth``. Pr
   ``reason`` and no estimate or error.
 - ``anchor_truth``: ``kind``, ``reference``, ``n_truth``, ``n_estimated``, ``error_3d_m`` / ``error_horizontal_m``
   ``{mean, max}``, ``inter_anchor_distance_error_m`` ``{pairs, mean_abs, max_abs, per_pair}`` (frame-free),
-  ``not_determined`` ``{id: reason}``, ``missing`` (truth anchors the run neither estimated nor declared).
+  ``not_determined`` (the ids; each reason is in ``anchors[<id>].reason``, stated once), ``missing`` (truth anchors the run neither estimated nor declared).
 - ``nees_anchor_position``: ANEES of the anchor positions over the anchors with a covariance, with the χ² bounds
   of a mean of that many 3-dof values (``consistency.chi2_bounds(n, 3)``).
 When the truth is not in the run's frame (``anchors_frame`` not odometry/world), only the frame-free distances
@@ -216,9 +216,7 @@ def anchor_metrics(run: RunAnchors, ref: AnchorReference | None) -> tuple[dict, 
         "reference": ref.label,
         "n_truth": len(truth),
         "n_estimated": sum(a in truth for a in run.estimates),
-        "not_determined": {
-            a: u["reason"] for a, u in sorted(run.undetermined.items(), key=lambda kv: _key(kv[0]))
-        },
+        "not_determined": sorted(run.undetermined, key=_key),
         "missing": sorted(set(truth) - set(run.estimates) - set(run.undetermined), key=_key),
     }
     dist = inter_anchor_distance_errors(run.estimates, truth)

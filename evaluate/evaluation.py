@@ -227,7 +227,8 @@ def render_metrics(metrics: dict, fmt: str = "md") -> str:
             f"inter-anchor distance error (frame-free, {d['pairs']} pairs): mean |e| {d['mean_abs']:.3f} m, "
             f"max |e| {d['max_abs']:.3f} m"
         )
-    for aid, reason in at.get("not_determined", {}).items():
+    for aid in at.get("not_determined", []):
+        reason = metrics.get("anchors", {}).get(aid, {}).get("reason", "")
         lines.append(f"anchor {aid} not determined: {reason}")
     for key in ("nees_pose", "nees_anchor", "nees_anchor_position"):
         if key in metrics and "mean" in metrics[key]:

@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 
-from .core.geometry import exp_so3, jr_so3, skew
+from .core.geometry import I3, exp_jr_so3, skew
 from .state import ImuState
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
@@ -132,7 +132,8 @@ def propagate(
     a = acc - x.ba
     wdt = w * dt[:, None]
     wboth = np.concatenate([wdt, 0.5 * wdt])  # full and half steps in one call each (numpy overhead)
-    dR, dRh = np.split(exp_so3(wboth), 2)
+    Eboth, Jboth = exp_jr_so3(wboth)  # rotations and right Jacobians of the full and half steps
+    dR, dRh = Eboth[:n], Eboth[n:]
     R = np.empty((n + 1, 3, 3))
     R[0] = x.R
     for k in range(n):
@@ -154,22 +155,24 @@ def propagate(
     Phi[0:3, 0:3] = R[-1].T @ x0.R
     Phi[6:9, 0:3] = -skew(v[-1] - x0.v - GRAVITY * T) @ x0.R
     Phi[3:6, 0:3] = -skew(p[-1] - x0.p - x0.v * T - 0.5 * GRAVITY * T * T) @ x0.R
-    Phi[3:6, 6:9] = T * np.eye(3)
+    Phi[3:6, 6:9] = T * I3
 
     # -- bias columns --------------------------------------------------------------------------------------------
-    Jr, Jrh = np.split(jr_so3(wboth), 2)
+    Jr, Jrh = Jboth[:n], Jboth[n:]
     C = np.zeros((n + 1, 3, 3))
     C[1:] = np.cumsum(R[1:] @ Jr * dt[:, None, None], axis=0)
     A = -np.swapaxes(R, 1, 2) @ C  # d dtheta_k / d bg (body frame of R_k)
     Amid = np.swapaxes(dRh, 1, 2) @ A[:-1] - Jrh * (0.5 * dt)[:, None, None]
     skew_a = skew(a)
     E = -(Rm @ skew_a @ Amid) * dt[:, None, None]  # d dv_k / d bg
-    Vb = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(E, axis=0)[:-1]])
+    Vb = np.zeros((n, 3, 3))
+    Vb[1:] = np.cumsum(E, axis=0)[:-1]
     Phi[0:3, 9:12] = A[-1]
     Phi[6:9, 9:12] = E.sum(axis=0)
     Phi[3:6, 9:12] = (Vb * dt[:, None, None] + 0.5 * E * dt[:, None, None]).sum(axis=0)
     Ea = -Rm * dt[:, None, None]  # d dv_k / d ba
-    Va = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(Ea, axis=0)[:-1]])
+    Va = np.zeros((n, 3, 3))
+    Va[1:] = np.cumsum(Ea, axis=0)[:-1]
     Phi[6:9, 12:15] = Ea.sum(axis=0)
     Phi[3:6, 12:15] = (Va * dt[:, None, None] + 0.5 * Ea * dt[:, None, None]).sum(axis=0)
 
@@ -195,8 +198,8 @@ def propagate(
     Q[0:9, 0:9] = np.einsum("kij,klj,k->il", Gg, Gg, noise.sigma_g**2 / deff) + np.einsum(
         "kij,klj,k->il", Ga, Ga, noise.sigma_a**2 / deff
     )
-    Q[9:12, 9:12] = noise.sigma_bg**2 * T * np.eye(3)
-    Q[12:15, 12:15] = noise.sigma_ba**2 * T * np.eye(3)
+    Q[9:12, 9:12] = noise.sigma_bg**2 * T * I3
+    Q[12:15, 12:15] = noise.sigma_ba**2 * T * I3
     return Propagation(x1, Phi, Q)
 
 
@@ -217,15 +220,15 @@ def propagate_static(x: ImuState, T: float, noise: ImuNoise, x_fej: ImuState | N
     Phi[0:3, 0:3] = x1.R.T @ x0.R
     Phi[6:9, 0:3] = -skew(x1.v - x0.v) @ x0.R
     Phi[3:6, 0:3] = -skew(x1.p - x0.p - x0.v * T) @ x0.R
-    Phi[3:6, 6:9] = T * np.eye(3)
+    Phi[3:6, 6:9] = T * I3
     Q = np.zeros((15, 15))
     qa = noise.sigma_a**2
     Q[0:3, 0:3] = noise.sigma_g**2 * T * np.eye(3)
     Q[3:6, 3:6] = qa * T**3 / 3.0 * np.eye(3)
     Q[3:6, 6:9] = Q[6:9, 3:6] = qa * T**2 / 2.0 * np.eye(3)
     Q[6:9, 6:9] = qa * T * np.eye(3)
-    Q[9:12, 9:12] = noise.sigma_bg**2 * T * np.eye(3)
-    Q[12:15, 12:15] = noise.sigma_ba**2 * T * np.eye(3)
+    Q[9:12, 9:12] = noise.sigma_bg**2 * T * I3
+    Q[12:15, 12:15] = noise.sigma_ba**2 * T * I3
     return Propagation(x1, Phi, Q)
 
 

@@ -32,7 +32,7 @@ from scipy.linalg.lapack import dpstrf
 from pipeline.core.errors import InputError
 
 from .camera import Camera
-from .core.geometry import quat_slerp, quat_to_rot, skew
+from .core.geometry import I3, quat_slerp, quat_to_rot, skew
 from .core.topics import TOPIC_FEATURES, TOPIC_GT_IMU_BIAS, TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE
 from .estimator import RangeHandler, RangeMeasurement, Span, TrajectoryRecord
 from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
@@ -188,15 +188,15 @@ def triangulate(
     pw = p_wc[C]
     b = np.einsum("fmij,fmj->fmi", Rw, np.concatenate([xy, np.ones((F, M, 1))], axis=-1))
     b /= np.linalg.norm(b, axis=-1, keepdims=True)
-    A = (np.eye(3) - b[..., :, None] * b[..., None, :]) * wv
+    A = (I3 - b[..., :, None] * b[..., None, :]) * wv
     As = A.sum(axis=1)
     rhs = np.einsum("fmij,fmj->fi", A, pw)
     ev = np.linalg.eigvalsh(As)
     ok = ev[:, 0] > max(1e-7, min_parallax_rad**2) * np.maximum(ev[:, 2], 1e-12)
-    As[~ok] = np.eye(3)
+    As[~ok] = I3
     pf = np.linalg.solve(As, rhs[..., None])[..., 0]
     Rcw = np.swapaxes(Rw, -1, -2)
-    eye_eps = 1e-9 * np.eye(3)
+    eye_eps = 1e-9 * I3
     for _ in range(iterations):
         pc = np.einsum("fmij,fmj->fmi", Rcw, pf[:, None, :] - pw)
         z = pc[..., 2]
@@ -207,10 +207,10 @@ def triangulate(
         J = (Rcw[..., :2, :] - nrm[..., None] * Rcw[..., 2:3, :]) * (wv[..., 0, 0] / zs)[..., None, None]
         J2 = J.reshape(F, 2 * M, 3)
         Hn = np.swapaxes(J2, 1, 2) @ J2
-        Hn += (1e-9 * np.trace(Hn, axis1=1, axis2=2))[:, None, None] * np.eye(3) + eye_eps
+        Hn += (1e-9 * np.trace(Hn, axis1=1, axis2=2))[:, None, None] * I3 + eye_eps
         g = (np.swapaxes(J2, 1, 2) @ r.reshape(F, 2 * M, 1))[..., 0]
         bad = ~(ok & np.isfinite(Hn).all(axis=(1, 2)) & np.isfinite(g).all(axis=1))
-        Hn[bad] = np.eye(3)
+        Hn[bad] = I3
         g[bad] = 0.0
         try:
             step = np.linalg.solve(Hn, g[..., None])[..., 0]
@@ -245,23 +245,42 @@ def compress_normal(H: np.ndarray, r: np.ndarray, rel_tol: float = 1e-12) -> tup
     return Hc, rc
 
 
+def _camera_points(
+    cam: Camera, R_wi: np.ndarray, p_wi: np.ndarray, pf: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """IMU-frame and camera-frame points (K, 3) of world points ``pf`` seen from IMU poses ``R_wi, p_wi``, and
+    ``R_wi^T``."""
+    Rt = np.swapaxes(R_wi, 1, 2)
+    p_i = np.einsum("kij,kj->ki", Rt, pf - p_wi)
+    p_c = (p_i - cam.p_imu_cam) @ cam.R_imu_cam
+    return p_i, p_c, Rt
+
+
+def predict_pixels(
+    cam: Camera, R_wi: np.ndarray, p_wi: np.ndarray, pf: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel prediction (K, 2) and camera-frame points (K, 3): `feature_jacobians` without the Jacobians (the
+    residual at the current estimates when the Jacobians are taken at the first estimates)."""
+    p_c = _camera_points(cam, R_wi, p_wi, pf)[1]
+    return cam.project(p_c), p_c
+
+
 def feature_jacobians(
     cam: Camera,
     R_wi: np.ndarray,
     p_wi: np.ndarray,
     pf: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    pixels: bool = True,
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray]:
     """Pixel prediction and Jacobians of one observation per row.
 
     ``R_wi, p_wi`` (K, 3, 3)/(K, 3): the clone (IMU) pose of each observation; ``pf`` (K, 3): the feature in the
-    world. Returns ``uv`` (K, 2), ``H_pose`` (K, 2, 6) wrt the clone error [dtheta, dp] (right perturbation),
-    ``H_f`` (K, 2, 3) wrt the feature, and the camera-frame points (K, 3).
+    world. Returns ``uv`` (K, 2; None with ``pixels=False``), ``H_pose`` (K, 2, 6) wrt the clone error
+    [dtheta, dp] (right perturbation), ``H_f`` (K, 2, 3) wrt the feature, and the camera-frame points (K, 3).
     """
-    Rt = np.swapaxes(R_wi, 1, 2)
-    p_i = np.einsum("kij,kj->ki", Rt, pf - p_wi)
+    p_i, p_c, Rt = _camera_points(cam, R_wi, p_wi, pf)
     Rci = cam.R_imu_cam.T
-    p_c = (p_i - cam.p_imu_cam) @ Rci.T
-    uv, Jp = cam.project_jacobian(p_c)
+    uv, Jp = cam.project_jacobian(p_c, pixels)
     JR = Jp @ Rci
     H_pose = np.empty((len(pf), 2, 6))
     H_pose[:, :, 0:3] = JR @ skew(p_i)
@@ -648,12 +667,14 @@ class MsckfEstimator:
         )
         Cf = C.reshape(-1)
         pf_rep = np.repeat(pts, M, axis=0)
-        uv_hat, H_pose, H_f, p_c = feature_jacobians(cam, Rc[Cf], pc[Cf], pf_rep)
         if self.state.use_fej:  # residual at the current clone estimates, Jacobians at the first estimates
+            uv_hat, p_c = predict_pixels(cam, Rc[Cf], pc[Cf], pf_rep)
             fej = [self.state.fej(n) for n in names]
             Rf = np.stack([c.R for c in fej])
             pff = np.stack([c.p for c in fej])
-            _, H_pose, H_f, _ = feature_jacobians(cam, Rf[Cf], pff[Cf], pf_rep)
+            _, H_pose, H_f, _ = feature_jacobians(cam, Rf[Cf], pff[Cf], pf_rep, pixels=False)
+        else:
+            uv_hat, H_pose, H_f, p_c = feature_jacobians(cam, Rc[Cf], pc[Cf], pf_rep)
         vflat = valid.reshape(-1)
         depth_ok = ((p_c[:, 2] > cfg.min_depth) & (p_c[:, 2] < cfg.max_depth)) | ~vflat
         good = ok & np.isfinite(pts).all(axis=1) & depth_ok.reshape(nf, M).all(axis=1)
@@ -671,7 +692,7 @@ class MsckfEstimator:
         Hp = (H_pose * w[:, :, None]).reshape(nf, M, 2, 6)[good]
         Ho, ro = nullspace_project(Hf, Hp, C[good], nc, r, valid[good])
         Sidx = np.concatenate([np.arange(self.state.slice(n).start, self.state.slice(n).stop) for n in names])
-        Pcc = self.state.P[np.ix_(Sidx, Sidx)]
+        Pcc = self.state.P[Sidx][:, Sidx]  # rows first: a row gather is a copy of rows
         HoP = (Ho.reshape(-1, 6 * nc) @ Pcc).reshape(Ho.shape)  # one GEMM instead of k small ones
         S = HoP @ np.swapaxes(Ho, 1, 2) + np.eye(2 * M - 3)
         nis = np.einsum("ki,ki->k", ro, np.linalg.solve(S, ro[..., None])[..., 0])

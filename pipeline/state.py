@@ -121,6 +121,7 @@ class Kind(enum.Enum):
     CLONE = "clone"  # MSCKF stochastic clone of the pose at a camera frame (key: t_ns)
     PROBE = "probe"  # considered pose of the initialisation window (key: t_ns)
     ANCHOR = "anchor"  # UWB anchor [p_a, beta, gamma] (key: anchor id)
+    LINK = "link"  # per-link range offsets of an anchor [delta_l, ...] relative to its gamma (key: anchor id)
     OTHER = "other"
 
 
@@ -422,9 +423,12 @@ class State:
         self._free = []
 
     def boxplus(self, dx: np.ndarray, names: Iterable[str] | None = None) -> None:
+        considered = self.considered
         for n in names if names is not None else self._names:
+            if n in considered:  # Schmidt (considered) variables get exactly zero corrections
+                continue
             sl = self._slices[n]
-            if dx[sl].any():  # Schmidt (considered) variables get exactly zero corrections
+            if dx[sl].any():
                 self._values[n] = self._values[n].boxplus(dx[sl])
 
 
@@ -600,18 +604,25 @@ def ekf_update(
         return _result(nis, m, gate, rows)
     # Schmidt: only the estimated rows e of K are non-zero, so only rows and columns e of P change
     # (P_ee - (KHP)_ee - (KHP)_ee^T + K_e S K_e^T, P_ec - (KHP)_ec); the considered block stays as it is.
+    # With A = K_e (H P) and B = K_e S K_e^T, the rows e of P' = P - A - A^T + B, symmetrised, are
+    # F = 0.5 (P_e: - A + (P_:e)^T - A) off the block ee and 0.5 (X + X^T), X = P_ee - A_ee - A_ee^T + B, on it
+    # (P is symmetric only up to rounding, so both of its halves enter); one gather and one scatter of the
+    # columns e.
     mask = np.ones(n, bool)
     mask[state.index(schmidt)] = False
     e = np.flatnonzero(mask)
     K_e = cho_solve((cho, True), PHt[e].T, check_finite=False).T
-    KHP = K_e @ PHt.T  # (n_e, n)
+    A = K_e @ PHt.T  # (n_e, n)
     P = state.P
-    P[e, :] -= KHP
-    P[:, e] -= KHP.T
-    P[np.ix_(e, e)] += K_e @ S @ K_e.T
-    Pe = P[e, :]
-    P[e, :] = 0.5 * (Pe + P[:, e].T)
-    P[:, e] = P[e, :].T
+    Fr = P[e, :]
+    Fr -= A
+    F = P[:, e].T - A
+    F += Fr
+    F *= 0.5
+    X = Fr[:, e] - A[:, e].T + K_e @ S @ K_e.T
+    F[:, e] = 0.5 * (X + X.T)
+    P[e, :] = F
+    P[:, e] = F.T
     dx = np.zeros(n)
     dx[e] = K_e @ r
     state.boxplus(dx)

@@ -46,6 +46,16 @@ def anchor_var(anchor: Any) -> str:
     return f"anchor/{anchor}"
 
 
+def link_var(anchor: Any) -> str:
+    """The per-link offsets of an anchor (`Kind.LINK`, one entry per link of ``InitResult.link_offsets``)."""
+    return f"links/{anchor}"
+
+
+def link_columns(links: Sequence[int]) -> dict[int, int]:
+    """link id -> entry of an anchor's offset variable (the order of ``InitResult.link_offsets``)."""
+    return {int(lk): i for i, lk in enumerate(links)}
+
+
 class UwbConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -105,7 +115,7 @@ class UwbConfig(BaseModel):
     bias: Literal["auto", "per-anchor", "per-link"] = Field(
         "auto",
         description="range offset model: per-anchor (one gamma) or per-link (gamma + an offset per (tag, antenna) "
-        "link, estimated at init, fixed after); auto: per-link when an anchor is ranged over several links and "
+        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links and "
         "their offsets differ beyond their uncertainty",
     )
     lever_arms: Literal["auto", "given", "planar"] = Field(
@@ -385,8 +395,14 @@ def anchor_init_covariance(
     gamma_prior: tuple[float, float] | None,
     beta_prior: tuple[float, float],
     pose_var: str | None = None,
+    links: str | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """(J, Q) such that x~_U = sum_v J[v] e_v + n, n ~ N(0, Q) independent of the filter state.
+
+    ``links``: the name of the anchor's per-link offset variable when the window's ranges were corrected by
+    estimated offsets (``result.link_offsets``): their error delta~_l enters every range of link l like a
+    constant noise, x~_U = ... - sum_l (sum_(k in l) G^-1 H_Bk^T w_k) delta~_l, so J[links] holds that map and
+    the offsets' uncertainty reaches the anchor covariance and its cross-covariances.
 
     Stacked linearisation over the window (paper eqs. H_A, H_B): r = H_A X~ + H_B x~_U + n. At the optimum of the
     (weighted) least squares the normal equations give the estimator's error map
@@ -449,6 +465,13 @@ def anchor_init_covariance(
         Jd, cov = _random_walk_map(state, B, w, t_k, pose_var or state.nav)
     # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
     cov += result.noise_inflation * sigma_range**2 * (La.T @ La)
+    if links is not None and result.link_offsets:
+        col = link_columns(list(result.link_offsets))
+        li = np.array([col.get(int(lk), -1) for lk in w.links()])
+        S = np.zeros((5, len(col)))
+        for j in range(len(col)):
+            S[:, j] = La[li == j].sum(axis=0)
+        Jd = {**Jd, links: -S}
     if not est_beta:
         g_beta = np.zeros(5)
         g_beta[3] = 1.0
@@ -518,13 +541,24 @@ def add_anchor_to_state(
     beta_prior: tuple[float, float] = (1.0, 0.05),
     pose_var: str | None = None,
 ) -> None:
-    """Add ``anchor/<id>`` = result.x with covariance and cross-covariances (see `anchor_init_covariance`)."""
+    """Add ``anchor/<id>`` = result.x with covariance and cross-covariances (see `anchor_init_covariance`).
+
+    Per-link bias (``result.link_offsets`` with ``link_cov``): first ``links/<id>`` = the offsets with their
+    covariance (the search's, relative to their mean), then the anchor with its map from the offsets' error, so
+    the range updates estimate the offsets too (OpenVINS-style: one augment per variable, cross-covariances
+    from the Jacobians)."""
     if not result.ok:
         raise ValueError(f"anchor {anchor}: initialisation {result.status}; not added to the state")
     pose_var = pose_var or state.nav
     P_now = state.cov(pose_var)[0:6, 0:6]
     if not np.all(np.isfinite(P_now)):
         raise FloatingPointError(f"anchor {anchor}: the filter's pose covariance has NaN/inf")
+    links = None
+    if result.link_offsets and result.link_cov is not None:
+        links = link_var(anchor)
+        offsets = np.array(list(result.link_offsets.values()), float)
+        Q_links = _psd(np.asarray(result.link_cov, float))
+        state.augment(links, Vec(offsets), {}, Q=Q_links, kind=Kind.LINK, key=anchor)
     J, Q = anchor_init_covariance(
         result,
         state,
@@ -532,6 +566,7 @@ def add_anchor_to_state(
         gamma_prior=gamma_prior,
         beta_prior=beta_prior,
         pose_var=pose_var,
+        links=links,
     )
     if not result.verdict.get("height_observable", True):
         # unobservable height: independent of everything, with the init's honest sigma (the range updates
@@ -624,8 +659,11 @@ class UwbUpdater:
         self.robust = robust
         self.records: dict[Any, AnchorRecord] = {}
         self.counts = {"accepted": 0, "rejected": 0, "skipped": 0, "recorded": 0}
-        # per-link bias: anchor -> {link id: offset relative to the anchor's gamma}, subtracted from the range
+        # per-link bias: anchor -> {link id: offset relative to the anchor's gamma}, subtracted from the range;
+        # while the anchor's offsets are a state variable (links/<id>, refinement) its current estimate is used
+        # and the update estimates it (column link_cols[anchor][link])
         self.link_offsets: dict[Any, dict[int, float]] = {}
+        self.link_cols: dict[Any, dict[int, int]] = {}
         # per-anchor schedule: anchors that join the state at their first range at or after result.join_ns
         self.pending: dict[Any, InitResult] = {}
         self.join_kw: dict = {}
@@ -670,6 +708,36 @@ class UwbUpdater:
             a for a, r in results.items() if r.ok and not r.verdict.get("height_observable", True)
         }
         self.link_offsets = {a: r.link_offsets for a, r in results.items() if r.ok and r.link_offsets}
+        self.link_cols = {a: link_columns(list(off)) for a, off in self.link_offsets.items()}
+
+    def _offset(self, state: State, meas: RangeMeasurement) -> tuple[float, str | None, int]:
+        """(offset of the range's link, its state variable or None, its column): the state's estimate while
+        the offsets are in the state (not in localisation, where they are constants), else the fixed table."""
+        lk = int(meas.tag) * 256 + int(meas.antenna)
+        if self.mode != "frozen":
+            name = link_var(meas.anchor)
+            col = self.link_cols.get(meas.anchor, {}).get(lk)
+            if col is not None and name in state:
+                return float(state.value(name).x[col]), name, col
+        return self.link_offsets.get(meas.anchor, {}).get(lk, 0.0), None, -1
+
+    def offsets(self, state: State) -> dict[Any, dict[int, float]]:
+        """The per-link offsets now: the state's estimates where they are variables, else the fixed table."""
+        out = {a: dict(off) for a, off in self.link_offsets.items()}
+        for a, cols in self.link_cols.items():
+            if link_var(a) in state:
+                x = state.value(link_var(a)).x
+                out[a] = {lk: float(x[c]) for lk, c in cols.items()}
+        return out
+
+    def offset_covariances(self, state: State) -> dict[Any, np.ndarray]:
+        """The covariance of each anchor's offset variable (in ``link_cols`` order)."""
+        return {a: state.cov(link_var(a)).copy() for a in self.link_cols if link_var(a) in state}
+
+    @staticmethod
+    def _estimated(state: State) -> list[str]:
+        """The variables range updates estimate: anchors and their per-link offsets."""
+        return [n for _, n in state.of_kind(Kind.ANCHOR)] + [n for _, n in state.of_kind(Kind.LINK)]
 
     def _arms(self, R: np.ndarray, rows: Sequence[RangeMeasurement]) -> np.ndarray:
         """p_T (k, 3) of the ranges ``rows`` at the attitude R: the calibration's, or the planar model's."""
@@ -714,8 +782,10 @@ class UwbUpdater:
         ) and (x_lin is x_cur or np.array_equal(x_lin, x_cur))
         h = J.h[0] if same else range_model(pose.R, pose.p, p_T, x_cur)[0]
         d = meas.distance
+        lvar, lcol = None, -1
         if self.link_offsets:
-            d -= self.link_offsets.get(meas.anchor, {}).get(int(meas.tag) * 256 + int(meas.antenna), 0.0)
+            off, lvar, lcol = self._offset(state, meas)
+            d -= off
         r = float(d - h)
         R0 = (self.sigma * x_cur[3]) ** 2
         R = self.inflation.get(meas.anchor, 1.0) * R0
@@ -727,9 +797,13 @@ class UwbUpdater:
         H_imu = np.zeros((1, state.dim(pose_var)))
         H_imu[:, 0:6] = J.H_I
         res: UpdateResult | None = None
+        H_link = {}
+        if lvar is not None and in_state:
+            H_link = {lvar: np.zeros((1, state.dim(lvar)))}
+            H_link[lvar][0, lcol] = 1.0
         if self.mode == "none":
             # record only: NIS of the would-be joint update
-            Hs = {pose_var: H_imu, **({name: J.H_U} if in_state else {})}
+            Hs = {pose_var: H_imu, **({name: J.H_U, **H_link} if in_state else {})}
             S = R
             for a, Ha in Hs.items():
                 for b, Hb in Hs.items():
@@ -738,14 +812,14 @@ class UwbUpdater:
             self.counts["recorded"] += 1
         else:
             options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
-            anchors = [n for _, n in state.of_kind(Kind.ANCHOR)]
+            anchors = self._estimated(state)
             if self.mode == "frozen":  # the anchors considered: the range corrects the pose only
                 res = ekf_update(state, {pose_var: H_imu}, np.array([r]), R, schmidt=anchors, **options)
             elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
-                H = {pose_var: H_imu, name: J.H_U}
+                H = {pose_var: H_imu, name: J.H_U, **H_link}
                 res = schmidt_update(state, H, np.array([r]), R, estimated=anchors, **options)
             else:
-                res = ekf_update(state, {pose_var: H_imu, name: J.H_U}, np.array([r]), R, **options)
+                res = ekf_update(state, {pose_var: H_imu, name: J.H_U, **H_link}, np.array([r]), R, **options)
             self.counts["accepted" if res.accepted else "rejected"] += 1
         rec = self.records.setdefault(meas.anchor, AnchorRecord())
         rec.t_ns.append(int(meas.t_ns))
@@ -797,13 +871,13 @@ class UwbUpdater:
         )
         h = J.h if same_pose and np.array_equal(X_lin, X_cur) else range_model(pose.R, pose.p, p_T, X_cur)
         d = np.array([m.distance for m in rows], float)
+        link_rows = []  # (row, variable, column) of the ranges whose link offset is a state variable
         if self.link_offsets:  # per-link bias: the link's offset relative to the anchor's gamma
-            d -= np.array(
-                [
-                    self.link_offsets.get(m.anchor, {}).get(int(m.tag) * 256 + int(m.antenna), 0.0)
-                    for m in rows
-                ]
-            )
+            for i, m in enumerate(rows):
+                off, lvar, lcol = self._offset(state, m)
+                d[i] -= off
+                if lvar is not None:
+                    link_rows.append((i, lvar, lcol))
         r = d - h
         sig = self.sigma * X_cur[:, 3]
         R0 = sig**2
@@ -813,7 +887,7 @@ class UwbUpdater:
         H_imu[:, 0:6] = J.H_I
         H: dict[str, np.ndarray] = {pose_var: H_imu}
         options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0, "per_row": True}
-        anchors = [n for _, n in state.of_kind(Kind.ANCHOR)]
+        anchors = self._estimated(state)
         if self.mode == "frozen":  # the anchors considered: the ranges correct the pose only
             res = ekf_update(state, H, r, R, schmidt=anchors, **options)
         else:
@@ -821,6 +895,8 @@ class UwbUpdater:
                 H.setdefault(name, np.zeros((k, 5)))[i] = J.H_U[i]
                 if rows[i].anchor in self.fixed_height:  # an unobservable height is left alone
                     H[name][i, 2] = 0.0
+            for i, lvar, lcol in link_rows:
+                H.setdefault(lvar, np.zeros((k, state.dim(lvar))))[i, lcol] = 1.0
             if self.mode == "skf":  # the navigation state considered: only the anchors are estimated
                 res = schmidt_update(state, H, r, R, estimated=anchors, **options)
             else:

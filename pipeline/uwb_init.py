@@ -98,6 +98,7 @@ class InitResult:
         default_factory=dict
     )  # observability verdict (height, mirror, reason) for the report
     link_offsets: dict = field(default_factory=dict)  # link id -> offset relative to gamma (per-link bias)
+    link_cov: np.ndarray | None = None  # (L, L) covariance of the offsets (in link_offsets' order; sum-zero)
     join_ns: int | None = None  # when the anchor joins the refinement (per-anchor schedule)
 
     @property
@@ -387,6 +388,7 @@ def initialize_anchor(
 
     verdict: dict = {}
     link_offsets: dict = {}
+    link_cov = None
     if search is not None:
         verdict = search_verdict(search)
         if not search.ok:
@@ -408,6 +410,8 @@ def initialize_anchor(
         if per_link and len(search.links) > 1:
             off = search.gamma - float(np.mean(search.gamma))
             link_offsets = {int(lk): float(o) for lk, o in zip(search.links, off, strict=True)}
+            T = np.eye(len(off)) - 1.0 / len(off)  # offsets relative to their mean: sum-zero
+            link_cov = T @ np.asarray(search.cov, float)[3:, 3:] @ T
             corr = np.array([link_offsets.get(int(lk), 0.0) for lk in w.links()])
             w = InitWindow(w.d - corr, w.p_T, w.R, w.p, w.P_pose, w.t_ns, w.link)
         n_perturbed = 0
@@ -510,6 +514,7 @@ def initialize_anchor(
         noise_inflation=kappa,
         verdict=verdict,
         link_offsets=link_offsets,
+        link_cov=link_cov,
     )
     height_free = search is not None and not search.height_observable
     fim = assess_observability(

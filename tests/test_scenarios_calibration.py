@@ -71,3 +71,48 @@ def test_anchors_right_or_not_determined(tmp_path, name):
             continue
         assert v["error_horizontal_m"] < 1.0, (a, v["error_horizontal_m"])
     assert m["anchor_truth"]["error_horizontal_m"]["mean"] < 0.5
+
+
+def _join_nees(tmp_path, name, seed, **kw):
+    """Anchor position NEES of every anchor at the moment it joins the filter (`add_initialised_anchors`: the
+    initialiser's estimate with the covariance and cross-covariances the refinement starts from), plus the
+    metrics of the plain run."""
+    from pipeline.uwb_filter import add_initialised_anchors, anchor_var
+
+    d = tmp_path / f"{name}{seed}"
+    d.mkdir()
+    rec = d / "r.mcap"
+    scenario_to_file(name, rec, seed=seed, **kw)
+    pipe = Pipeline(
+        load_config(None, {"run": {"recording": str(rec), "log": False}}), d / "run", evaluate_stage
+    )
+    pipe.run(progress=lambda *_: None)
+    cfg, cal = pipe.config, pipe.ctx.reader.calibration
+    truth = pipe.ctx.reader.truth["anchors"]
+    results = pipe.dir.load_pickle("init.pkl", "init")[cfg.uwb.init_method]
+    est = pipe.dir.load_pickle("checkpoint_init.pkl", "init")
+    now = {a: r for a, r in results.items() if r.ok and r.join_ns is None}
+    add_initialised_anchors(est.state, now, cfg.uwb, cal)
+    vals = []
+    for a, r in now.items():
+        e = r.x[:3] - np.asarray(truth[str(a)]["position"], float)
+        vals.append(float(e @ np.linalg.solve(est.state.cov(anchor_var(a))[:3, :3], e)))
+    return vals, json.loads(pipe.dir.file("metrics.json").read_text())
+
+
+def test_per_link_join_nees_within_chi2_bounds(tmp_path):
+    """Per-link offsets as filter states (links/<id>): the anchors join the filter with a covariance whose
+    position NEES over 3 fixed seeds x 6 anchors lies inside the two-sided 95 % chi2 bounds (3 dof); every
+    anchor determined or not with a reason."""
+    from scipy.stats import chi2
+
+    vals = []
+    for seed in (1, 2, 3):
+        v, m = _join_nees(tmp_path, "per-link", seed, duration=60.0)
+        vals += v
+        for a, info in m["anchors"].items():
+            assert info["determined"] or info["reason"], a
+    n = len(vals)
+    assert n >= 15
+    lo, hi = chi2.ppf([0.025, 0.975], 3 * n) / n
+    assert lo < np.mean(vals) < hi, (np.mean(vals), lo, hi, np.round(vals, 1).tolist())

@@ -315,3 +315,57 @@ def test_log_and_summaries_write_an_rrd(tmp_path):
     assert path.is_file() and path.stat().st_size > 0
     s = read_rrd_summary(path)  # one residual row per range the updater processed, for the anchor it was for
     assert s.rows["uwb/3/residual"] == len(upd.records[3].t_ns) == 5 and "uwb/5/residual" not in s.rows
+
+
+def test_link_offset_map_matches_refit():
+    """Per-link bias: the anchor's initial covariance carries the offsets' error through J[links/<id>], the
+    first-order map of a change of one link's offset into the fitted anchor. Independent reference: refit the
+    window with that link's ranges shifted by eps (the solver, not the formula) and difference."""
+    from pipeline.uwb_filter import anchor_init_covariance, link_var
+    from pipeline.uwb_init import InitWindow, solve_from
+
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 40.0, 0.05)
+    R, p = smooth_trajectory(rng, t, extent=(5.0, 5.0, 3.0), z0=2.0, freq=(0.03, 0.12))
+    a = ANCHORS[7]
+    ant = np.arange(len(t)) % 2
+    pT = np.stack([ARMS[(1, int(k))] for k in ant])
+    offsets = np.where(ant == 0, 0.2, -0.2)
+    d = np.linalg.norm(p + np.einsum("nij,nj->ni", R, pT) - a, axis=1) + 0.5 + offsets
+    d += rng.normal(0, 0.1, len(t))
+    t_ns = (t * 1e9).astype(np.int64)
+    traj = {
+        "t_ns": t_ns,
+        "p": p,
+        "q_xyzw": rot_to_quat(R),
+        "cov": np.broadcast_to(np.eye(6) * 1e-4, (len(t), 6, 6)),
+    }
+    rg = {
+        "t_ns": t_ns,
+        "tag": np.ones(len(t), int),
+        "antenna": ant,
+        "anchor": np.full(len(t), 7),
+        "distance": d,
+    }
+    cfg = UwbConfig(init_method="ri", bias="per-link", estimate_beta=False)
+    res = initialize_anchors(windows_from_trajectory(traj, rg, CALIB), cfg, CALIB)[7]
+    assert res.ok and len(res.link_offsets) == 2 and res.link_cov is not None
+    state = State()
+    state.add("imu", Pose(R[-1], p[-1]), np.eye(6) * 1e-4, kind=Kind.NAV)
+    state.add(
+        link_var(7),
+        Vec(np.array(list(res.link_offsets.values()))),
+        np.asarray(res.link_cov) + 1e-9 * np.eye(2),
+    )
+    J, _ = anchor_init_covariance(
+        res, state, sigma_range=0.1, gamma_prior=(0.5, 0.3), beta_prior=(1.0, 0.05), links=link_var(7)
+    )
+    w = res.window
+    kw = dict(weighted=True, sigma_range=0.1, gamma_prior=(0.5, 0.3))
+    th0 = res.x[list(res.params)]
+    base = solve_from(w, th0, **kw).theta
+    eps = 0.01
+    for col, lk in enumerate(res.link_offsets):
+        shifted = InitWindow(w.d - eps * (w.links() == lk), w.p_T, w.R, w.p, w.P_pose, w.t_ns, w.link)
+        dx = (solve_from(shifted, th0, **kw).theta - base) / eps
+        np.testing.assert_allclose(dx, J[link_var(7)][list(res.params), col], rtol=0.03, atol=1e-3)

@@ -13,6 +13,8 @@ import math
 import numpy as np
 
 _EPS = 1e-10
+I3 = np.eye(3)  # read-only: the hot paths add it, never change it (np.eye costs a call each time)
+I3.flags.writeable = False
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -83,6 +85,29 @@ def jr_so3(w: np.ndarray) -> np.ndarray:
     a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(th)) / th**2)
     b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (th - np.sin(th)) / th**3)
     return np.eye(3) - a * K + b * (K @ K)
+
+
+def exp_jr_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(exp_so3(w), jr_so3(w))`` for (N, 3) rotation vectors with the norm, the skew matrices, their square and
+    the sine and cosine computed once (the IMU propagation needs both for every sample); the same numbers as the
+    two functions."""
+    w = np.asarray(w, dtype=float)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = skew(w)
+    KK = K @ K
+    t2 = theta**2
+    small_e, small_j = theta < 1e-7, theta < 1e-5
+    # one argument for the sine and cosine: theta wherever either function uses its closed form (theta >= 1e-7)
+    th = np.where(small_e, 1.0, theta)
+    sin, cos = np.sin(th), np.cos(th)
+    one_m_cos = 1.0 - cos
+    eye = I3
+    a = np.where(small_e, 1.0 - t2 / 6.0, sin / th)
+    b = np.where(small_e, 0.5 - t2 / 24.0, one_m_cos / th**2)
+    R = eye + a * K + b * KK
+    a = np.where(small_j, 0.5 - t2 / 24.0, one_m_cos / th**2)
+    b = np.where(small_j, 1.0 / 6.0 - t2 / 120.0, (th - sin) / th**3)
+    return R, eye - a * K + b * KK
 
 
 def jr_inv_so3(w: np.ndarray) -> np.ndarray:

@@ -57,12 +57,14 @@ def run(ctx: StageContext) -> StageResult:
     seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
     ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
     rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
+    offsets, offset_cov = updater.offsets(est.state), updater.offset_covariances(est.state)
     states = {
         str(a): {
             "x": est.state.value(n).x,
             "P": est.state.cov(n),
             "noise_inflation": inflation.get(a, 1.0),
-            "link_offsets": {str(k): v for k, v in updater.link_offsets.get(a, {}).items()},
+            "link_offsets": {str(k): v for k, v in offsets.get(a, {}).items()},
+            **({"link_offsets_cov": offset_cov[a]} if a in offset_cov else {}),
         }
         for a, n in est.state.anchors.items()
     }
