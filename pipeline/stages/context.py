@@ -175,11 +175,17 @@ class StageContext:
 
     def choose_lever_arms(self) -> tuple[str, str]:
         """``uwb.lever_arms = "auto"`` (`planar_levers.choose_lever_arms`) from the odometry poses the UWB stages
-        use; a VIO pose source keeps the calibration's arms (its IMU frame is the one they are measured in)."""
+        use, when they come from an external system in the anchors' frame (error model bounded: motion capture,
+        SLAM with a map), whose body frame need not be the one the arms were measured in. A VIO or a drifting
+        odometry is the robot's own (the arms are given in its frame) and keeps the calibration's arms."""
+        from ..odometry_filter import resolve_error_model
         from ..planar_levers import choose_lever_arms
 
         if self.pose_source() != "odometry":
             return "given", "VIO poses: the calibration's lever arms are in its IMU frame"
+        model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
+        if model != "bounded":
+            return "given", f"{model} odometry: the robot's own frame, the calibration's lever arms"
         odo = self.reader.read_poses(TOPIC_ODOM)
         step = max(1, len(odo.t_ns) // 20000)
         return choose_lever_arms(quat_to_rot(odo.q_xyzw[::step]), odo.p[::step])
