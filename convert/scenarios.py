@@ -7,8 +7,11 @@
     data = simulate_scenario("nlos", seed=1)                    # SimData (arrays, nothing written)
     simulate_to_file(cfg, "planar.mcap")                        # convert.simulator: the recording
 
-Every scenario is ranges plus odometry by default (``camera=False``, ``/odometry`` at 20 Hz drifting as the
-odometry filter models it; ``camera=True`` adds feature tracks for the MSCKF). The truth (``uwbcal.truth``) holds
+Every scenario is ranges plus poses by default (``camera=False``, ``/odometry`` at 20 Hz with a *bounded* error,
+as the real recordings of these classes come: SLAM with a map, GNSS/INS or surveyed ground truth; a Gauss-Markov
+error of 5 cm / 0.5 deg with a 5 s correlation time, declared as ``odometry.error_model = "bounded"``;
+``odometry_error="drift"`` gives dead-reckoning odometry drifting as the odometry filter models it;
+``camera=True`` adds feature tracks for the MSCKF). The truth (``uwbcal.truth``) holds
 the anchors, per-link offsets and NLOS rates (``links``) and the visibility windows. Scenarios:
 
 - ``planar``: a ground trolley (`trajectory.planar_trajectory`, IMU at 0.3 m, yaw only) with 3 tags whose lever
@@ -136,7 +139,7 @@ def scenario_config(name: str, *, seed: int = 0, **overrides) -> SimConfig:
     bad = sorted(set(overrides) - known)
     if bad:
         raise InputError(f"scenario {name}: unknown setting(s) {', '.join(bad)}; SimConfig fields only")
-    cfg = dict(camera=False, odometry_rate=ODOMETRY_RATE, seed=seed, scenario=name)
+    cfg = dict(camera=False, odometry_rate=ODOMETRY_RATE, odometry_error="bounded", seed=seed, scenario=name)
     cfg.update(SCENARIOS[name].build(seed))
     cfg.update(overrides)
     if not cfg["camera"]:  # no tracks: a sparse room (the automatic density probe costs ~20 s at 400 m)

@@ -84,6 +84,13 @@ class SimConfig:
     # sigmas times odometry_noise_scale): a pose source whose noise the filter models correctly. None: none
     odometry_rate: float | None = None
     odometry_noise_scale: float = 1.0
+    # "bounded": poses with a bounded, time-correlated error instead (SLAM with a map, GNSS/INS: the odometry
+    # filter's bounded model): a Gauss-Markov error of stationary sigmas odometry_sigma_p [m] and
+    # odometry_sigma_theta_deg per axis and correlation time odometry_correlation_s, declared in the calibration
+    odometry_error: str = "drift"
+    odometry_sigma_p: float = 0.05
+    odometry_sigma_theta_deg: float = 0.5
+    odometry_correlation_s: float = 5.0
 
     def __post_init__(self) -> None:
         def bad(name: str, value, what: str) -> InputError:
@@ -114,6 +121,12 @@ class SimConfig:
             raise bad("odometry_rate", self.odometry_rate, "must be positive (or None for no odometry)")
         if not (np.isfinite(self.odometry_noise_scale) and self.odometry_noise_scale >= 0):
             raise bad("odometry_noise_scale", self.odometry_noise_scale, "must be >= 0")
+        if self.odometry_error not in ("drift", "bounded"):
+            raise bad("odometry_error", self.odometry_error, "expected drift or bounded")
+        for name in ("odometry_sigma_p", "odometry_sigma_theta_deg", "odometry_correlation_s"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise bad(name, v, "must be positive")
         for name in ("nlos_rate", "dropout_rate"):
             v = getattr(self, name)
             if not (0.0 <= v <= 1.0):
@@ -463,6 +476,33 @@ def simulate_odometry(
     return OdometrySim(t_ns=t_ns, p=p_hat, q_xyzw=rot_to_quat(R_hat))
 
 
+def simulate_bounded_odometry(
+    traj: SplineTrajectory,
+    t_ns: np.ndarray,
+    sigma_p: float,
+    sigma_theta: float,
+    tau_s: float,
+    rng: np.random.Generator,
+) -> OdometrySim:
+    """Poses with a bounded error, as the odometry filter's bounded model assumes: world-frame attitude and
+    position errors e_k = phi e_(k-1) + sqrt(1 - phi^2) sigma z_k (phi = exp(-dt / tau), stationary from the
+    first pose), R_hat = Exp(-e_theta) R, p_hat = p - e_p (so the filter's [dtheta_body, dp] = [R^T e_theta, e_p])."""
+    from pipeline.core.geometry import exp_so3
+
+    s = traj.evaluate(rel_seconds(traj, t_ns))
+    n = len(t_ns)
+    sig = np.r_[np.full(3, sigma_theta), np.full(3, sigma_p)]
+    dt = np.diff(np.asarray(t_ns, np.int64), prepend=t_ns[0]) * 1e-9
+    phi = np.exp(-dt / tau_s)
+    z = rng.standard_normal((n, 6)) * sig
+    e = np.empty((n, 6))
+    e[0] = z[0]
+    for k in range(1, n):
+        e[k] = phi[k] * e[k - 1] + np.sqrt(1.0 - phi[k] ** 2) * z[k]
+    R_hat = exp_so3(-e[:, 0:3]) @ s.R
+    return OdometrySim(t_ns=t_ns, p=s.p - e[:, 3:6], q_xyzw=rot_to_quat(R_hat))
+
+
 def simulate_ranges(
     traj: SplineTrajectory,
     t0_ns: int,
@@ -595,7 +635,18 @@ def simulate(cfg: SimConfig, *, advance=None) -> SimData:
     odometry = None
     if cfg.odometry_rate is not None:
         t_odo = sample_times(t0, duration, cfg.odometry_rate)
-        odometry = simulate_odometry(traj, t_odo, cfg.odometry_noise_scale, stream(cfg.seed, "odometry"))
+        rng_odo = stream(cfg.seed, "odometry")
+        if cfg.odometry_error == "bounded":
+            odometry = simulate_bounded_odometry(
+                traj,
+                t_odo,
+                cfg.odometry_sigma_p,
+                np.radians(cfg.odometry_sigma_theta_deg),
+                cfg.odometry_correlation_s,
+                rng_odo,
+            )
+        else:
+            odometry = simulate_odometry(traj, t_odo, cfg.odometry_noise_scale, rng_odo)
 
     data = SimData.from_world(world, config=cfg, odometry=odometry, trajectory=traj, imu=imu, groundtruth=gt)
     data.metadata = _metadata(data, cam, duration)
@@ -701,7 +752,20 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
         "groundtruth": {"lever_arm": [0.0, 0.0, 0.0], "frame": "body"},
     }
     if data.odometry is not None:
-        calibration["odometry"] = {"error_model": "drift", "noise": odometry_noise(cfg.odometry_noise_scale)}
+        if cfg.odometry_error == "bounded":
+            calibration["odometry"] = {
+                "error_model": "bounded",
+                "correlation_time_s": float(cfg.odometry_correlation_s),
+                "noise": {
+                    "initial_sigma_p": float(cfg.odometry_sigma_p),
+                    "initial_sigma_theta_deg": float(cfg.odometry_sigma_theta_deg),
+                },
+            }
+        else:
+            calibration["odometry"] = {
+                "error_model": "drift",
+                "noise": odometry_noise(cfg.odometry_noise_scale),
+            }
     if data.features is not None:
         calibration["cameras"] = {"cam0": cam}
     truth = world_truth(data, duration)

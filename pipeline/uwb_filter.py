@@ -371,7 +371,11 @@ def search_window(
 
 
 def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:
-    """Several links whose offsets differ beyond their uncertainty (the per-link model is then supported)."""
+    """Several links whose offsets differ beyond their uncertainty (the per-link model is then supported).
+
+    Each difference g_i - g_j is tested against its own sigma, sqrt(P_ii + P_jj - 2 P_ij): the offsets share the
+    anchor's range error (a radial shift moves them all), so their differences are far better determined than
+    each offset alone."""
     if not sr.ok or len(sr.gamma) < 2:
         return False
     sd = np.sqrt(np.maximum(np.diag(sr.cov)[3:], 0.0))
@@ -396,6 +400,7 @@ def anchor_init_covariance(
     beta_prior: tuple[float, float],
     pose_var: str | None = None,
     links: str | None = None,
+    pose_correlation_s: float | None = None,
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """(J, Q) such that x~_U = sum_v J[v] e_v + n, n ~ N(0, Q) independent of the filter state.
 
@@ -461,6 +466,10 @@ def anchor_init_covariance(
     pr = state.probes
     if pr and w.t_ns is not None:
         Jd, cov = _probe_map(state, B, np.asarray(t_k, np.int64), pr)
+    elif pose_correlation_s is not None and w.t_ns is not None:
+        Jd, cov = _gauss_markov_map(
+            state, B, w, np.asarray(t_k, np.int64), pose_var or state.nav, pose_correlation_s
+        )
     else:
         Jd, cov = _random_walk_map(state, B, w, t_k, pose_var or state.nav)
     # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
@@ -505,6 +514,45 @@ def _probe_map(
     return Jd, np.zeros((5, 5))
 
 
+def _gauss_markov_map(
+    state: State, B: np.ndarray, w: InitWindow, t_ns: np.ndarray, pose_var: str, tau_s: float
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Bounded pose errors (no probes): world-frame errors stationary with correlation exp(-|dt| / tau), the
+    pose source's bounded model. The ranges are pooled in bins of tau / 10 (B summed, the covariance averaged);
+    Cov(e_i, e_j) = rho_ij (P_i + P_j) / 2, Cov(e_i, e_now) = rho_i,now P_i with "now" the window's last stamp;
+    the part correlated with the current pose enters J[pose_var], the rest Q."""
+    T = np.zeros((len(B), 6, 6))
+    T[:, 0:3, 0:3] = w.R
+    T[:, 3:6, 3:6] = np.eye(3)
+    PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
+    t = (t_ns - t_ns.min()) * 1e-9
+    h = max(tau_s / 10.0, 1e-3)
+    b = np.floor(t / h).astype(np.int64)
+    ub, inv = np.unique(b, return_inverse=True)
+    nb = len(ub)
+    Bb = np.zeros((nb, 5, 6))
+    np.add.at(Bb, inv, B)
+    cnt = np.bincount(inv, minlength=nb).astype(float)
+    Pb = np.zeros((nb, 6, 6))
+    np.add.at(Pb, inv, PW)
+    Pb /= cnt[:, None, None]
+    tb = np.bincount(inv, weights=t, minlength=nb) / cnt
+    rho = np.exp(-np.abs(tb[:, None] - tb[None, :]) / tau_s)
+    BP = np.einsum("bij,bjk->bik", Bb, Pb)  # B_b P_b
+    # sum_ij rho_ij B_i (P_i + P_j)/2 B_j^T
+    cov_pose = 0.5 * (np.einsum("ab,aij,bkj->ik", rho, BP, Bb) + np.einsum("ab,aij,bkj->ik", rho, Bb, BP))
+    rn = np.exp(-(t.max() - tb) / tau_s)
+    Tn = np.eye(6)
+    Tn[0:3, 0:3] = state.value(pose_var).R
+    C = np.einsum("b,bij->ij", rn, BP) @ Tn
+    P_now = state.cov(pose_var)[0:6, 0:6]
+    P_now = 0.5 * (P_now + P_now.T)
+    Jn = np.linalg.solve(P_now.T, C.T).T
+    Jfull = np.zeros((5, state.dim(pose_var)))
+    Jfull[:, 0:6] = Jn
+    return {pose_var: Jfull}, _psd(cov_pose - Jn @ P_now @ Jn.T)
+
+
 def _random_walk_map(
     state: State, B: np.ndarray, w: InitWindow, t_k: np.ndarray, pose_var: str
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -540,6 +588,7 @@ def add_anchor_to_state(
     gamma_prior: tuple[float, float] | None,
     beta_prior: tuple[float, float] = (1.0, 0.05),
     pose_var: str | None = None,
+    pose_correlation_s: float | None = None,
 ) -> None:
     """Add ``anchor/<id>`` = result.x with covariance and cross-covariances (see `anchor_init_covariance`).
 
@@ -567,6 +616,7 @@ def add_anchor_to_state(
         beta_prior=beta_prior,
         pose_var=pose_var,
         links=links,
+        pose_correlation_s=pose_correlation_s,
     )
     if not result.verdict.get("height_observable", True):
         # unobservable height: independent of everything, with the init's honest sigma (the range updates
@@ -576,6 +626,15 @@ def add_anchor_to_state(
         Q[2, :] = Q[:, 2] = 0.0
         Q[2, 2] = float(result.cov[2, 2])
     state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
+
+
+def bounded_pose_correlation(calibration: Mapping | None) -> float | None:
+    """The correlation time [s] of the poses' error when the recording declares a bounded error model
+    (calibration ``odometry.error_model = "bounded"``), else None (drift: random walk)."""
+    odo = ((calibration or {}).get("odometry") or {}) if isinstance(calibration, Mapping) else {}
+    if odo.get("error_model") != "bounded":
+        return None
+    return float(odo.get("correlation_time_s") or 10.0)
 
 
 def add_initialised_anchors(
@@ -597,6 +656,7 @@ def add_initialised_anchors(
             sigma_range=config.sigma(calibration) * config.sigma_scale,
             gamma_prior=config.gamma_prior(calibration),
             beta_prior=config.beta_prior(calibration),
+            pose_correlation_s=bounded_pose_correlation(calibration),
         )
     remove_probes(state)  # they only served the anchors' cross-covariances
     return warns
@@ -627,7 +687,11 @@ class AnchorRecord:
 class UwbUpdater:
     """`on_range` handler. Modes: ``ekf`` (joint update of navigation state and anchor), ``skf`` (Schmidt: every
     non-anchor variable considered, not estimated), ``none`` (no update; residuals recorded), ``frozen``
-    (localisation: anchors are constants, only the navigation state is updated with H_I and Q_d).
+    (localisation: the anchors' estimates stay where calibration left them, only the navigation state is
+    updated; an anchor of the state is *considered* (Schmidt: its Jacobian and covariance enter the innovation
+    covariance and the cross-covariances, its estimate and own covariance do not change), so the poses carry the
+    calibration's uncertainty instead of taking the anchors as exact; an anchor given only as a constant
+    (``anchors``, not in the state) enters with H_I alone).
 
     Anchor Jacobians use the anchor's first estimate (``state.fej``) when ``state.use_fej``; residuals use the
     current estimates. Updates whose NIS exceeds the chi-square ``chi2_quantile`` gate are rejected and counted.
@@ -814,7 +878,8 @@ class UwbUpdater:
             options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
             anchors = self._estimated(state)
             if self.mode == "frozen":  # the anchors considered: the range corrects the pose only
-                res = ekf_update(state, {pose_var: H_imu}, np.array([r]), R, schmidt=anchors, **options)
+                Hf = {pose_var: H_imu, **({name: J.H_U} if in_state else {})}
+                res = ekf_update(state, Hf, np.array([r]), R, schmidt=anchors, **options)
             elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
                 H = {pose_var: H_imu, name: J.H_U, **H_link}
                 res = schmidt_update(state, H, np.array([r]), R, estimated=anchors, **options)
@@ -888,19 +953,19 @@ class UwbUpdater:
         H: dict[str, np.ndarray] = {pose_var: H_imu}
         options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0, "per_row": True}
         anchors = self._estimated(state)
-        if self.mode == "frozen":  # the anchors considered: the ranges correct the pose only
-            res = ekf_update(state, H, r, R, schmidt=anchors, **options)
-        else:
-            for i, name in enumerate(names):
+        for i, name in enumerate(names):
+            if name in state:  # frozen: only the anchors of the state have a covariance to consider
                 H.setdefault(name, np.zeros((k, 5)))[i] = J.H_U[i]
                 if rows[i].anchor in self.fixed_height:  # an unobservable height is left alone
                     H[name][i, 2] = 0.0
-            for i, lvar, lcol in link_rows:
-                H.setdefault(lvar, np.zeros((k, state.dim(lvar))))[i, lcol] = 1.0
-            if self.mode == "skf":  # the navigation state considered: only the anchors are estimated
-                res = schmidt_update(state, H, r, R, estimated=anchors, **options)
-            else:
-                res = ekf_update(state, H, r, R, **options)
+        for i, lvar, lcol in link_rows:
+            H.setdefault(lvar, np.zeros((k, state.dim(lvar))))[i, lcol] = 1.0
+        if self.mode == "frozen":  # the anchors considered: the ranges correct the pose only
+            res = ekf_update(state, H, r, R, schmidt=anchors, **options)
+        elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
+            res = schmidt_update(state, H, r, R, estimated=anchors, **options)
+        else:
+            res = ekf_update(state, H, r, R, **options)
         ok = res.row_accepted
         self.counts["accepted"] += int(ok.sum())
         self.counts["rejected"] += int(k - ok.sum())

@@ -12,7 +12,7 @@ from .context import StageContext, StageResult
 
 
 def run(ctx: StageContext) -> StageResult:
-    from ..uwb_filter import UwbUpdater, add_initialised_anchors
+    from ..uwb_filter import UwbUpdater, add_initialised_anchors, bounded_pose_correlation
 
     win = ctx.windows()
     est = ctx.dir.load_pickle("checkpoint_init.pkl", "refine")
@@ -30,6 +30,7 @@ def run(ctx: StageContext) -> StageResult:
             "sigma_range": cfg.sigma(cal) * cfg.sigma_scale,
             "gamma_prior": cfg.gamma_prior(cal),
             "beta_prior": cfg.beta_prior(cal),
+            "pose_correlation_s": bounded_pose_correlation(cal),
         },
     )
     with ctx.runlog("refine") as log:
