@@ -404,9 +404,11 @@ def _robust_sigma(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(r - np.median(r)))) if len(r) else float("nan")
 
 
-def choose_lever_arms(R: np.ndarray, p: np.ndarray) -> tuple[str, str]:
-    """``uwb.lever_arms = "auto"``: planar when the carrier moves in a plane and turns (its arms are then seen
-    apart from the anchors), else given. Returns (choice, why)."""
+def choose_lever_arms(R: np.ndarray, p: np.ndarray, n_antennas: int = 2) -> tuple[str, str]:
+    """``uwb.lever_arms = "auto"``: planar when the carrier carries several antennas (``n_antennas``), moves in a
+    plane and turns (its arms are then seen apart from the anchors), else given. Returns (choice, why)."""
+    if n_antennas < 2:
+        return "given", "one antenna: its arm's error is at most its length, the calibration's arm is kept"
     p = np.asarray(p, float).reshape(-1, 3)
     if len(p) < 10:
         return "given", "too few poses"

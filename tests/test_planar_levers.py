@@ -85,6 +85,7 @@ def test_auto_choice():
     assert choose_lever_arms(np.broadcast_to(np.eye(3), R.shape), p)[0] == "given"  # never turns
     p3 = p + np.c_[np.zeros((len(t), 2)), np.sin(0.7 * t)]
     assert choose_lever_arms(R, p3)[0] == "given"  # not planar
+    assert choose_lever_arms(R, p, n_antennas=1)[0] == "given"  # one antenna
 
 
 @pytest.fixture(scope="module")

@@ -180,6 +180,7 @@ class StageContext:
         odometry is the robot's own (the arms are given in its frame) and keeps the calibration's arms."""
         from ..odometry_filter import resolve_error_model
         from ..planar_levers import choose_lever_arms
+        from ..uwb_filter import lever_arms
 
         if self.pose_source() != "odometry":
             return "given", "VIO poses: the calibration's lever arms are in its IMU frame"
@@ -188,7 +189,8 @@ class StageContext:
             return "given", f"{model} odometry: the robot's own frame, the calibration's lever arms"
         odo = self.reader.read_poses(TOPIC_ODOM)
         step = max(1, len(odo.t_ns) // 20000)
-        return choose_lever_arms(quat_to_rot(odo.q_xyzw[::step]), odo.p[::step])
+        n_ant = len(lever_arms(self.reader.calibration))
+        return choose_lever_arms(quat_to_rot(odo.q_xyzw[::step]), odo.p[::step], n_ant)
 
     def pose_source(self) -> str:
         choice = self.config.run.pose_source
