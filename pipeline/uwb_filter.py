@@ -621,20 +621,17 @@ def add_anchor_to_state(
     state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
 
 
-def bounded_pose_correlation(calibration: Mapping | None) -> float | None:
-    """The correlation time [s] of the poses' error when the recording declares a bounded error model
-    (calibration ``odometry.error_model = "bounded"``), else None (drift: random walk)."""
-    odo = ((calibration or {}).get("odometry") or {}) if isinstance(calibration, Mapping) else {}
-    if odo.get("error_model") != "bounded":
-        return None
-    return float(odo.get("correlation_time_s") or 10.0)
-
-
 def add_initialised_anchors(
-    state: State, results: Mapping[Any, InitResult], config: UwbConfig, calibration: Mapping | None
+    state: State,
+    results: Mapping[Any, InitResult],
+    config: UwbConfig,
+    calibration: Mapping | None,
+    pose_correlation_s: float | None = None,
 ) -> list[str]:
     """Every initialised anchor of ``results`` into ``state`` (`add_anchor_to_state`) with the configured range
-    noise and the recording's priors, then drop the pose probes; warnings name the anchors left out."""
+    noise and the recording's priors, then drop the pose probes; warnings name the anchors left out.
+    ``pose_correlation_s``: the pose source's bounded-error correlation time (`OdometryEstimator.
+    pose_correlation_s`; None: drift)."""
     warns = []
     for a, r in results.items():
         if not r.ok:
@@ -649,7 +646,7 @@ def add_initialised_anchors(
             sigma_range=config.sigma(calibration) * config.sigma_scale,
             gamma_prior=config.gamma_prior(calibration),
             beta_prior=config.beta_prior(calibration),
-            pose_correlation_s=bounded_pose_correlation(calibration),
+            pose_correlation_s=pose_correlation_s,
         )
     remove_probes(state)  # they only served the anchors' cross-covariances
     return warns
