@@ -677,7 +677,11 @@ class AnchorRecord:
 class UwbUpdater:
     """`on_range` handler. Modes: ``ekf`` (joint update of navigation state and anchor), ``skf`` (Schmidt: every
     non-anchor variable considered, not estimated), ``none`` (no update; residuals recorded), ``frozen``
-    (localisation: anchors are constants, only the navigation state is updated with H_I and Q_d).
+    (localisation: the anchors' estimates stay where calibration left them, only the navigation state is
+    updated; an anchor of the state is *considered* (Schmidt: its Jacobian and covariance enter the innovation
+    covariance and the cross-covariances, its estimate and own covariance do not change), so the poses carry the
+    calibration's uncertainty instead of taking the anchors as exact; an anchor given only as a constant
+    (``anchors``, not in the state) enters with H_I alone).
 
     Anchor Jacobians use the anchor's first estimate (``state.fej``) when ``state.use_fej``; residuals use the
     current estimates. Updates whose NIS exceeds the chi-square ``chi2_quantile`` gate are rejected and counted.
@@ -855,7 +859,8 @@ class UwbUpdater:
             options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
             anchors = self._estimated(state)
             if self.mode == "frozen":  # the anchors considered: the range corrects the pose only
-                res = ekf_update(state, {pose_var: H_imu}, np.array([r]), R, schmidt=anchors, **options)
+                Hf = {pose_var: H_imu, **({name: J.H_U} if in_state else {})}
+                res = ekf_update(state, Hf, np.array([r]), R, schmidt=anchors, **options)
             elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
                 H = {pose_var: H_imu, name: J.H_U, **H_link}
                 res = schmidt_update(state, H, np.array([r]), R, estimated=anchors, **options)
@@ -929,19 +934,19 @@ class UwbUpdater:
         H: dict[str, np.ndarray] = {pose_var: H_imu}
         options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0, "per_row": True}
         anchors = self._estimated(state)
-        if self.mode == "frozen":  # the anchors considered: the ranges correct the pose only
-            res = ekf_update(state, H, r, R, schmidt=anchors, **options)
-        else:
-            for i, name in enumerate(names):
+        for i, name in enumerate(names):
+            if name in state:  # frozen: only the anchors of the state have a covariance to consider
                 H.setdefault(name, np.zeros((k, 5)))[i] = J.H_U[i]
                 if rows[i].anchor in self.fixed_height:  # an unobservable height is left alone
                     H[name][i, 2] = 0.0
-            for i, lvar, lcol in link_rows:
-                H.setdefault(lvar, np.zeros((k, state.dim(lvar))))[i, lcol] = 1.0
-            if self.mode == "skf":  # the navigation state considered: only the anchors are estimated
-                res = schmidt_update(state, H, r, R, estimated=anchors, **options)
-            else:
-                res = ekf_update(state, H, r, R, **options)
+        for i, lvar, lcol in link_rows:
+            H.setdefault(lvar, np.zeros((k, state.dim(lvar))))[i, lcol] = 1.0
+        if self.mode == "frozen":  # the anchors considered: the ranges correct the pose only
+            res = ekf_update(state, H, r, R, schmidt=anchors, **options)
+        elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
+            res = schmidt_update(state, H, r, R, estimated=anchors, **options)
+        else:
+            res = ekf_update(state, H, r, R, **options)
         ok = res.row_accepted
         self.counts["accepted"] += int(ok.sum())
         self.counts["rejected"] += int(k - ok.sum())

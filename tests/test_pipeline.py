@@ -252,15 +252,53 @@ def test_artefacts_agree_with_each_other_and_the_run(run_dir, sim):
     assert (run_dir / "run.rrd").stat().st_size > 10_000
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known limit (README, Known limits): the demo's pose NEES (120 s, MSCKF, 15 clones) is 16.3 above the "
-    "95% bound 14.45; vio.max_clones = 20 brings it inside but is not the default. Strict: passes -> remove this",
-)
 def test_demo_pose_nees_inside_the_bounds(demo_run):
+    """The full-length demo (120 s, default config): pose NEES inside its two-sided 95 % bounds (measured 9.9 in
+    [1.24, 14.45]; 16.3 when localisation took the calibrated anchors as exact and the ZUPT held v = 0 into the
+    motion onset)."""
     m = json.loads((demo_run[0] / "metrics.json").read_text())
     lo, hi = m["nees_pose"]["bounds"]
     assert lo < m["nees_pose"]["mean"] < hi, m["nees_pose"]
+
+
+@pytest.mark.slow
+def test_demo_pose_nees_over_seeds(tmp_path):
+    """χ²-bounded Monte Carlo of the demo pipeline (default config, every stage) on 4 seeds of a 45 s version of
+    its trajectory (rest, motion onset, thirds of 15 s): per segment (init: MSCKF; refine: SKF, the poses stay the
+    MSCKF's; localize: the calibrated anchors frozen), the time average of the pose ANEES over the 4 runs lies
+    inside the two-sided 95 % bounds of a 4-run average (6 dof). Measured: 4.1 / 6.9 / 7.8 in [3.10, 9.84].
+    With the anchors taken as exact in localisation (instead of considered) the last segment was at 13.2."""
+    from scipy.stats import chi2
+
+    from convert.recording import RecordingReader
+    from convert.simulator import SimConfig, simulate_to_file
+    from evaluate.consistency import pose_nees
+    from pipeline.config import load_config
+    from pipeline.core.geometry import quat_to_rot
+    from pipeline.run import Pipeline
+
+    seeds = range(4)
+    per_segment = np.zeros((len(seeds), 3))
+    for k, seed in enumerate(seeds):
+        out = tmp_path / f"seed{seed}"
+        rec = tmp_path / f"sim{seed}.mcap"
+        simulate_to_file(SimConfig(seed=seed, duration=45.0), rec)
+        cfg = load_config(
+            None,
+            {"run": {"recording": str(rec), "log": False, "stages": ["vio", "init", "refine", "localize"]}},
+        )
+        Pipeline(cfg, out).run(progress=lambda s: None)
+        gt = RecordingReader(rec).read_poses()
+        with np.load(out / "trajectory.npz") as z:
+            t, seg, p, q, cov = z["t_ns"], z["segment"], z["p"], z["q_xyzw"], z["cov"]
+        i = np.minimum(np.searchsorted(gt.t_ns, t), len(gt.t_ns) - 1)
+        ok = gt.t_ns[i] == t
+        n = pose_nees(quat_to_rot(q[ok]), p[ok], cov[ok], quat_to_rot(gt.q_xyzw[i[ok]]), gt.p[i[ok]]).pose
+        per_segment[k] = [n[seg[ok] == j].mean() for j in range(3)]
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * len(seeds)) / len(seeds)
+    anees = per_segment.mean(axis=0)
+    print(f"demo pose ANEES per segment over {len(seeds)} seeds: {anees.round(2)} in [{lo:.2f}, {hi:.2f}]")
+    assert np.all((lo < anees) & (anees < hi)), (anees, lo, hi)
 
 
 def test_demo_refinement_beats_the_initialisation(demo_run):

@@ -271,6 +271,81 @@ def test_frozen_updates_only_navigation_and_gate_counts():
     assert u3.counts["skipped"] == 1
 
 
+def test_frozen_considers_the_anchor_covariance():
+    """Frozen (localisation): the anchor of the state is considered: the innovation variance holds its Jacobian
+    and covariance, S = H P H^T + R over [imu, anchor] (closed form), the gain on the anchor is zero (estimate and
+    own covariance unchanged) and the rest is the Joseph update with that gain."""
+    from pipeline.core.uwb_model import jacobians
+
+    state = _state_with_anchor()
+    P0 = state.P.copy()
+    x0 = state.value("anchor/3").x.copy()
+    pose = state.value("imu")
+    J = jacobians(pose.R, pose.p, ARMS[(1, 0)], x0)
+    d = float(J.h[0]) + 0.07
+    H = np.zeros((1, state.size))
+    H[0, 0:6] = J.H_I[0]
+    sa = state.slice("anchor/3")
+    H[0, sa] = J.H_U[0]
+    R = (0.1 * x0[3]) ** 2
+    S = (H @ P0 @ H.T).item() + R
+    res = UwbUpdater("frozen", ARMS, sigma_range=0.1, chi2_quantile=None).update(
+        state, RangeMeasurement(1, 1, 0, 3, d)
+    )
+    assert res.nis == pytest.approx(0.07**2 / S, rel=1e-9)
+    K = (P0 @ H.T / S).ravel()
+    K[sa] = 0.0
+    IKH = np.eye(state.size) - np.outer(K, H)
+    np.testing.assert_allclose(state.P, IKH @ P0 @ IKH.T + R * np.outer(K, K), atol=1e-14)
+    assert np.array_equal(state.value("anchor/3").x, x0)
+    np.testing.assert_array_equal(state.P[sa, sa], P0[sa, sa])
+    np.testing.assert_allclose(state.value("imu").p - pose.p, (K[3:6] * 0.07), atol=1e-12)
+
+
+def test_frozen_localisation_is_consistent_over_monte_carlo():
+    """Localisation on anchors with a calibration error drawn from their covariance (3 anchors, sigma 5 cm,
+    gamma 5 cm, beta 1 %): 20 epochs of ranges at one pose, 150 runs. The pose ANEES (6 dof) after the frozen
+    updates is inside its two-sided 95 % chi-squared bounds; taking the anchors as exact (the same updater with
+    the anchors given only as constants, as localisation did before) is far above them."""
+    rng = np.random.default_rng(5)
+    anchors = np.array([[5.0, 4.0, 3.0], [-6.0, 3.0, 1.0], [1.0, -7.0, 2.5]])
+    Pa = np.diag([0.05**2] * 3 + [0.01**2, 0.05**2])
+    P_pose = np.diag([0.02**2] * 3 + [0.3**2] * 3)
+    runs = 150
+    out = {"considered": [], "exact": []}
+    for _ in range(runs):
+        R_hat, p_hat = exp_so3(np.array([0.1, -0.2, 0.3])), np.array([1.0, 0.5, 0.8])
+        e_pose = rng.multivariate_normal(np.zeros(6), P_pose)
+        R_true, p_true = R_hat @ exp_so3(e_pose[:3]), p_hat + e_pose[3:]
+        x_hat = [np.r_[a, 1.0, 0.3] for a in anchors]
+        x_true = [x + rng.multivariate_normal(np.zeros(5), Pa) for x in x_hat]
+        d = []
+        for _ in range(20):
+            for i, xt in enumerate(x_true):
+                for ant in (0, 1):
+                    rho = np.linalg.norm(p_true + R_true @ ARMS[(1, ant)] - xt[:3])
+                    d.append(RangeMeasurement(1, 1, ant, i, xt[3] * (rho + rng.normal(0, 0.1)) + xt[4]))
+        for mode in out:
+            st = State()
+            st.add("imu", Pose(R_hat, p_hat), P_pose.copy(), kind=Kind.NAV)
+            if mode == "considered":
+                for i, x in enumerate(x_hat):
+                    st.add(anchor_var(i), Vec(x.copy()), Pa.copy(), kind=Kind.ANCHOR, key=i)
+            upd = UwbUpdater(
+                "frozen", ARMS, sigma_range=0.1, chi2_quantile=None, anchors=dict(enumerate(x_hat))
+            )
+            for k in range(0, len(d), 6):  # one epoch: the 6 ranges of one stamp
+                upd.update_epoch(st, d[k : k + 6])
+            x = st.value("imu")
+            e = np.r_[log_so3(x.R.T @ R_true), p_true - x.p]
+            out[mode].append(e @ np.linalg.solve(st.cov("imu"), e))
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * runs) / runs
+    considered, exact = np.mean(out["considered"]), np.mean(out["exact"])
+    print(f"pose ANEES {considered:.2f} in [{lo:.2f}, {hi:.2f}]; anchors taken as exact {exact:.1f}")
+    assert lo < considered < hi
+    assert exact > 2 * hi
+
+
 def test_windows_from_trajectory_interpolates():
     t = np.array([0, 10, 20], np.int64) * 10**8
     traj = {
