@@ -764,13 +764,13 @@ class UwbUpdater:
 
     def _offset(self, state: State, meas: RangeMeasurement) -> tuple[float, str | None, int]:
         """(offset of the range's link, its state variable or None, its column): the state's estimate while
-        the offsets are in the state (not in localisation, where they are constants), else the fixed table."""
+        the offsets are in the state (estimated in refinement, considered like their anchor in localisation),
+        else the fixed table."""
         lk = int(meas.tag) * 256 + int(meas.antenna)
-        if self.mode != "frozen":
-            name = link_var(meas.anchor)
-            col = self.link_cols.get(meas.anchor, {}).get(lk)
-            if col is not None and name in state:
-                return float(state.value(name).x[col]), name, col
+        name = link_var(meas.anchor)
+        col = self.link_cols.get(meas.anchor, {}).get(lk)
+        if col is not None and name in state:
+            return float(state.value(name).x[col]), name, col
         return self.link_offsets.get(meas.anchor, {}).get(lk, 0.0), None, -1
 
     def offsets(self, state: State) -> dict[Any, dict[int, float]]:
@@ -859,7 +859,7 @@ class UwbUpdater:
             options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
             anchors = self._estimated(state)
             if self.mode == "frozen":  # the anchors considered: the range corrects the pose only
-                Hf = {pose_var: H_imu, **({name: J.H_U} if in_state else {})}
+                Hf = {pose_var: H_imu, **({name: J.H_U, **H_link} if in_state else {})}
                 res = ekf_update(state, Hf, np.array([r]), R, schmidt=anchors, **options)
             elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
                 H = {pose_var: H_imu, name: J.H_U, **H_link}
