@@ -133,6 +133,7 @@ RefineMethod = Enum("RefineMethod", {m: m for m in (*REFINE_METHODS, "none")}, t
 
 class Experiment(str, Enum):
     ri_vs_lsi = "ri-vs-lsi"
+    ri_vs_lsi_drift = "ri-vs-lsi-drift"
     table1 = "table1"
     ntu_viral = "ntu-viral"
     anchor_nees = "anchor-nees"

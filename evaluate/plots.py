@@ -214,3 +214,68 @@ def plot_ri_vs_lsi(
     ax.legend(loc="upper left", fontsize=8)
     ax.set_title(title)
     return _save(fig, path)
+
+
+def plot_ri_vs_lsi_drift(
+    path: str | Path,
+    table,
+    methods: Sequence[str] = ("lsi", "ri"),
+    title: str = "anchor initialisation error vs the VIO's own position σ",
+) -> Path:
+    """`ri_vs_lsi_drift.summarise` output: per method the mean (solid) and 90th percentile (dashed) anchor error
+    against the VIO's mean own position σ over the initialisation window (log-log)."""
+    x = table["vio_sigma_m"].to_numpy()
+    fig, axs = _figure(1, 1, (7, 4.5))
+    ax = axs[0]
+    for k, m in enumerate(methods):
+        c = _color(m, k)
+        ax.plot(x, table[f"{m}_mean_m"].to_numpy(), "o-", color=c, lw=1.5, ms=4, label=f"{m.upper()} mean")
+        ax.plot(x, table[f"{m}_p90_m"].to_numpy(), "s--", color=c, lw=1.0, ms=3, label=f"{m.upper()} 90 %")
+    for xi, k in zip(x, table["vio_noise_scale"].to_numpy(), strict=True):
+        ax.annotate(f"k={k:g}", (xi, 0.0), xycoords=("data", "axes fraction"), xytext=(0, 4),
+                    textcoords="offset points", ha="center", fontsize=7, color="0.4")  # fmt: skip
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("VIO position σ over the init window (its own covariance, per axis) [m]")
+    ax.set_ylabel("anchor error [m]")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(loc="upper left", fontsize=8)
+    ax.set_title(title, fontsize=10)
+    return _save(fig, path)
+
+
+def plot_table1_vs_paper(path: str | Path, tables: Mapping[str, object]) -> Path:
+    """Table 1 side by side: per metric (PRMSE, anchor error) one panel, per (σ_I, σ_U) cell a group of bars —
+    EKF and SKF for each of our prior conventions (``tables[prior]`` = `table1_beside_paper`'s second frame)
+    and for the paper (hatched)."""
+    first = next(iter(tables.values()))
+    cells = first.select("sigma_i", "sigma_u").unique(maintain_order=True).rows()
+    fig, axs = _figure(1, 2, (12, 4.5))
+    series = [(prior, t, "ours") for prior, t in tables.items()] + [("paper", first, "paper")]
+    width = 0.8 / (2 * len(series))
+    x = np.arange(len(cells))
+    for ax, metric, label in zip(
+        axs, ("prmse_m", "anchor_error_m"), ("PRMSE [m]", "anchor error [m]"), strict=True
+    ):
+        j = 0
+        for name, t, col in series:
+            for method in ("ekf", "skf"):
+                vals = []
+                for si, su in cells:
+                    r = t.filter(
+                        (t["method"] == method)
+                        & ((t["sigma_i"] - si).abs() < 1e-9)
+                        & ((t["sigma_u"] - su).abs() < 1e-9)
+                    )
+                    vals.append(r[f"{metric}_{col}"][0] if r.height else np.nan)
+                ax.bar(x - 0.4 + (j + 0.5) * width, np.asarray(vals, float), width, color=_color(method, j),
+                       alpha=0.45 if name == "paper" else (1.0 if j < 2 else 0.75),
+                       hatch="//" if name == "paper" else ("" if j < 2 else ".."), edgecolor="k", lw=0.3,
+                       label=f"{method.upper()} {name}")  # fmt: skip
+                j += 1
+        ax.set_xticks(x, [f"σ_I={si:g}\nσ_U={su:g}" for si, su in cells])
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3, axis="y")
+    axs[0].legend(fontsize=7, ncol=2)
+    fig.suptitle("table1 at the paper's VIO drift: ours (per prior convention) beside the paper")
+    return _save(fig, path)

@@ -118,6 +118,13 @@ class UwbConfig(BaseModel):
         "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links and "
         "their offsets differ beyond their uncertainty",
     )
+    lever_arms: Literal["auto", "given", "planar"] = Field(
+        "auto",
+        description="antenna lever arms: given (the calibration's, rotated by the full attitude) or planar (a "
+        "planar carrier: the in-plane arms estimated from the ranges jointly with anchors and link offsets, "
+        "turned by the heading about the plane normal; planar_levers); auto: planar when the pose source's "
+        "carrier moves in a plane and turns",
+    )
     anchor_z_prior: dict[str, float] | dict[str, dict[str, float]] | None = Field(
         None,
         description="prior on anchor heights: {mean, sigma} for all anchors, or {anchor id: {mean, sigma}}",
@@ -725,6 +732,8 @@ class UwbUpdater:
         # anchors whose height the init found unobservable: range updates leave it alone (no z column), so a
         # tilting tag's lever arm cannot walk it to either side of the motion plane
         self.fixed_height: set = set()
+        # a planar carrier's estimated lever arms (planar_levers.PlanarLevers): p_T from the attitude
+        self.planar_arms: Any = None
 
     @classmethod
     def from_config(
@@ -791,6 +800,13 @@ class UwbUpdater:
         """The variables range updates estimate: anchors and their per-link offsets."""
         return [n for _, n in state.of_kind(Kind.ANCHOR)] + [n for _, n in state.of_kind(Kind.LINK)]
 
+    def _arms(self, R: np.ndarray, rows: Sequence[RangeMeasurement]) -> np.ndarray:
+        """p_T (k, 3) of the ranges ``rows`` at the attitude R: the calibration's, or the planar model's."""
+        if self.planar_arms is None:
+            return np.stack([_lever_arm(self.arms, m.tag, m.antenna) for m in rows])
+        link = link_id([m.tag for m in rows], [m.antenna for m in rows])
+        return self.planar_arms.body_arms(np.broadcast_to(R, (len(rows), 3, 3)), link)
+
     def _join(self, state: State, meas: RangeMeasurement) -> bool:
         r = self.pending.get(meas.anchor)
         if r is None or r.join_ns is None or meas.t_ns < r.join_ns or self.mode in ("frozen",):
@@ -820,7 +836,7 @@ class UwbUpdater:
         # Jacobians at the first estimates of pose and anchor (FEJ: a range at a camera stamp comes after that
         # frame's update, when the pose estimate already differs from its propagated first estimate)
         pose_lin = state.fej(pose_var)
-        p_T = _lever_arm(self.arms, meas.tag, meas.antenna)
+        p_T = self._arms(pose_lin.R, [meas])[0]
         J = jacobians(pose_lin.R, pose_lin.p, p_T, x_lin)
         same = (
             pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
@@ -909,7 +925,7 @@ class UwbUpdater:
         k = len(rows)
         pose_var = self.pose_var or state.nav
         pose, pose_lin = state.value(pose_var), state.fej(pose_var)
-        p_T = np.stack([_lever_arm(self.arms, m.tag, m.antenna) for m in rows])
+        p_T = self._arms(pose_lin.R, rows)
         X_cur, X_lin = np.stack(xs_cur), np.stack(xs_lin)
         J = jacobians(pose_lin.R, pose_lin.p, p_T, X_lin)
         same_pose = pose_lin is pose or (

@@ -55,7 +55,15 @@ def test_experiment_params_are_checked_and_typed(tmp_path):
     from evaluate.experiments import _experiment_params
 
     got = _experiment_params("table1", {"prior": "tuned", "duration": "20", "prior_sigma": "0.2"})
-    assert got == {"trajectory": "MH_01_easy", "prior": "tuned", "duration": 20.0, "prior_sigma": 0.2}
+    assert got == {
+        "trajectory": "MH_01_easy",
+        "prior": "tuned",
+        "duration": 20.0,
+        "prior_sigma": 0.2,
+        "vio_noise_scale": 1.0,
+    }
+    got = _experiment_params("ri-vs-lsi-drift", {"vio_noise_scales": "1,3"})
+    assert got["vio_noise_scales"] == "1,3" and got["duration"] is None
     res = runner.invoke(app, ["experiment", "table1", "-o", str(tmp_path / "x"), "--param", "sigma=3"])
     assert res.exit_code == 2 and "unknown parameter 'sigma'" in res.output
     assert not (tmp_path / "x").exists()
@@ -63,6 +71,15 @@ def test_experiment_params_are_checked_and_typed(tmp_path):
     assert res.exit_code == 2 and "duration='soon' is not a float" in res.output
     res = runner.invoke(app, ["experiment", "table1", "-o", str(tmp_path / "z"), "--param", "prior=magic"])
     assert res.exit_code == 2 and "prior='magic'" in res.output
+    for bad in ("0", "-1", "1000"):
+        res = runner.invoke(
+            app, ["experiment", "table1", "-o", str(tmp_path / "w"), "--param", f"vio_noise_scale={bad}"]
+        )
+        assert res.exit_code == 2 and f"vio_noise_scale={float(bad)!r}" in res.output, res.output
+    res = runner.invoke(
+        app, ["experiment", "ri-vs-lsi-drift", "-o", str(tmp_path / "v"), "--param", "vio_noise_scales=1,x"]
+    )
+    assert res.exit_code == 2 and "vio_noise_scales='1,x'" in res.output
 
 
 def test_table1_prior_modes_differ_only_in_the_filter_belief(tmp_path):
@@ -73,6 +90,12 @@ def test_table1_prior_modes_differ_only_in_the_filter_belief(tmp_path):
     _, fixed = _table1(tmp_path / "f", 1, 1, None, 0, prior="fixed", prior_sigma=0.1, **kw)
     _, tuned = _table1(tmp_path / "t", 1, 1, None, 0, prior="tuned", **kw)
     f, t = fixed["per_run"], tuned["per_run"]
+    # prior=both: one VIO pass, the shared cell refined once, the same numbers as the two separate runs
+    _, both = _table1(tmp_path / "b", 1, 1, None, 0, prior="both", prior_sigma=0.1, **kw)
+    b = both["per_run"]
+    cols = ["sigma_i", "sigma_u", "method", "prmse_m", "anchor_error_m"]
+    for name, sep in (("fixed", f), ("tuned", t)):
+        assert b.filter(b["prior"] == name).select(cols).equals(sep.select(cols)), name
     same = (f["sigma_i"] == 0.1).to_list()
     assert f.filter(same)["anchor_error_m"].to_list() == t.filter(same)["anchor_error_m"].to_list()
     assert (

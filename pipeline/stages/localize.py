@@ -22,6 +22,8 @@ def run(ctx: StageContext) -> StageResult:
     updater = UwbUpdater.from_config(
         ctx.config.uwb, ctx.reader.calibration, mode="frozen", anchors=anchors, inflation=inflation
     )
+    if ctx.dir.exists("lever_arms.pkl"):  # a planar carrier's estimated lever arms (init)
+        updater.planar_arms = ctx.dir.load_pickle("lever_arms.pkl", "localize")
     updater.link_offsets = {
         rd.anchor_key(a): {int(k): float(v) for k, v in s.get("link_offsets", {}).items()}
         for a, s in states.items()

@@ -23,6 +23,8 @@ def run(ctx: StageContext) -> StageResult:
     warns = add_initialised_anchors(est.state, results, cfg, cal, pose_correlation_s=tau)
     inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
     updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
+    if ctx.dir.exists("lever_arms.pkl"):  # a planar carrier's estimated lever arms (init)
+        updater.planar_arms = ctx.dir.load_pickle("lever_arms.pkl", "refine")
     updater.schedule(  # late anchors join at their time; per-link offsets; heights left alone where unobservable
         results,
         {
