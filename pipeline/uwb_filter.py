@@ -628,20 +628,17 @@ def add_anchor_to_state(
     state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
 
 
-def bounded_pose_correlation(calibration: Mapping | None) -> float | None:
-    """The correlation time [s] of the poses' error when the recording declares a bounded error model
-    (calibration ``odometry.error_model = "bounded"``), else None (drift: random walk)."""
-    odo = ((calibration or {}).get("odometry") or {}) if isinstance(calibration, Mapping) else {}
-    if odo.get("error_model") != "bounded":
-        return None
-    return float(odo.get("correlation_time_s") or 10.0)
-
-
 def add_initialised_anchors(
-    state: State, results: Mapping[Any, InitResult], config: UwbConfig, calibration: Mapping | None
+    state: State,
+    results: Mapping[Any, InitResult],
+    config: UwbConfig,
+    calibration: Mapping | None,
+    pose_correlation_s: float | None = None,
 ) -> list[str]:
     """Every initialised anchor of ``results`` into ``state`` (`add_anchor_to_state`) with the configured range
-    noise and the recording's priors, then drop the pose probes; warnings name the anchors left out."""
+    noise and the recording's priors, then drop the pose probes; warnings name the anchors left out.
+    ``pose_correlation_s``: the pose source's bounded-error correlation time (`OdometryEstimator.
+    pose_correlation_s`; None: drift)."""
     warns = []
     for a, r in results.items():
         if not r.ok:
@@ -656,7 +653,7 @@ def add_initialised_anchors(
             sigma_range=config.sigma(calibration) * config.sigma_scale,
             gamma_prior=config.gamma_prior(calibration),
             beta_prior=config.beta_prior(calibration),
-            pose_correlation_s=bounded_pose_correlation(calibration),
+            pose_correlation_s=pose_correlation_s,
         )
     remove_probes(state)  # they only served the anchors' cross-covariances
     return warns
@@ -776,13 +773,13 @@ class UwbUpdater:
 
     def _offset(self, state: State, meas: RangeMeasurement) -> tuple[float, str | None, int]:
         """(offset of the range's link, its state variable or None, its column): the state's estimate while
-        the offsets are in the state (not in localisation, where they are constants), else the fixed table."""
+        the offsets are in the state (estimated in refinement, considered like their anchor in localisation),
+        else the fixed table."""
         lk = int(meas.tag) * 256 + int(meas.antenna)
-        if self.mode != "frozen":
-            name = link_var(meas.anchor)
-            col = self.link_cols.get(meas.anchor, {}).get(lk)
-            if col is not None and name in state:
-                return float(state.value(name).x[col]), name, col
+        name = link_var(meas.anchor)
+        col = self.link_cols.get(meas.anchor, {}).get(lk)
+        if col is not None and name in state:
+            return float(state.value(name).x[col]), name, col
         return self.link_offsets.get(meas.anchor, {}).get(lk, 0.0), None, -1
 
     def offsets(self, state: State) -> dict[Any, dict[int, float]]:
@@ -878,7 +875,7 @@ class UwbUpdater:
             options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
             anchors = self._estimated(state)
             if self.mode == "frozen":  # the anchors considered: the range corrects the pose only
-                Hf = {pose_var: H_imu, **({name: J.H_U} if in_state else {})}
+                Hf = {pose_var: H_imu, **({name: J.H_U, **H_link} if in_state else {})}
                 res = ekf_update(state, Hf, np.array([r]), R, schmidt=anchors, **options)
             elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
                 H = {pose_var: H_imu, name: J.H_U, **H_link}

@@ -10,7 +10,7 @@ from .context import StageContext, StageResult
 
 
 def run(ctx: StageContext) -> StageResult:
-    from ..uwb_filter import UwbUpdater
+    from ..uwb_filter import UwbUpdater, link_columns
 
     win = ctx.windows()
     if win.refine_end_ns >= win.end_ns:
@@ -28,6 +28,8 @@ def run(ctx: StageContext) -> StageResult:
         rd.anchor_key(a): {int(k): float(v) for k, v in s.get("link_offsets", {}).items()}
         for a, s in states.items()
     }
+    # offsets that are still state variables (links/<id>, in refinement's column order) are considered
+    updater.link_cols = {a: link_columns(list(off)) for a, off in updater.link_offsets.items() if off}
     with ctx.runlog("localize") as log:
         log.stage("localize", win.refine_end_ns)
         run_estimator(est, ctx.features_reader(), win.refine_end_ns, win.end_ns, on_range=updater, log=log)
