@@ -110,6 +110,7 @@ def run_benchmarks(
     if unknown:
         raise InputError(f"unknown benchmark case(s) {unknown}; known: {sorted(CASES)}")
     other_tree = _check_tree(against) if against is not None else None
+    load_start = os.getloadavg()
     # baselines run first so that every ratio is measured in this same invocation
     needed = []
     for n in names:
@@ -128,7 +129,8 @@ def run_benchmarks(
             r.ratio_to_baseline = r.wall_s / results[r.baseline].wall_s
     load = os.getloadavg()
     lines = [
-        f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1/5/15 min)",
+        f"machine: {os.cpu_count()} CPUs, load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1/5/15 min; "
+        f"at the start {load_start[0]:.2f} / {load_start[1]:.2f} / {load_start[2]:.2f})",
         f"{'case':<28} {'wall s':>8} {'cpu s':>8} {'RTF':>8} {'peak MB':>9} {'ratio':>7}  baseline / note",
     ]
     for r in results.values():
@@ -165,7 +167,8 @@ def run_benchmarks(
             "machine": {
                 "cpus": os.cpu_count(),
                 "python": sys.version.split()[0],
-                "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()],
+                "load_avg_1_5_15": [round(x, 2) for x in load],
+                "load_avg_1_5_15_at_start": [round(x, 2) for x in load_start],
             },
             "quick": quick,
             "results": [asdict(r) for r in results.values()],

@@ -637,10 +637,11 @@ class MsckfEstimator:
         )
         if len(rows):
             self._update(rows, t_ns, trace)
-        self.db.keep(~drop)
+        keep = ~drop
         if oldest is not None:
             self.state.remove(_clone_name(oldest))
-            self.db.keep(self.db.t != oldest)
+            keep &= self.db.t != oldest
+        self.db.keep(keep)
 
     def _update(self, rows: np.ndarray, t_ns: int, trace: dict | None) -> None:
         cfg = self.config

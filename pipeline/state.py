@@ -243,8 +243,12 @@ class State:
 
     @property
     def clones(self) -> list[tuple[int, str]]:
-        """(t_ns, name) of the MSCKF clones in time order."""
-        return sorted(self.of_kind(Kind.CLONE))
+        """(t_ns, name) of the MSCKF clones in time order (kept until a variable is added or removed: the MSCKF
+        asks for it several times per frame)."""
+        cached = getattr(self, "_clones", None)
+        if cached is None:
+            cached = self._clones = sorted(self.of_kind(Kind.CLONE))
+        return list(cached)
 
     @property
     def probes(self) -> list[tuple[int, str]]:
@@ -291,6 +295,7 @@ class State:
             P[:n_old, sl] = cross.T
         P[sl, sl] = 0.5 * (P_new + P_new.T)
         self._names.append(name)
+        self._clones = None
         self._values[name] = value
         self._fej[name] = dataclasses.replace(value)  # __post_init__ copies the arrays
         self._slices[name] = sl
@@ -396,6 +401,7 @@ class State:
             self._n = last.start
         self.considered.discard(name)
         self._names.remove(name)
+        self._clones = None
         del self._values[name]
         del self._fej[name]
         del self._info[name]
