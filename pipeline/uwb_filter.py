@@ -358,17 +358,22 @@ def search_window(
         return _not_determined(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
-    return search_anchor(
-        w.tag_xyz,
-        w.d,
-        w.links(),
+    kw = dict(
         t_ns=w.t_ns,
         sigma_range=sigma,
         min_ranges=max(config.min_ranges, 30),
         max_sigma_horizontal=config.max_sigma_horizontal_m,
         gamma_prior=config.gamma_prior(calibration),
-        beta_prior=config.init_beta_prior(calibration),
     )
+    sr = search_anchor(w.tag_xyz, w.d, w.links(), **kw)
+    bp = config.init_beta_prior(calibration)
+    if not sr.ok and bp is not None and "range offset" in sr.reason:
+        # a fit that needs metres of offset: on a one-sided arc the fixed scale (beta = 1) is traded against the
+        # anchor's distance; refit with beta under its prior, as the initialiser estimates it
+        sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
+        if sb.ok:
+            return sb
+    return sr
 
 
 def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:

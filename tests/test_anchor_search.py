@@ -230,3 +230,24 @@ def test_search_beta_prior_none_is_beta_one():
     d = _ranges(xyz, np.array([3.0, 5.0, 2.5]), 0.2, 0.05, rng)
     res = search_anchor(xyz, d, t_ns=t * 1e9, sigma_range=0.05)
     assert res.ok and res.beta == 1.0
+
+
+def test_search_window_refits_with_beta_only_when_the_offset_is_traded():
+    """`search_window` keeps the fixed-scale search where it determines the anchor, and refits with the
+    recording's beta prior only when the fixed-scale fit needs metres of offset (the one-sided arc above)."""
+    t = np.linspace(0, 48, 800)
+    xyz = np.c_[0.9 + 1.0 * np.sin(t / 5.0), 0.5 + 2.2 * np.sin(t / 7.3 + 0.4), 1.25 + 0.3 * np.sin(t / 3.1)]
+    cal = {"uwb": {"gamma_prior": {"mean": 0.0, "sigma": 1.0}, "beta_prior": {"mean": 1.0, "sigma": 0.2}}}
+    far = np.array([-2.65, -2.67, 1.57])
+    traded = 0
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        d = 0.9 * np.linalg.norm(xyz - far, axis=1) - 0.3 + rng.normal(0, 0.1, len(t))
+        fixed = search_anchor(xyz, d, t_ns=t * 1e9, sigma_range=0.1, gamma_prior=(0.0, 1.0))
+        res = search_window(_window(xyz, d, t), UwbConfig(), 0.1, cal)
+        if not fixed.ok and "range offset" in fixed.reason:
+            traded += 1
+            assert res.ok and res.beta == pytest.approx(0.9, abs=0.03), res.reason
+        else:
+            assert res.beta == 1.0 and res.ok == fixed.ok
+    assert traded >= 1
