@@ -276,6 +276,6 @@ def plot_table1_vs_paper(path: str | Path, tables: Mapping[str, object]) -> Path
         ax.set_xticks(x, [f"σ_I={si:g}\nσ_U={su:g}" for si, su in cells])
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, axis="y")
-    axs[0].legend(fontsize=7, ncol=2)
+    axs[1].legend(fontsize=7, ncol=2, loc="upper left")
     fig.suptitle("table1 at the paper's VIO drift: ours (per prior convention) beside the paper")
     return _save(fig, path)

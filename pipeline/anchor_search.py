@@ -49,6 +49,7 @@ class SearchResult:
     normal: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
     n_used: int = 0
     costs: dict = field(default_factory=dict)
+    beta: float = 1.0  # range scale of the fit (1 unless the search estimated it under a beta prior)
 
     @property
     def ok(self) -> bool:
@@ -147,12 +148,13 @@ class _Refined:
     r: np.ndarray
     w: np.ndarray
     info: np.ndarray  # (3+L, 3+L) robust Gauss-Newton information (unit residual variance)
+    beta: float = 1.0
 
 
-def _residuals(y, d, li, b, g):
+def _residuals(y, d, li, b, g, beta=1.0):
     diff = y - b
     rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
-    return d - rho - g[li], diff / rho[:, None], rho
+    return d - beta * rho - g[li], diff / rho[:, None], rho
 
 
 def refine_robust(
@@ -167,12 +169,21 @@ def refine_robust(
     max_iter: int = 30,
     fix_normal: bool = False,
     gamma_prior: tuple[float, float, float] | None = None,
+    beta_prior: tuple[float, float, float] | None = None,
+    beta0: float | None = None,
 ) -> _Refined:
     """Cauchy-IRLS Levenberg-Marquardt over (b, gamma_l) from (b0, g0); ``scale`` [m] is the Cauchy scale.
     ``fix_normal``: the out-of-plane component stays at b0[2] (its column is left out). ``gamma_prior``
     (mean, sigma, range sigma): a Gaussian prior on every gamma_l, weighted as (range sigma / sigma)^2 against
-    the squared range residuals."""
+    the squared range residuals. ``beta_prior`` (mean, sigma, range sigma): the range scale beta (d = beta
+    ||y - b|| + gamma) is estimated too, from ``beta0`` (default its mean), under that prior, and marginalised
+    out of ``info`` (None: beta = 1). On a short one-sided arc a scale error is otherwise absorbed by trading
+    the anchor's distance against gamma."""
     b, g = np.asarray(b0, float).copy(), np.asarray(g0, float).copy()
+    est_beta = beta_prior is not None
+    beta = (float(beta_prior[0]) if beta0 is None else float(beta0)) if est_beta else 1.0
+    bw = (beta_prior[2] / beta_prior[1]) ** 2 if est_beta else 0.0
+    bm = float(beta_prior[0]) if est_beta else 1.0
     if g.shape == ():
         g = np.full(n_links, float(g))
     c2 = scale**2
@@ -183,24 +194,31 @@ def refine_robust(
     gi = np.arange(3, 3 + n_links)
     gi_cols = [cols.index(i) for i in gi]
 
-    def cost_of(r, g=None):
+    def cost_of(r, g=None, bt=1.0):
         prior = 0.0 if g is None or not pw else pw * float(np.sum((g - gm) ** 2))
+        prior += bw * (bt - bm) ** 2
         return float(np.sum(c2 * np.log1p(r**2 / c2))) + prior
 
-    r, u, _ = _residuals(y, d, li, b, g)
-    cost = cost_of(r, g)
+    r, u, rho = _residuals(y, d, li, b, g, beta)
+    cost = cost_of(r, g, beta)
+    nc = len(cols)
     lam = 1e-3
     E = np.zeros((len(d), n_links))
     E[np.arange(len(d)), li] = 1.0
     small = False
     for _ in range(max_iter):
         w = 1.0 / (1.0 + r**2 / c2)
-        J = np.concatenate([u, -E], axis=1)[:, cols]  # dr/d(b, gamma); r = d - ||y - b|| - gamma
+        J = np.concatenate([beta * u, -E], axis=1)[:, cols]  # dr/d(b, gamma); r = d - beta ||y - b|| - gamma
+        if est_beta:
+            J = np.concatenate([J, -rho[:, None]], axis=1)
         A = (J * w[:, None]).T @ J
         gr = -(J * w[:, None]).T @ r
         if pw:
             A[gi_cols, gi_cols] += pw
             gr[gi_cols] -= pw * (g - gm)
+        if est_beta:
+            A[nc, nc] += bw
+            gr[nc] -= bw * (beta - bm)
         improved = False
         while lam < 1e10:
             try:
@@ -209,13 +227,14 @@ def refine_robust(
                 lam *= 10
                 continue
             full = np.zeros(3 + n_links)
-            full[cols] = step
+            full[cols] = step[:nc]
             b_new, g_new = b + full[:3], g + full[3:]
-            r_new, u_new, _ = _residuals(y, d, li, b_new, g_new)
-            c_new = cost_of(r_new, g_new)
+            bt_new = beta + float(step[nc]) if est_beta else beta
+            r_new, u_new, rho_new = _residuals(y, d, li, b_new, g_new, bt_new)
+            c_new = cost_of(r_new, g_new, bt_new)
             if np.isfinite(c_new) and c_new <= cost:
-                small = np.linalg.norm(full) < 1e-7 * (1.0 + np.linalg.norm(b))
-                b, g, r, u, cost = b_new, g_new, r_new, u_new, c_new
+                small = np.linalg.norm(step) < 1e-7 * (1.0 + np.linalg.norm(b))
+                b, g, r, u, rho, beta, cost = b_new, g_new, r_new, u_new, rho_new, bt_new, c_new
                 lam = max(lam / 10, 1e-9)
                 improved = True
                 break
@@ -223,11 +242,17 @@ def refine_robust(
         if not improved or small:
             break
     w = 1.0 / (1.0 + r**2 / c2)
-    J = np.concatenate([-u, E], axis=1)  # dh/d(b, gamma)
+    J = np.concatenate([-beta * u, E], axis=1)  # dh/d(b, gamma)
     info = (J * w[:, None]).T @ J
+    if (
+        est_beta
+    ):  # beta marginalised out under its prior (it is a nuisance here, the initialiser estimates it)
+        jb = rho * w
+        ib = J.T @ jb
+        info = info - np.outer(ib, ib) / (float(jb @ rho) + bw)
     # (the information is the ranges' alone: the gamma prior steadies the estimate, it does not vouch for it;
     # a sigma that leans on it lets an anchor join before its own ranges pin it down)
-    return _Refined(b, g, cost, r, w, info)
+    return _Refined(b, g, cost, r, w, info, beta)
 
 
 def _robust_sigma(r: np.ndarray) -> float:
@@ -270,6 +295,7 @@ def search_anchor(
     max_sigma_horizontal: float | None = None,
     max_abs_gamma: float = 2.0,
     gamma_prior: tuple[float, float] | None = None,
+    beta_prior: tuple[float, float] | None = None,
     seed: int = 0,
 ) -> SearchResult:
     """Global search for the anchor ranged by the tag positions ``xyz`` (N, 3) with ranges ``d`` (N,) over links
@@ -279,6 +305,8 @@ def search_anchor(
     offsets are decimetres; a fit that needs metres has traded the anchor's distance against the offset on a
     short arc). ``threshold_m``: consensus inlier threshold (default max(1 m,
     5 sigma_range)); ``height_sigma_max``: height sigma above which the height is flagged unobservable.
+    ``beta_prior`` (mean, sigma): estimate the range scale too (as the initialiser does), marginalised out of
+    the covariance; None: beta = 1.
     """
     xyz = np.asarray(xyz, float).reshape(-1, 3)
     d = np.asarray(d, float).reshape(-1)
@@ -320,6 +348,9 @@ def search_anchor(
     g_fix = 0.0 if gamma_prior is None else float(gamma_prior[0])
     B0, G0 = closed_form_candidates(y, dd, samples, planar, gamma=g_fix)
     gp = None if gamma_prior is None else (float(gamma_prior[0]), float(gamma_prior[1]), sigma_range)
+    kw = {"gamma_prior": gp}
+    if beta_prior is not None:
+        kw["beta_prior"] = (float(beta_prior[0]), float(beta_prior[1]), sigma_range)
     B, G = np.concatenate([B, B0]), np.concatenate([G, G0])
     good = np.all(np.isfinite(B), axis=1) & np.isfinite(G) & (np.abs(G - g_fix) <= max_abs_gamma)
     B, G = B[good], G[good]
@@ -346,14 +377,14 @@ def search_anchor(
     fits: list[_Refined] = []
     for i in picks:
         for b0 in (B[i], B[i] * [1, 1, -1], B[i] * [1, 1, 0]) if planar else (B[i], B[i] * [1, 1, -1]):
-            f = refine_robust(yq, dq, lq, L, b0, np.full(L, G[i]), scale, gamma_prior=gp)
+            f = refine_robust(yq, dq, lq, L, b0, np.full(L, G[i]), scale, **kw)
             fits.append(f)
     best = min(fits, key=lambda f: f.cost)
-    best = refine_robust(y, dd, li, L, best.b, best.g, scale, gamma_prior=gp)
+    best = refine_robust(y, dd, li, L, best.b, best.g, scale, beta0=best.beta, **kw)
     # second pass at the residuals' own scale (down-weights NLOS junk harder once the basin is found)
     s_in = _robust_sigma(best.r[np.abs(best.r) < thr])
     scale2 = max(3.0 * s_in, 3.0 * sigma_range * 0.2, 0.02)
-    best = refine_robust(y, dd, li, L, best.b, best.g, scale2, gamma_prior=gp)
+    best = refine_robust(y, dd, li, L, best.b, best.g, scale2, beta0=best.beta, **kw)
     r = best.r
     inl = np.abs(r) < max(4.0 * s_in, thr / 4)
     frac = float(inl.mean())
@@ -366,7 +397,7 @@ def search_anchor(
             planar=planar,
         )
     # mirror basin across the motion plane
-    mir = refine_robust(y, dd, li, L, best.b * [1, 1, -1], best.g, scale2, gamma_prior=gp)
+    mir = refine_robust(y, dd, li, L, best.b * [1, 1, -1], best.g, scale2, beta0=best.beta, **kw)
     if mir.cost < best.cost:  # the mirror basin is the better one
         best, mir = mir, best
         r = best.r
@@ -416,7 +447,12 @@ def search_anchor(
     # keep the search's inliers over the input ranges
     inliers = np.zeros(n_all, bool)
     r_all, _, _ = _residuals(
-        (xyz[fin] - c) @ Vt.T, d[fin], np.searchsorted(links, link[fin]).clip(0, L - 1), best.b, best.g
+        (xyz[fin] - c) @ Vt.T,
+        d[fin],
+        np.searchsorted(links, link[fin]).clip(0, L - 1),
+        best.b,
+        best.g,
+        best.beta,
     )
     known = np.isin(link[fin], links)
     inliers[np.flatnonzero(fin)] = known & (np.abs(r_all) < max(4.0 * sig, thr / 4))
@@ -437,6 +473,7 @@ def search_anchor(
         normal=Vt[2].copy(),
         n_used=len(dd),
         costs={"best": best.cost * whit, "mirror": mir.cost * whit, "inlier_fraction": frac, "kappa": kappa},
+        beta=float(best.beta),
     )
     spread_ok = sig <= max_spread_factor * max(sigma_range, 0.05)
     if np.any(np.abs(best.g - g_fix) > max_abs_gamma):
@@ -468,7 +505,7 @@ def _height_squared(y, d, li, L, fit: _Refined, sig: float, kappa: float) -> tup
     rho = np.maximum(np.sqrt(np.sum(diff[:, :2] ** 2, axis=1) + y[:, 2] ** 2 + fit.b[2] ** 2), 1e-9)
     E = np.zeros((len(d), L))
     E[np.arange(len(d)), li] = 1.0
-    J = np.concatenate([diff[:, :2] / rho[:, None], (0.5 / rho)[:, None], E], axis=1)
+    J = np.concatenate([fit.beta * diff[:, :2] / rho[:, None], (0.5 * fit.beta / rho)[:, None], E], axis=1)
     A = (J * fit.w[:, None]).T @ J / max(sig, 1e-6) ** 2 / kappa
     try:
         var_s = float(np.linalg.inv(A)[2, 2])

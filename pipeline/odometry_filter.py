@@ -261,6 +261,12 @@ class OdometryEstimator:
     def history(self) -> TrajectoryRecord:
         return self._history
 
+    @property
+    def pose_correlation_s(self) -> float | None:
+        """Bounded error model: the correlation time [s] of the pose errors (the UWB initialisation models the
+        window's pose errors as Gauss-Markov with it); drift: None (random walk)."""
+        return self.correlation_time_s if self.error_model == "bounded" else None
+
     def start_probes(self, period_s: float) -> None:
         """No probes (``keeps_probes`` is False)."""
 

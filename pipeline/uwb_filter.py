@@ -118,6 +118,13 @@ class UwbConfig(BaseModel):
         "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links and "
         "their offsets differ beyond their uncertainty",
     )
+    lever_arms: Literal["auto", "given", "planar"] = Field(
+        "auto",
+        description="antenna lever arms: given (the calibration's, rotated by the full attitude) or planar (a "
+        "planar carrier: the in-plane arms estimated from the ranges jointly with anchors and link offsets, "
+        "turned by the heading about the plane normal; planar_levers); auto: planar when the pose source's "
+        "carrier moves in a plane and turns",
+    )
     anchor_z_prior: dict[str, float] | dict[str, dict[str, float]] | None = Field(
         None,
         description="prior on anchor heights: {mean, sigma} for all anchors, or {anchor id: {mean, sigma}}",
@@ -351,16 +358,22 @@ def search_window(
         return _not_determined(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
-    return search_anchor(
-        w.tag_xyz,
-        w.d,
-        w.links(),
+    kw = dict(
         t_ns=w.t_ns,
         sigma_range=sigma,
         min_ranges=max(config.min_ranges, 30),
         max_sigma_horizontal=config.max_sigma_horizontal_m,
         gamma_prior=config.gamma_prior(calibration),
     )
+    sr = search_anchor(w.tag_xyz, w.d, w.links(), **kw)
+    bp = config.init_beta_prior(calibration)
+    if not sr.ok and bp is not None and "range offset" in sr.reason:
+        # a fit that needs metres of offset: on a one-sided arc the fixed scale (beta = 1) is traded against the
+        # anchor's distance; refit with beta under its prior, as the initialiser estimates it
+        sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
+        if sb.ok:
+            return sb
+    return sr
 
 
 def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:
@@ -621,20 +634,17 @@ def add_anchor_to_state(
     state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
 
 
-def bounded_pose_correlation(calibration: Mapping | None) -> float | None:
-    """The correlation time [s] of the poses' error when the recording declares a bounded error model
-    (calibration ``odometry.error_model = "bounded"``), else None (drift: random walk)."""
-    odo = ((calibration or {}).get("odometry") or {}) if isinstance(calibration, Mapping) else {}
-    if odo.get("error_model") != "bounded":
-        return None
-    return float(odo.get("correlation_time_s") or 10.0)
-
-
 def add_initialised_anchors(
-    state: State, results: Mapping[Any, InitResult], config: UwbConfig, calibration: Mapping | None
+    state: State,
+    results: Mapping[Any, InitResult],
+    config: UwbConfig,
+    calibration: Mapping | None,
+    pose_correlation_s: float | None = None,
 ) -> list[str]:
     """Every initialised anchor of ``results`` into ``state`` (`add_anchor_to_state`) with the configured range
-    noise and the recording's priors, then drop the pose probes; warnings name the anchors left out."""
+    noise and the recording's priors, then drop the pose probes; warnings name the anchors left out.
+    ``pose_correlation_s``: the pose source's bounded-error correlation time (`OdometryEstimator.
+    pose_correlation_s`; None: drift)."""
     warns = []
     for a, r in results.items():
         if not r.ok:
@@ -649,7 +659,7 @@ def add_initialised_anchors(
             sigma_range=config.sigma(calibration) * config.sigma_scale,
             gamma_prior=config.gamma_prior(calibration),
             beta_prior=config.beta_prior(calibration),
-            pose_correlation_s=bounded_pose_correlation(calibration),
+            pose_correlation_s=pose_correlation_s,
         )
     remove_probes(state)  # they only served the anchors' cross-covariances
     return warns
@@ -728,6 +738,8 @@ class UwbUpdater:
         # anchors whose height the init found unobservable: range updates leave it alone (no z column), so a
         # tilting tag's lever arm cannot walk it to either side of the motion plane
         self.fixed_height: set = set()
+        # a planar carrier's estimated lever arms (planar_levers.PlanarLevers): p_T from the attitude
+        self.planar_arms: Any = None
 
     @classmethod
     def from_config(
@@ -767,13 +779,13 @@ class UwbUpdater:
 
     def _offset(self, state: State, meas: RangeMeasurement) -> tuple[float, str | None, int]:
         """(offset of the range's link, its state variable or None, its column): the state's estimate while
-        the offsets are in the state (not in localisation, where they are constants), else the fixed table."""
+        the offsets are in the state (estimated in refinement, considered like their anchor in localisation),
+        else the fixed table."""
         lk = int(meas.tag) * 256 + int(meas.antenna)
-        if self.mode != "frozen":
-            name = link_var(meas.anchor)
-            col = self.link_cols.get(meas.anchor, {}).get(lk)
-            if col is not None and name in state:
-                return float(state.value(name).x[col]), name, col
+        name = link_var(meas.anchor)
+        col = self.link_cols.get(meas.anchor, {}).get(lk)
+        if col is not None and name in state:
+            return float(state.value(name).x[col]), name, col
         return self.link_offsets.get(meas.anchor, {}).get(lk, 0.0), None, -1
 
     def offsets(self, state: State) -> dict[Any, dict[int, float]]:
@@ -793,6 +805,13 @@ class UwbUpdater:
     def _estimated(state: State) -> list[str]:
         """The variables range updates estimate: anchors and their per-link offsets."""
         return [n for _, n in state.of_kind(Kind.ANCHOR)] + [n for _, n in state.of_kind(Kind.LINK)]
+
+    def _arms(self, R: np.ndarray, rows: Sequence[RangeMeasurement]) -> np.ndarray:
+        """p_T (k, 3) of the ranges ``rows`` at the attitude R: the calibration's, or the planar model's."""
+        if self.planar_arms is None:
+            return np.stack([_lever_arm(self.arms, m.tag, m.antenna) for m in rows])
+        link = link_id([m.tag for m in rows], [m.antenna for m in rows])
+        return self.planar_arms.body_arms(np.broadcast_to(R, (len(rows), 3, 3)), link)
 
     def _join(self, state: State, meas: RangeMeasurement) -> bool:
         r = self.pending.get(meas.anchor)
@@ -823,7 +842,7 @@ class UwbUpdater:
         # Jacobians at the first estimates of pose and anchor (FEJ: a range at a camera stamp comes after that
         # frame's update, when the pose estimate already differs from its propagated first estimate)
         pose_lin = state.fej(pose_var)
-        p_T = _lever_arm(self.arms, meas.tag, meas.antenna)
+        p_T = self._arms(pose_lin.R, [meas])[0]
         J = jacobians(pose_lin.R, pose_lin.p, p_T, x_lin)
         same = (
             pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
@@ -862,7 +881,7 @@ class UwbUpdater:
             options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
             anchors = self._estimated(state)
             if self.mode == "frozen":  # the anchors considered: the range corrects the pose only
-                Hf = {pose_var: H_imu, **({name: J.H_U} if in_state else {})}
+                Hf = {pose_var: H_imu, **({name: J.H_U, **H_link} if in_state else {})}
                 res = ekf_update(state, Hf, np.array([r]), R, schmidt=anchors, **options)
             elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
                 H = {pose_var: H_imu, name: J.H_U, **H_link}
@@ -912,7 +931,7 @@ class UwbUpdater:
         k = len(rows)
         pose_var = self.pose_var or state.nav
         pose, pose_lin = state.value(pose_var), state.fej(pose_var)
-        p_T = np.stack([_lever_arm(self.arms, m.tag, m.antenna) for m in rows])
+        p_T = self._arms(pose_lin.R, rows)
         X_cur, X_lin = np.stack(xs_cur), np.stack(xs_lin)
         J = jacobians(pose_lin.R, pose_lin.p, p_T, X_lin)
         same_pose = pose_lin is pose or (

@@ -191,3 +191,63 @@ def test_plane_frame_is_a_rotation_with_upward_normal():
     c, Vt, ext = plane_frame(xyz)
     assert np.linalg.det(Vt) == pytest.approx(1.0)
     assert Vt[2, 2] > 0.99 and ext[2] < 0.05 * ext[0]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_search_estimates_range_scale_on_one_sided_arc(seed):
+    """A drifting VIO source's first window: a one-sided, near-level arc (x in [-0.1, 1.9] m) with the anchor
+    2.6 m beyond its side and a range scale beta = 0.9 (d = 0.9 |.| - 0.3). With beta fixed to 1 the fit trades
+    the anchor's distance against gamma (metres: "not determined", or a confident wrong fit); with the recording's beta prior (1, 0.2)
+    the search estimates beta with the anchor and the position lies inside its covariance (chi2 3-dof 99.9 %)."""
+    rng = np.random.default_rng(seed)
+    n = 800
+    t = np.linspace(0, 48, n)
+    xyz = np.c_[0.9 + 1.0 * np.sin(t / 5.0), 0.5 + 2.2 * np.sin(t / 7.3 + 0.4), 1.25 + 0.3 * np.sin(t / 3.1)]
+    drift = np.c_[0.001 * t, -0.00075 * t, 0.00025 * t]  # VIO drift: 5 cm over the window
+    anchor = np.array([-2.65, -2.67, 1.57])
+    d = 0.9 * np.linalg.norm(xyz - anchor, axis=1) - 0.3 + rng.normal(0, 0.1, n)
+    kw = dict(t_ns=t * 1e9, sigma_range=0.1, gamma_prior=(0.0, 1.0))
+
+    def nees(r):
+        e = r.p - anchor
+        return float(e @ np.linalg.solve(r.cov[:3, :3], e))
+
+    fixed = search_anchor(xyz + drift, d, **kw)
+    assert not fixed.ok or nees(fixed) > 16.27  # not determined, or confidently wrong
+    res = search_anchor(xyz + drift, d, beta_prior=(1.0, 0.2), **kw)
+    assert res.ok, res.reason
+    assert res.beta == pytest.approx(0.9, abs=0.03)
+    e = res.p - anchor
+    assert nees(res) < 16.27
+    assert np.linalg.norm(e[:2]) < 3 * res.sigma_horizontal
+
+
+def test_search_beta_prior_none_is_beta_one():
+    """Without a beta prior the search's model is beta = 1 (bit-identical to the fixed-scale fit)."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(0, 60, 600)
+    xyz = np.c_[4 * np.cos(t / 9), 3 * np.sin(t / 6), 1.2 + 0.8 * np.sin(t / 4)]
+    d = _ranges(xyz, np.array([3.0, 5.0, 2.5]), 0.2, 0.05, rng)
+    res = search_anchor(xyz, d, t_ns=t * 1e9, sigma_range=0.05)
+    assert res.ok and res.beta == 1.0
+
+
+def test_search_window_refits_with_beta_only_when_the_offset_is_traded():
+    """`search_window` keeps the fixed-scale search where it determines the anchor, and refits with the
+    recording's beta prior only when the fixed-scale fit needs metres of offset (the one-sided arc above)."""
+    t = np.linspace(0, 48, 800)
+    xyz = np.c_[0.9 + 1.0 * np.sin(t / 5.0), 0.5 + 2.2 * np.sin(t / 7.3 + 0.4), 1.25 + 0.3 * np.sin(t / 3.1)]
+    cal = {"uwb": {"gamma_prior": {"mean": 0.0, "sigma": 1.0}, "beta_prior": {"mean": 1.0, "sigma": 0.2}}}
+    far = np.array([-2.65, -2.67, 1.57])
+    traded = 0
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        d = 0.9 * np.linalg.norm(xyz - far, axis=1) - 0.3 + rng.normal(0, 0.1, len(t))
+        fixed = search_anchor(xyz, d, t_ns=t * 1e9, sigma_range=0.1, gamma_prior=(0.0, 1.0))
+        res = search_window(_window(xyz, d, t), UwbConfig(), 0.1, cal)
+        if not fixed.ok and "range offset" in fixed.reason:
+            traded += 1
+            assert res.ok and res.beta == pytest.approx(0.9, abs=0.03), res.reason
+        else:
+            assert res.beta == 1.0 and res.ok == fixed.ok
+    assert traded >= 1

@@ -94,7 +94,7 @@ def _monte_carlo(tmp_path, name, seeds, uwb=None, **kw):
         results = pipe.dir.load_pickle("init.pkl", "init")[cfg.uwb.init_method]
         est = pipe.dir.load_pickle("checkpoint_init.pkl", "init")
         now = {a: r for a, r in results.items() if r.ok and r.join_ns is None}
-        add_initialised_anchors(est.state, now, cfg.uwb, cal)
+        add_initialised_anchors(est.state, now, cfg.uwb, cal, getattr(est, "pose_correlation_s", None))
         for a, r in now.items():
             e = r.x[:3] - np.asarray(truth[str(a)]["position"], float)
             joined.append(float(e @ np.linalg.solve(est.state.cov(anchor_var(a))[:3, :3], e)))

@@ -17,6 +17,7 @@ import numpy as np
 
 from convert.recording import MergedReader, RecordingReader
 from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_to_rot
 from pipeline.core.names import STAGE_NUMBER
 from pipeline.core.topics import (
     TOPIC_CAM0,
@@ -136,6 +137,9 @@ class StageContext:
 
             for k, v in apply_real_imu_defaults(self.config.vio, self.reader.source).items():
                 _log.info("vio.%s = %s (real-IMU default, pipeline/real_imu.py)", k, v)
+        if uwb.lever_arms == "auto":
+            uwb.lever_arms, why = self.choose_lever_arms()  # type: ignore[assignment]
+            _log.info("uwb.lever_arms = %s: %s", uwb.lever_arms, why)
         if run.schedule == "auto":
             from ..schedule import choose_schedule
 
@@ -168,6 +172,25 @@ class StageContext:
                 run.init_window_s = round(span * 2.0 / 3.0, 3)
                 # refine to the end: the 1 s margin absorbs the rounding (split_windows clamps at the end)
                 run.refine_window_s = round(span - run.init_window_s + 1.0, 3)
+
+    def choose_lever_arms(self) -> tuple[str, str]:
+        """``uwb.lever_arms = "auto"`` (`planar_levers.choose_lever_arms`) from the odometry poses the UWB stages
+        use, when they come from an external system in the anchors' frame (error model bounded: motion capture,
+        SLAM with a map), whose body frame need not be the one the arms were measured in. A VIO or a drifting
+        odometry is the robot's own (the arms are given in its frame) and keeps the calibration's arms."""
+        from ..odometry_filter import resolve_error_model
+        from ..planar_levers import choose_lever_arms
+        from ..uwb_filter import lever_arms
+
+        if self.pose_source() != "odometry":
+            return "given", "VIO poses: the calibration's lever arms are in its IMU frame"
+        model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
+        if model != "bounded":
+            return "given", f"{model} odometry: the robot's own frame, the calibration's lever arms"
+        odo = self.reader.read_poses(TOPIC_ODOM)
+        step = max(1, len(odo.t_ns) // 20000)
+        n_ant = len(lever_arms(self.reader.calibration))
+        return choose_lever_arms(quat_to_rot(odo.q_xyzw[::step]), odo.p[::step], n_ant)
 
     def pose_source(self) -> str:
         choice = self.config.run.pose_source

@@ -30,7 +30,13 @@ def run(ctx: StageContext) -> StageResult:
         rng = ctx.reader.read_ranges(start_ns=win.start_ns, end_ns=win.end_ns + 1)
     end = win.end_ns + 1 if per_anchor else win.init_end_ns
     windows = windows_from_trajectory(vio, vars(rng), cal, win.start_ns, end)
-    windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor)
+    windows, levers = _lever_arms(ctx, windows)
+    windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor, levers is not None)
+    if levers is not None and searches:
+        from ..planar_levers import refit_searches
+
+        sigma = ctx.config.uwb.sigma(cal) * ctx.config.uwb.sigma_scale
+        searches = refit_searches(levers, windows, searches, sigma)
     results = {
         m: initialize_anchors(windows, ctx.config.uwb, cal, method=m, searches=searches) for m in INIT_METHODS
     }
@@ -41,11 +47,16 @@ def run(ctx: StageContext) -> StageResult:
     ctx.dir.save_pickle("init.pkl", results)
     chosen = ctx.config.uwb.init_method
     summary = {m: {str(a): rd.init_summary(r) for a, r in res.items()} for m, res in results.items()}
-    ctx.dir.save_json("init.json", {"chosen": chosen, "window": win.as_dict(), "methods": summary})
+    info = {"chosen": chosen, "window": win.as_dict(), "methods": summary}
+    if levers is not None:
+        info["lever_arms"] = levers.summary()
+    ctx.dir.save_json("init.json", info)
     rows = [rd.anchor_row(a, m, "init", r.x) for m, res in results.items() for a, r in res.items() if r.ok]
     rows += [rd.undetermined_row(a, chosen, "init") for a, r in results[chosen].items() if not r.ok]
     rd.write_anchors(ctx.dir, rows, replace_stage="init")
     warns = [f"init {chosen} anchor {a}: {w}" for a, r in results[chosen].items() for w in r.warnings]
+    if levers is not None:
+        warns.insert(0, f"init: {levers.message()}")
     warns += [
         f"init {chosen} anchor {a}: {r.status}"
         for a, r in results[chosen].items()
@@ -88,9 +99,32 @@ def run(ctx: StageContext) -> StageResult:
     return StageResult("init", f"{chosen} [{sched}]: {ok}/{len(res)} anchors initialised{extra}{errs}", warns)
 
 
-def _schedule(ctx: StageContext, windows: dict, init_end_ns: int, per_anchor: bool):
+def _lever_arms(ctx: StageContext, windows: dict):
+    """``uwb.lever_arms = "planar"``: the windows with the planar carrier's estimated lever arms and the model
+    (saved as lever_arms.pkl for refine and localize); else the windows as given and None."""
+    from ..planar_levers import planar_windows
+    from ..uwb_filter import search_window
+
+    cfg = ctx.config.uwb
+    if ctx.dir.exists("lever_arms.pkl"):
+        ctx.dir.file("lever_arms.pkl").unlink()
+    if cfg.lever_arms != "planar":
+        return windows, None
+    sigma = cfg.sigma(ctx.reader.calibration) * cfg.sigma_scale
+    windows, levers = planar_windows(
+        windows, lambda w: search_window(w, cfg, sigma, ctx.reader.calibration), sigma
+    )
+    if levers is not None:
+        ctx.dir.save_pickle("lever_arms.pkl", levers)
+    return windows, levers
+
+
+def _schedule(ctx: StageContext, windows: dict, init_end_ns: int, per_anchor: bool, whole: bool = False):
     """Per anchor: the window its initialisation uses, its search result and its join time
-    (`schedule.join_time`); without the search (the paper's multi-start) the first window for every anchor."""
+    (`schedule.join_time`); without the search (the paper's multi-start) the first window for every anchor.
+    ``whole`` (per-anchor schedule with estimated planar lever arms): every anchor from all its ranges, at the
+    end; the arms come from every anchor's ranges over the whole recording, so an anchor initialised from a
+    prefix would already lean on the later ranges and its refinement would count them twice."""
     from ..schedule import join_time
     from ..uwb_filter import search_window
 
@@ -100,11 +134,14 @@ def _schedule(ctx: StageContext, windows: dict, init_end_ns: int, per_anchor: bo
     sigma = cfg.sigma(ctx.reader.calibration) * cfg.sigma_scale
     out_w, searches, joins = {}, {}, {}
     for a, w in windows.items():
+        end = init_end_ns
+        if whole and per_anchor and len(w):
+            end = int(w.t_ns.max()) + 1
         j = join_time(
             w,
-            init_end_ns,
+            end,
             lambda sub: search_window(sub, cfg, sigma, ctx.reader.calibration),
-            per_anchor=per_anchor,
+            per_anchor=per_anchor and not whole,
             min_ranges=max(cfg.min_ranges, 30),
             join_sigma=cfg.join_sigma_m if per_anchor else None,
             join_ratio=cfg.join_ratio,

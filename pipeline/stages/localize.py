@@ -10,7 +10,7 @@ from .context import StageContext, StageResult
 
 
 def run(ctx: StageContext) -> StageResult:
-    from ..uwb_filter import UwbUpdater
+    from ..uwb_filter import UwbUpdater, link_columns
 
     win = ctx.windows()
     if win.refine_end_ns >= win.end_ns:
@@ -22,10 +22,14 @@ def run(ctx: StageContext) -> StageResult:
     updater = UwbUpdater.from_config(
         ctx.config.uwb, ctx.reader.calibration, mode="frozen", anchors=anchors, inflation=inflation
     )
+    if ctx.dir.exists("lever_arms.pkl"):  # a planar carrier's estimated lever arms (init)
+        updater.planar_arms = ctx.dir.load_pickle("lever_arms.pkl", "localize")
     updater.link_offsets = {
         rd.anchor_key(a): {int(k): float(v) for k, v in s.get("link_offsets", {}).items()}
         for a, s in states.items()
     }
+    # offsets that are still state variables (links/<id>, in refinement's column order) are considered
+    updater.link_cols = {a: link_columns(list(off)) for a, off in updater.link_offsets.items() if off}
     with ctx.runlog("localize") as log:
         log.stage("localize", win.refine_end_ns)
         run_estimator(est, ctx.features_reader(), win.refine_end_ns, win.end_ns, on_range=updater, log=log)

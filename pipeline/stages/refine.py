@@ -12,23 +12,26 @@ from .context import StageContext, StageResult
 
 
 def run(ctx: StageContext) -> StageResult:
-    from ..uwb_filter import UwbUpdater, add_initialised_anchors, bounded_pose_correlation
+    from ..uwb_filter import UwbUpdater, add_initialised_anchors
 
     win = ctx.windows()
     est = ctx.dir.load_pickle("checkpoint_init.pkl", "refine")
     results = ctx.dir.load_pickle("init.pkl", "refine")[ctx.config.uwb.init_method]
     cal = ctx.reader.calibration
     cfg = ctx.config.uwb
-    warns = add_initialised_anchors(est.state, results, cfg, cal)
+    tau = getattr(est, "pose_correlation_s", None)  # bounded pose errors: their correlation time
+    warns = add_initialised_anchors(est.state, results, cfg, cal, pose_correlation_s=tau)
     inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
     updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
+    if ctx.dir.exists("lever_arms.pkl"):  # a planar carrier's estimated lever arms (init)
+        updater.planar_arms = ctx.dir.load_pickle("lever_arms.pkl", "refine")
     updater.schedule(  # late anchors join at their time; per-link offsets; heights left alone where unobservable
         results,
         {
             "sigma_range": cfg.sigma(cal) * cfg.sigma_scale,
             "gamma_prior": cfg.gamma_prior(cal),
             "beta_prior": cfg.beta_prior(cal),
-            "pose_correlation_s": bounded_pose_correlation(cal),
+            "pose_correlation_s": tau,
         },
     )
     with ctx.runlog("refine") as log:
