@@ -159,8 +159,16 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
     for aid, u in out.undetermined.items():
         if not u["reason"]:
             info = chosen.get(aid, {})
-            parts = [info.get("reason") or info.get("status") or ""] + list(info.get("warnings", []))[:1]
-            u["reason"] = "; ".join(p for p in parts if p) or "not determined (no reason given by the run)"
+            head = info.get("reason") or info.get("status") or ""
+            # the init warning repeats a stated reason ("<id>: not determined: <reason>"): add it only when new
+            extra = [
+                w
+                for w in list(info.get("warnings", []))[:1]
+                if not (info.get("reason") and info["reason"] in w)
+            ]
+            u["reason"] = (
+                "; ".join(p for p in [head, *extra] if p) or "not determined (no reason given by the run)"
+            )
     states_path = run_dir / "anchor_states.json"
     states = read_json(states_path) if states_path.is_file() else {}
     for aid in out.estimates:

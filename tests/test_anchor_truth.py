@@ -249,3 +249,16 @@ def test_ntu_folder_carries_published_truth(data_dir, tmp_path):
     t = RecordingReader(out).truth
     assert t["kind"] == "published" and t["anchors_frame"] == "odometry"  # SLICT poses: the anchors' frame
     assert t["anchors"]["101"]["position"] == [-8.43474, -1.66775, 1.11005] and len(t["anchors"]) == 3
+
+
+def test_undetermined_reason_stated_once(tmp_path):
+    d = _run_dir(tmp_path / "run")
+    init = json.loads((d / "init.json").read_text())
+    why = "horizontal sigma 1.52 m > 1 m"
+    init["methods"]["ri"]["3"] = {
+        "status": "not determined",
+        "reason": why,
+        "warnings": [f"3: not determined: {why}"],
+    }
+    (d / "init.json").write_text(json.dumps(init))
+    assert read_run_anchors(d, "ri").undetermined["3"]["reason"] == why
