@@ -358,22 +358,44 @@ def search_window(
         return _not_determined(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
+    pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
     kw = dict(
         t_ns=w.t_ns,
         sigma_range=sigma,
         min_ranges=max(config.min_ranges, 30),
         max_sigma_horizontal=config.max_sigma_horizontal_m,
         gamma_prior=config.gamma_prior(calibration),
+        pos_cov=pos_cov,
+        arm_xyz=np.einsum("nij,nj->ni", w.R, w.p_T),
+        attitude_sigma=np.sqrt(np.maximum(np.trace(w.P_pose[:, 0:3, 0:3], axis1=1, axis2=2), 0.0) / 3.0),
     )
     sr = search_anchor(w.tag_xyz, w.d, w.links(), **kw)
     bp = config.init_beta_prior(calibration)
-    if not sr.ok and bp is not None and "range offset" in sr.reason:
+    if bp is None:
+        return sr
+    if not sr.ok and "range offset" in sr.reason:
         # a fit that needs metres of offset: on a one-sided arc the fixed scale (beta = 1) is traded against the
         # anchor's distance; refit with beta under its prior, as the initialiser estimates it
         sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
-        if sb.ok:
+        return sb if sb.ok else sr
+    if sr.ok:
+        # the scale is estimated when the ranges demand it (a scale error leaves residuals that grow with the
+        # range, which the fixed-scale fit bends the anchor's position, height first, to absorb): likelihood
+        # ratio of the two fits' residual spreads over the ranges' effective count, against chi2(1) at 99.9 %
+        sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
+        if sb.ok and beta_supported(sr, sb):
             return sb
     return sr
+
+
+def beta_supported(fixed: SearchResult, fitted: SearchResult, chi2_1: float = 10.83) -> bool:
+    """The range scale beta (``fitted``) explains the ranges better than beta = 1 (``fixed``): the likelihood
+    ratio n_eff ln(s_fixed^2 / s_fitted^2) of the inliers' residual spreads, with n_eff the ranges over the fitted
+    model's correlation inflation kappa, exceeds ``chi2_1`` (chi2 with 1 dof at 99.9 %)."""
+    if not (np.isfinite(fixed.scale) and np.isfinite(fitted.scale)) or fitted.scale <= 0:
+        return False
+    n_eff = fitted.n_used / max(float(fitted.costs.get("kappa", 1.0)), 1.0)
+    return bool(n_eff * np.log(fixed.scale**2 / fitted.scale**2) > chi2_1)
 
 
 def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:
