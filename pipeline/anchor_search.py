@@ -53,6 +53,7 @@ class SearchResult:
     n_used: int = 0
     costs: dict = field(default_factory=dict)
     beta: float = 1.0  # range scale of the fit (1 unless the search estimated it under a beta prior)
+    residuals: np.ndarray | None = None  # (n_used,) of the fit over the ranges it used (model tests)
 
     @property
     def ok(self) -> bool:
@@ -500,8 +501,14 @@ def search_anchor(
         sigma_h=float(sigma_h),
         normal=Vt[2].copy(),
         n_used=len(dd),
-        costs={"best": best.cost * whit, "mirror": mir.cost * whit, "inlier_fraction": frac, "kappa": kappa},
+        costs={
+            "best": best.cost * whit,
+            "mirror": mir.cost * whit,
+            "inlier_fraction": frac,
+            "kappa": kappa,
+        },
         beta=float(best.beta),
+        residuals=best.r.copy(),
     )
     spread_ok = sig <= max_spread_factor * max(sigma_range, 0.05)
     if np.any(np.abs(best.g - g_fix) > max_abs_gamma):
