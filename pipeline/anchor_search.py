@@ -43,8 +43,8 @@ class SearchResult:
     scale: float  # robust residual sigma of the inliers [m]
     cov: np.ndarray  # (3+L, 3+L) covariance of (p world, gamma_l), residual-scaled
     planar: bool = False  # the trajectory is planar (smallest extent < PLANAR_RATIO x largest)
-    normal_spread: float = float("nan")  # std of the tag positions along the plane normal [m]
-    normal_sigma: float = 0.0  # what corrupts them there: pose sigma along the normal (+) the arms' swing [m]
+    normal_spread: float = float("nan")  # std of the carrier's positions along the plane normal [m]
+    normal_sigma: float = 0.0  # what corrupts them there: pose sigma along the normal (+) attitude x arm [m]
     height_observable: bool = True
     mirror: bool = False  # the mirror across the motion plane fits as well
     mirror_p: np.ndarray | None = None  # the other basin (world) when ``mirror``
@@ -315,12 +315,13 @@ def search_anchor(
     ``beta_prior`` (mean, sigma): estimate the range scale too (as the initialiser does), marginalised out of
     the covariance; None: beta = 1.
 
-    The height (the anchor's component along the motion plane's normal) is observable only when (a) the tag's
-    spread along the normal is at least ``NORMAL_SNR`` x what corrupts it there (`normal_corruption`: the
-    pose sigma along the normal from ``pos_cov`` (N, 3, 3), the antenna arms' swing out of the plane
-    ``arm_xyz`` (N, 3) world-rotated arms, taken as untrusted, and the arms' direction error from the attitude
-    sigma ``attitude_sigma`` (N,) [rad]), (b) its sigma from the ranges, inflated by the errors-in-variables
-    term |b_3| x corruption / spread, is <= ``height_sigma_max`` and (c) the mirror across the plane fits
+    The height (the anchor's component along the motion plane's normal) is observable only when (a) the
+    carrier's own spread along the normal (the tag positions less their world-rotated antenna arms ``arm_xyz``
+    (N, 3): the arms' swing out of the plane rests on the arms' calibration and the attitude, so it is not
+    taken as signal) is at least ``NORMAL_SNR`` x what corrupts it there (`normal_corruption`: the pose sigma
+    along the normal from ``pos_cov`` (N, 3, 3) and the arms' direction error from the attitude sigma
+    ``attitude_sigma`` (N,) [rad]), (b) its sigma from the ranges, inflated by the errors-in-variables term
+    |b_3| x corruption / spread, is <= ``height_sigma_max`` and (c) the mirror across the plane fits
     distinctly worse (cost difference over the residuals' correlation inflation kappa >= ``mirror_chi2``).
     Otherwise it is flagged with an honest sigma that reaches the other basin.
     """
@@ -350,12 +351,14 @@ def search_anchor(
             links_all,
         )
     planar = bool(ext[2] < PLANAR_RATIO * ext[0])
+    arms = None if arm_xyz is None else np.asarray(arm_xyz, float).reshape(-1, 3)[sel]
     sig_n = normal_corruption(
         Vt[2],
         None if pos_cov is None else np.asarray(pos_cov, float).reshape(-1, 3, 3)[sel],
-        None if arm_xyz is None else np.asarray(arm_xyz, float).reshape(-1, 3)[sel],
+        arms,
         None if attitude_sigma is None else np.asarray(attitude_sigma, float).reshape(-1)[sel],
     )
+    spread_n = ext[2] if arms is None else float(np.std((xyz[sel] - arms) @ Vt[2]))
     y = (xyz[sel] - c) @ Vt.T
     dd = d[sel]
     links, li = _link_index(link[sel])
@@ -437,11 +440,11 @@ def search_anchor(
     except np.linalg.LinAlgError:
         cov_y = np.linalg.pinv(info)
     # height along the normal: the ranges' sigma, plus the errors-in-variables term (the tag's normal
-    # coordinate, which carries the height's information, is off by sig_n against its spread ext[2])
+    # coordinate, which carries the height's information, is off by sig_n against its spread spread_n)
     sig_fim = float(np.sqrt(max(cov_y[2, 2], 0.0)))
-    sig_b3 = float(np.hypot(sig_fim, abs(best.b[2]) * sig_n / max(ext[2], 1e-9)))
+    sig_b3 = float(np.hypot(sig_fim, abs(best.b[2]) * sig_n / max(spread_n, 1e-9)))
     b = best.b.copy()
-    normal_ok = bool(ext[2] >= NORMAL_SNR * sig_n)
+    normal_ok = bool(spread_n >= NORMAL_SNR * sig_n)
     height_ok = normal_ok and sig_b3 <= height_sigma_max and not mirror
     inflate = not height_ok
     if planar and not height_ok:
@@ -493,7 +496,7 @@ def search_anchor(
         sig,
         cov,
         planar=planar,
-        normal_spread=float(ext[2]),
+        normal_spread=float(spread_n),
         normal_sigma=float(sig_n),
         height_observable=bool(height_ok),
         mirror=mirror,
@@ -540,17 +543,14 @@ def normal_corruption(
     attitude_sigma: np.ndarray | None = None,
 ) -> float:
     """What corrupts the tag positions along the unit normal ``n`` [m]: the rms pose sigma along it (position
-    covariances (N, 3, 3)), the std of the world-rotated antenna arms (N, 3) along it (their swing out of the
-    plane rests on the arms' calibration, the least trusted part: counted as corruption, not as signal) and
-    the arms' direction error from the attitude sigma (N,) [rad], added in quadrature."""
+    covariances (N, 3, 3)) and the world-rotated antenna arms' (N, 3) direction error from the attitude sigma
+    (N,) [rad], added in quadrature."""
     v = 0.0
     if pos_cov is not None and len(pos_cov):
         pn = np.einsum("i,nij,j->n", n, pos_cov, n)
         v += float(np.mean(np.where(np.isfinite(pn), np.maximum(pn, 0.0), 0.0)))
-    if arm_xyz is not None and len(arm_xyz) > 1:
-        v += float(np.var(arm_xyz @ n))
-        if attitude_sigma is not None and len(attitude_sigma):
-            v += float(np.mean((np.nan_to_num(attitude_sigma) * np.linalg.norm(arm_xyz, axis=1)) ** 2))
+    if arm_xyz is not None and attitude_sigma is not None and len(attitude_sigma):
+        v += float(np.mean((np.nan_to_num(attitude_sigma) * np.linalg.norm(arm_xyz, axis=1)) ** 2))
     return float(np.sqrt(v))
 
 

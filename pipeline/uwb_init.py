@@ -589,8 +589,8 @@ def search_verdict(search: SearchResult) -> dict:
     if not search.height_observable:
         if search.normal_spread < NORMAL_SNR * search.normal_sigma:
             why = (
-                f"the tag's spread along the motion plane's normal, {search.normal_spread:.3f} m, is under "
-                f"{NORMAL_SNR:g} x what corrupts it there ({search.normal_sigma:.3f} m: pose sigma, antenna arms)"
+                f"the carrier's spread along the motion plane's normal, {search.normal_spread:.3f} m, is under "
+                f"{NORMAL_SNR:g} x what corrupts it there ({search.normal_sigma:.3f} m: pose sigma, attitude x arm)"
             )
         elif search.mirror:
             why = "the mirror across the motion plane fits as well"

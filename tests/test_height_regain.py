@@ -38,9 +38,9 @@ def test_normal_corruption_closed_form():
     P = np.broadcast_to(np.diag([0.04, 0.04, 0.0009]), (4, 3, 3))
     arms = np.array([[0.1, 0, 0.02], [0.1, 0, -0.02], [0.1, 0, 0.02], [0.1, 0, -0.02]])
     assert normal_corruption(n, P) == np.sqrt(0.0009)
-    assert np.isclose(normal_corruption(n, None, arms), 0.02)
+    assert normal_corruption(n, None, arms) == 0.0  # the arms' swing is not corruption, nor signal
     att = np.full(4, 0.01)
-    want = np.sqrt(0.0009 + 0.02**2 + np.mean((0.01 * np.linalg.norm(arms, axis=1)) ** 2))
+    want = np.sqrt(0.0009 + np.mean((0.01 * np.linalg.norm(arms, axis=1)) ** 2))
     assert np.isclose(normal_corruption(n, P, arms, att), want)
 
 
@@ -73,7 +73,8 @@ def test_height_observable_when_the_normal_spread_beats_its_corruption():
 
 def test_arms_swinging_out_of_the_plane_do_not_make_a_height():
     """A planar carrier whose given arms, rotated by a wrong attitude, swing the tags +-0.1 m out of its plane
-    (the trolley's quaternion-order case): the swing is corruption, not signal; the height stays flagged."""
+    (the trolley's quaternion-order case): the swing is not signal (the carrier itself stays in its plane), the
+    height stays flagged."""
     rng = np.random.default_rng(5)
     t = np.linspace(0, 100, 2000)
     body = np.c_[3 * np.cos(t / 8), 2 * np.sin(t / 8), np.full(len(t), 0.3)]
@@ -83,7 +84,7 @@ def test_arms_swinging_out_of_the_plane_do_not_make_a_height():
     d = np.linalg.norm(xyz - anchor, axis=1) + rng.normal(0, 0.05, len(t))
     P = np.broadcast_to(np.eye(3) * 0.003**2, (len(t), 3, 3))
     r = search_anchor(xyz, d, t_ns=t * 1e9, sigma_range=0.05, pos_cov=P, arm_xyz=arm)
-    assert r.ok and not r.height_observable and r.normal_sigma > 0.05
+    assert r.ok and not r.height_observable and r.normal_spread < 3 * r.normal_sigma
     assert abs(r.p[2] - anchor[2]) <= 2 * r.sigma_h
 
 
