@@ -35,7 +35,7 @@ def run(ctx: StageContext) -> StageResult:
         },
     )
     regain = None
-    if cfg.search and cfg.regain_heights:
+    if cfg.search and cfg.regain_heights and cfg.refine_method != "none":
         from ..height_regain import HeightRegain
         from ..uwb_filter import initialize_anchors, search_window
 
