@@ -341,6 +341,13 @@ def initialize_anchors(
             max_ranges=config.max_init_ranges,
             z_prior=config.z_prior(a),
         )
+        # the bias model and the evidence for it, for init.json / metrics.json
+        if sr is not None and out[a].ok:
+            chi2, dof = link_offset_contrast(sr)
+            out[a].verdict["bias"] = {
+                "model": "per-link" if out[a].link_offsets else "per-anchor",
+                **({"link_contrast_chi2": chi2, "link_contrast_dof": dof} if dof else {}),
+            }
     return out
 
 
@@ -376,18 +383,31 @@ def search_window(
     return sr
 
 
-def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:
-    """Several links whose offsets differ beyond their uncertainty (the per-link model is then supported).
+def link_offset_contrast(sr: SearchResult) -> tuple[float, int]:
+    """(chi2, dof): the Wald statistic of the hypothesis that all of an anchor's link offsets are equal.
 
-    Each difference g_i - g_j is tested against its own sigma, sqrt(P_ii + P_jj - 2 P_ij): the offsets share the
-    anchor's range error (a radial shift moves them all), so their differences are far better determined than
-    each offset alone."""
-    if not sr.ok or len(sr.gamma) < 2:
-        return False
-    sd = np.sqrt(np.maximum(np.diag(sr.cov)[3:], 0.0))
-    g = sr.gamma
-    i, j = np.triu_indices(len(g), 1)
-    return bool(np.any(np.abs(g[i] - g[j]) > z * np.hypot(sd[i], sd[j])))
+    The L - 1 contrasts c = C gamma (every offset minus the first) are tested jointly against their own
+    covariance C P C^T (P the search's residual-scaled, correlation-inflated offset covariance): the offsets share
+    the anchor's range error (a radial shift moves them all), so their differences are far better determined
+    than each offset alone, and one joint test has a fixed false-alarm rate whatever the number of links (L(L-1)/2
+    pairwise tests do not). (nan, 0) when there is nothing to test."""
+    L = len(sr.gamma)
+    if not sr.ok or L < 2:
+        return float("nan"), 0
+    C = np.eye(L)[1:] - np.eye(L)[0]
+    c = C @ np.asarray(sr.gamma, float)
+    S = C @ np.asarray(sr.cov, float)[3:, 3:] @ C.T
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(S))):
+        return float("nan"), 0
+    return float(c @ np.linalg.lstsq(S, c, rcond=1e-12)[0]), L - 1
+
+
+def per_link_supported(sr: SearchResult, false_alarm: float = 0.0027) -> bool:
+    """Several links whose offsets differ beyond their uncertainty, so the per-link model is supported: the joint
+    contrast statistic (`link_offset_contrast`) above the chi2 quantile of ``false_alarm`` (default: the
+    two-sided 3-sigma level; equal offsets then switch 0.27 % of anchors to per-link)."""
+    chi2, dof = link_offset_contrast(sr)
+    return bool(dof > 0 and chi2 > chi2_ppf(1.0 - false_alarm, dof))
 
 
 # -----------------------------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ from pipeline.uwb_filter import (
     UwbConfig,
     add_initialised_anchors,
     initialize_anchors,
+    link_offset_contrast,
     per_link_supported,
     search_window,
 )
@@ -110,6 +111,37 @@ def test_per_link_offsets_recovered_and_supported():
     assert per_link_supported(res)
     one = search_anchor(xyz, d - offs[link] + 0.2, None, t_ns=t * 1e9, sigma_range=0.02)
     assert not per_link_supported(one)
+
+
+@pytest.mark.parametrize("planar", [False, True])
+def test_link_offset_contrast_is_chi2_under_equal_offsets(planar):
+    """Equal offsets on 3 links (the per-anchor model is right): over 40 seeded draws the joint contrast statistic
+    has the chi2(2) mean (two-sided 95 % bounds of the mean of 40) and never reaches the 3-sigma switch; offsets
+    differing by 0.1 m (the class's smallest) switch every draw."""
+    from scipy.stats import chi2
+
+    stats, differ = [], []
+    for seed in range(40):
+        rng = np.random.default_rng(100 + seed)
+        n = 900
+        s = np.linspace(0, 2 * np.pi, n)
+        z = 0.3 + 0.01 * rng.normal(size=n) if planar else 1.0 + 0.8 * np.sin(5 * s)
+        body = np.c_[5 * np.cos(s) + 1.5 * np.sin(3 * s), 4 * np.sin(s), z]
+        link = rng.integers(0, 3, n)
+        lever = np.array([[0.2, 0.0, 0.0], [-0.2, 0.1, 0.0], [0.0, -0.2, 0.0]])
+        xyz = body + lever[link]
+        anchor = np.array([-6.0, 3.0, 2.0 if not planar else 1.5])
+        d = np.linalg.norm(xyz - anchor, axis=1) + 0.2 + rng.normal(0, 0.05, n)
+        res = search_anchor(xyz, d, link, sigma_range=0.05)
+        assert res.ok, res.reason
+        chi, dof = link_offset_contrast(res)
+        assert dof == 2
+        stats.append(chi)
+        assert not per_link_supported(res), (seed, chi)
+        differ.append(per_link_supported(search_anchor(xyz, d + 0.1 * link, link, sigma_range=0.05)))
+    lo, hi = chi2.ppf([0.025, 0.975], 2 * len(stats)) / len(stats)
+    assert lo < np.mean(stats) < hi, (np.mean(stats), lo, hi)
+    assert all(differ)
 
 
 def test_too_few_or_too_short_never_enters_the_filter():

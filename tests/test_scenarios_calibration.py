@@ -124,12 +124,13 @@ def _right_or_not_determined(runs, max_horizontal_m):
 
 
 def test_per_link_nees_within_chi2_bounds(tmp_path):
-    """Per-link bias as filter states (links/<id>): over 3 fixed seeds x 6 anchors the anchor position NEES when
-    the anchors join the filter and after refinement both lie inside the two-sided 95 % chi2 bounds."""
-    joined, final, runs = _monte_carlo(
-        tmp_path, "per-link", (1, 2, 3), uwb={"bias": "per-link"}, duration=60.0
-    )
+    """Per-link bias as filter states (links/<id>), chosen by the plain default (``uwb.bias = "auto"``: the offsets'
+    joint contrast test, `per_link_supported`) on every anchor: over 3 fixed seeds x 6 anchors the anchor position
+    NEES when the anchors join the filter and after refinement both lie inside the two-sided 95 % chi2 bounds."""
+    joined, final, runs = _monte_carlo(tmp_path, "per-link", (1, 2, 3), duration=60.0)
     assert len(joined) >= 15 and len(final) == 18
+    models = [v["verdict"]["bias"] for m in runs for v in m["anchors"].values() if v["determined"]]
+    assert all(b["model"] == "per-link" for b in models), models
     assert _inside(joined) and _inside(final)
     _right_or_not_determined(runs, 0.3)
 
