@@ -23,6 +23,7 @@ from .anchor_search import SearchResult, search_anchor
 from .core.geometry import quat_slerp, quat_to_rot
 from .core.names import INIT_METHODS, REFINE_METHODS
 from .core.uwb_model import jacobians, range_model, range_variance
+from .link_bias import bias_evidence
 from .state import Kind, State, UpdateResult, Vec, chi2_ppf, ekf_update, remove_probes, schmidt_update
 from .uwb_init import InitResult, InitWindow, initialize_anchor
 
@@ -320,6 +321,7 @@ def initialize_anchors(
             sr = searches.get(a)
             if sr is None:
                 sr = searches[a] = search_window(w, config, sigma, calibration)
+        evidence = bias_evidence(sr, w.tag_xyz, w.d, w.links(), w.t_ns, w.R) if sr is not None else None
         out[a] = initialize_anchor(
             w,
             _method(method or config.init_method),
@@ -337,17 +339,12 @@ def initialize_anchors(
             correlation_block_s=config.correlation_block_s,
             search=sr,
             per_link=config.bias == "per-link"
-            or (config.bias == "auto" and sr is not None and per_link_supported(sr)),
+            or (config.bias == "auto" and evidence is not None and evidence["model"] == "per-link"),
             max_ranges=config.max_init_ranges,
             z_prior=config.z_prior(a),
         )
-        # the bias model and the evidence for it, for init.json / metrics.json
-        if sr is not None and out[a].ok:
-            chi2, dof = link_offset_contrast(sr)
-            out[a].verdict["bias"] = {
-                "model": "per-link" if out[a].link_offsets else "per-anchor",
-                **({"link_contrast_chi2": chi2, "link_contrast_dof": dof} if dof else {}),
-            }
+        if evidence is not None and out[a].ok:  # the bias model used and the evidence, for init/metrics.json
+            out[a].verdict["bias"] = evidence | {"model": "per-link" if out[a].link_offsets else "per-anchor"}
     return out
 
 
@@ -381,33 +378,6 @@ def search_window(
         if sb.ok:
             return sb
     return sr
-
-
-def link_offset_contrast(sr: SearchResult) -> tuple[float, int]:
-    """(chi2, dof): the Wald statistic of the hypothesis that all of an anchor's link offsets are equal.
-
-    The L - 1 contrasts c = C gamma (every offset minus the first) are tested jointly against their own
-    covariance C P C^T (P the search's residual-scaled, correlation-inflated offset covariance): the offsets share
-    the anchor's range error (a radial shift moves them all), so their differences are far better determined
-    than each offset alone, and one joint test has a fixed false-alarm rate whatever the number of links (L(L-1)/2
-    pairwise tests do not). (nan, 0) when there is nothing to test."""
-    L = len(sr.gamma)
-    if not sr.ok or L < 2:
-        return float("nan"), 0
-    C = np.eye(L)[1:] - np.eye(L)[0]
-    c = C @ np.asarray(sr.gamma, float)
-    S = C @ np.asarray(sr.cov, float)[3:, 3:] @ C.T
-    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(S))):
-        return float("nan"), 0
-    return float(c @ np.linalg.lstsq(S, c, rcond=1e-12)[0]), L - 1
-
-
-def per_link_supported(sr: SearchResult, false_alarm: float = 0.0027) -> bool:
-    """Several links whose offsets differ beyond their uncertainty, so the per-link model is supported: the joint
-    contrast statistic (`link_offset_contrast`) above the chi2 quantile of ``false_alarm`` (default: the
-    two-sided 3-sigma level; equal offsets then switch 0.27 % of anchors to per-link)."""
-    chi2, dof = link_offset_contrast(sr)
-    return bool(dof > 0 and chi2 > chi2_ppf(1.0 - false_alarm, dof))
 
 
 # -----------------------------------------------------------------------------------------------------------------
