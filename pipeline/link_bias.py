@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from .anchor_search import SearchResult, subsample
+from .planar_levers import carrier_heading
 from .state import chi2_ppf
 
 FALSE_ALARM = (
@@ -72,14 +73,16 @@ def _cv_gain(e: np.ndarray, link: np.ndarray, fold: np.ndarray, c2: float) -> fl
     return (common - per_link) / common if common > 0 else float("nan")
 
 
-def bearing_sectors(R: np.ndarray, xyz: np.ndarray, p: np.ndarray, sectors: int = 4) -> np.ndarray | None:
+def bearing_sectors(R: np.ndarray, xyz: np.ndarray, p: np.ndarray, sectors: int = 4) -> np.ndarray:
     """The side of the carrier that faces the anchor at each range: the anchor's direction in the body frame,
-    as ``sectors`` equal sectors of azimuth about the body axis the world's up is on average (the carrier's yaw
-    axis). None when the attitude has no such axis (the body turns over)."""
-    up = np.mean(np.asarray(R)[:, 2, :], axis=0)  # world z in the body frame, R^T e_z, averaged
+    as ``sectors`` equal sectors of azimuth about the carrier's yaw axis in the body frame: the body axis the
+    world's up is on average, or, when the attitude has none (poses whose attitude is in another convention than
+    the world's: it spins about an in-plane axis), the body axis it spins about (`planar_levers.carrier_heading`)."""
+    R = np.asarray(R, float)
+    up = np.mean(R[:, 2, :], axis=0)  # world z in the body frame, R^T e_z, averaged
     if np.linalg.norm(up) < 0.5:
-        return None
-    up /= np.linalg.norm(up)
+        up = carrier_heading(R, np.array([0.0, 0.0, 1.0])).axis
+    up = up / np.linalg.norm(up)
     a1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
     a1 /= np.linalg.norm(a1)
     a2 = np.cross(up, a1)
@@ -117,9 +120,8 @@ def link_offset_cv_gains(
     lk = link[idx]
     c2 = (3.0 * max(float(sr.scale), 1e-3)) ** 2
     out = {"time": _cv_gain(e, lk, np.arange(len(e)) * CV_FOLDS // len(e), c2)}
-    sectors = None if R is None else bearing_sectors(np.asarray(R)[idx], xyz[idx], sr.p)
-    if sectors is not None:
-        out["bearing"] = _cv_gain(e, lk, sectors, c2)
+    if R is not None:
+        out["bearing"] = _cv_gain(e, lk, bearing_sectors(np.asarray(R)[idx], xyz[idx], sr.p), c2)
     return out
 
 
