@@ -116,8 +116,9 @@ class UwbConfig(BaseModel):
     bias: Literal["auto", "per-anchor", "per-link"] = Field(
         "auto",
         description="range offset model: per-anchor (one gamma) or per-link (gamma + an offset per (tag, antenna) "
-        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links and "
-        "their offsets differ beyond their uncertainty",
+        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links, "
+        "their offsets differ beyond their uncertainty and the differences predict held-out ranges (over time and "
+        "over the sides of the carrier facing the anchor: a delay, not an antenna pattern; link_bias)",
     )
     lever_arms: Literal["auto", "given", "planar"] = Field(
         "auto",
