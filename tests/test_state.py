@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pipeline.core.geometry import exp_so3, log_so3
-from pipeline.state import ImuState, Kind, Pose, State, Vec, ekf_update
+from pipeline.state import ImuState, Kind, Pose, State, Vec, _lower_solve, ekf_update
 
 
 def _random_spd(rng, n):
@@ -303,3 +303,15 @@ def test_boxplus_of_many_poses_is_pose_boxplus_bit_for_bit():
         for name in ("R", "p") if isinstance(got, Pose) else ("x",):
             np.testing.assert_array_equal(getattr(got, name), getattr(expect, name))
     assert s.value("c2") is before["c2"]
+
+
+def test_lower_solve_is_scipys_solve_triangular_bit_for_bit():
+    from scipy.linalg import solve_triangular
+
+    rng = np.random.default_rng(5)
+    for n, k in [(1, 1), (3, 2), (40, 70)]:
+        L = np.linalg.cholesky(_random_spd(rng, n))
+        for b in (rng.normal(size=n), rng.normal(size=(k, n)).T):
+            np.testing.assert_array_equal(
+                _lower_solve(L, b), solve_triangular(L, b, lower=True, check_finite=False)
+            )
