@@ -85,7 +85,7 @@ class InitResult:
     iterations: int = 0
     n_used: int = 0
     n_rejected: int = 0
-    noise_inflation: float = 1.0  # kappa: variance factor of time-correlated range errors
+    noise_inflation: float = 1.0  # kappa: variance factor of the ranges (time correlation x robust sandwich)
     residual_rms: float = float("nan")
     residual_robust_sigma: float = float("nan")
     fim: FimReport | None = None
@@ -322,6 +322,43 @@ def noise_inflation(
     return kappa if kappa > chi2_ppf(quantile, nb) / nb else 1.0
 
 
+def _psi_slope(e: np.ndarray, kind: str, c: float) -> np.ndarray:
+    """psi'(e) of the robust loss (psi = w e, `_loss` weight w): the curvature the estimate really has."""
+    a = np.abs(e)
+    if kind == "huber":
+        return (a <= c).astype(float)
+    if kind == "cauchy":
+        return (1.0 - (e / c) ** 2) / (1.0 + (e / c) ** 2) ** 2
+    raise ValueError(f"unknown robust loss {kind!r} (huber or cauchy)")
+
+
+def robust_noise_factor(e: np.ndarray, kind: str, c: float, quantile: float = 0.99) -> float:
+    """Variance factor >= 1 of a robust fit's estimate: its M-estimator (sandwich) covariance relative to the
+    IRLS covariance the fit reports.
+
+    The IRLS covariance takes the ranges as nominal noise with their weights: G^-1 (sum w_k^2 h_k h_k^T) G^-1,
+    G = sum w_k h_k h_k^T (whitened). An M-estimator's covariance is B^-1 (sum psi_k^2 h_k h_k^T) B^-1 with
+    B = sum psi'_k h_k h_k^T (Huber's sandwich, psi = w e). They agree on Gaussian ranges; on junk they do not: a
+    down-weighted outlier keeps an influence psi ~ c^2 / e (Cauchy) however large it is, and where the loss
+    redescends psi' < 0 flattens the cost the estimate sits in. As one scalar per anchor,
+    f = [sum (w e)^2 / sum w^2] [sum w / sum psi']^2. The first factor is chi2(n_eff) / n_eff-distributed on
+    Gaussian ranges (n_eff = (sum w^2)^2 / sum w^4): f is used only when that factor exceeds the distribution's
+    ``quantile`` (evidence of heavy tails; clean ranges keep 1)."""
+    e = np.asarray(e, float)
+    e = e[np.isfinite(e)]
+    _, w = _loss(e, kind, c)
+    w2 = float(np.sum(w**2))
+    if len(e) < 2 or w2 <= 0:
+        return 1.0
+    f_psi = float(np.sum((w * e) ** 2) / w2)
+    n_eff = max(round(w2**2 / float(np.sum(w**4))), 1)
+    if f_psi <= chi2_ppf(quantile, n_eff) / n_eff:
+        return 1.0
+    slope = float(np.sum(_psi_slope(e, kind, c)))
+    curv = (float(np.sum(w)) / slope) ** 2 if slope > 0 else 1.0
+    return max(f_psi * curv, 1.0)
+
+
 def _clean(w: InitWindow, label: str) -> tuple[InitWindow, list[str]]:
     ok = (
         np.isfinite(w.d)
@@ -464,6 +501,8 @@ def initialize_anchor(
         if correlation_block_s
         else 1.0
     )
+    if robust:  # the outliers' influence the weights leave (one-sided NLOS junk): robust_noise_factor
+        kappa *= robust_noise_factor(best.e, robust, robust_scale / sigma_range)
     prior_info = np.zeros(len(idx))
     for i, _, sd in _priors(len(idx), gamma_prior, beta_prior):
         prior_info[i] += 1.0 / sd**2
