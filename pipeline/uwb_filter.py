@@ -949,7 +949,7 @@ class UwbUpdater:
     def update_epoch(self, state: State, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
         """All ranges of one epoch (the same stamp, hence the same pose) in one stacked `ekf_update`: block
         Jacobians (the pose block of every row, each anchor's block on its rows), per-row gate / robust weight
-        on the marginal innovation variance (``per_row``), one Joseph update. One range: exactly `update`.
+        on the marginal innovation variance (``per_row``), one covariance update. One range: exactly `update`.
         Mode ``none`` records each range as `update` does. The records get the anchor state after the epoch."""
         if len(batch) == 1 or self.mode == "none":
             res = None
