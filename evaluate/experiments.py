@@ -110,7 +110,7 @@ def table1_job(p: dict) -> dict:
     from .vio_degrade import VioDegrade
 
     rng = np.random.default_rng(p["seed"])
-    degrade = VioDegrade.of(p.get("vio_noise_scale", 1.0))
+    degrade = VioDegrade.of(p.get("vio_noise_scale", 1.0), p.get("vio_noise_told"))
     out = []
     with tempfile.TemporaryDirectory(prefix="uwbcal-table1-") as tmp:
         rec = Path(tmp) / "sim.mcap"
@@ -202,15 +202,17 @@ def _table1(
     prior: str = "fixed",
     prior_sigma: float = 0.1,
     vio_noise_scale: float = 1.0,
+    vio_noise_told: float | None = None,
 ) -> tuple[pl.DataFrame, dict]:
-    """``vio_noise_scale``: the VIO-degrade knob (`vio_degrade`; 1 = the simulator's EuRoC-like sensors)."""
+    """``vio_noise_scale``: the VIO-degrade knob (`vio_degrade`; 1 = the simulator's EuRoC-like sensors);
+    ``vio_noise_told``: the factor the MSCKF is told instead (unset: the same, a consistently tuned VIO)."""
     from .vio_degrade import VioDegrade
 
     if prior not in (*TABLE1_PRIORS, "both"):
         raise InputError(
             f"table1: prior={prior!r}; use 'fixed', 'tuned' or 'both' (one VIO pass for the two)"
         )
-    VioDegrade.of(vio_noise_scale)  # a bad value fails here, not in every worker
+    VioDegrade.of(vio_noise_scale, vio_noise_told)  # a bad value fails here, not in every worker
     params = [
         {
             "seed": s,
@@ -220,6 +222,7 @@ def _table1(
             "prior": prior,
             "prior_sigma": float(prior_sigma),
             "vio_noise_scale": float(vio_noise_scale),
+            "vio_noise_told": vio_noise_told,
         }
         for s in run_seeds(seed, runs)
     ]

@@ -23,6 +23,7 @@ from .anchor_search import SearchResult, search_anchor
 from .core.geometry import quat_slerp, quat_to_rot
 from .core.names import INIT_METHODS, REFINE_METHODS
 from .core.uwb_model import jacobians, range_model, range_variance
+from .link_bias import bias_evidence
 from .state import Kind, State, UpdateResult, Vec, chi2_ppf, ekf_update, remove_probes, schmidt_update
 from .uwb_init import InitResult, InitWindow, initialize_anchor
 
@@ -115,8 +116,9 @@ class UwbConfig(BaseModel):
     bias: Literal["auto", "per-anchor", "per-link"] = Field(
         "auto",
         description="range offset model: per-anchor (one gamma) or per-link (gamma + an offset per (tag, antenna) "
-        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links and "
-        "their offsets differ beyond their uncertainty",
+        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links, "
+        "their offsets differ beyond their uncertainty and the differences predict held-out ranges (over time and "
+        "over the sides of the carrier facing the anchor: a delay, not an antenna pattern; link_bias)",
     )
     lever_arms: Literal["auto", "given", "planar"] = Field(
         "auto",
@@ -320,6 +322,7 @@ def initialize_anchors(
             sr = searches.get(a)
             if sr is None:
                 sr = searches[a] = search_window(w, config, sigma, calibration)
+        evidence = bias_evidence(sr, w.tag_xyz, w.d, w.links(), w.t_ns, w.R) if sr is not None else None
         out[a] = initialize_anchor(
             w,
             _method(method or config.init_method),
@@ -337,10 +340,12 @@ def initialize_anchors(
             correlation_block_s=config.correlation_block_s,
             search=sr,
             per_link=config.bias == "per-link"
-            or (config.bias == "auto" and sr is not None and per_link_supported(sr)),
+            or (config.bias == "auto" and evidence is not None and evidence["model"] == "per-link"),
             max_ranges=config.max_init_ranges,
             z_prior=config.z_prior(a),
         )
+        if evidence is not None and out[a].ok:  # the bias model used and the evidence, for init/metrics.json
+            out[a].verdict["bias"] = evidence | {"model": "per-link" if out[a].link_offsets else "per-anchor"}
     return out
 
 
@@ -374,20 +379,6 @@ def search_window(
         if sb.ok:
             return sb
     return sr
-
-
-def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:
-    """Several links whose offsets differ beyond their uncertainty (the per-link model is then supported).
-
-    Each difference g_i - g_j is tested against its own sigma, sqrt(P_ii + P_jj - 2 P_ij): the offsets share the
-    anchor's range error (a radial shift moves them all), so their differences are far better determined than
-    each offset alone."""
-    if not sr.ok or len(sr.gamma) < 2:
-        return False
-    sd = np.sqrt(np.maximum(np.diag(sr.cov)[3:], 0.0))
-    g = sr.gamma
-    i, j = np.triu_indices(len(g), 1)
-    return bool(np.any(np.abs(g[i] - g[j]) > z * np.hypot(sd[i], sd[j])))
 
 
 # -----------------------------------------------------------------------------------------------------------------
@@ -905,7 +896,7 @@ class UwbUpdater:
     def update_epoch(self, state: State, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
         """All ranges of one epoch (the same stamp, hence the same pose) in one stacked `ekf_update`: block
         Jacobians (the pose block of every row, each anchor's block on its rows), per-row gate / robust weight
-        on the marginal innovation variance (``per_row``), one Joseph update. One range: exactly `update`.
+        on the marginal innovation variance (``per_row``), one covariance update. One range: exactly `update`.
         Mode ``none`` records each range as `update` does. The records get the anchor state after the epoch."""
         if len(batch) == 1 or self.mode == "none":
             res = None

@@ -61,6 +61,7 @@ def test_experiment_params_are_checked_and_typed(tmp_path):
         "duration": 20.0,
         "prior_sigma": 0.2,
         "vio_noise_scale": 1.0,
+        "vio_noise_told": None,
     }
     got = _experiment_params("ri-vs-lsi-drift", {"vio_noise_scales": "1,3"})
     assert got["vio_noise_scales"] == "1,3" and got["duration"] is None
@@ -76,6 +77,11 @@ def test_experiment_params_are_checked_and_typed(tmp_path):
             app, ["experiment", "table1", "-o", str(tmp_path / "w"), "--param", f"vio_noise_scale={bad}"]
         )
         assert res.exit_code == 2 and f"vio_noise_scale={float(bad)!r}" in res.output, res.output
+    res = runner.invoke(
+        app, ["experiment", "table1", "-o", str(tmp_path / "t"), "--param", "vio_noise_told=0"]
+    )
+    assert res.exit_code == 2 and "vio_noise_told=0.0" in res.output, res.output
+    assert not (tmp_path / "t" / "runs.parquet").exists()
     res = runner.invoke(
         app, ["experiment", "ri-vs-lsi-drift", "-o", str(tmp_path / "v"), "--param", "vio_noise_scales=1,x"]
     )

@@ -14,7 +14,9 @@ from evaluate.paired import paired_difference
 from evaluate.paper_conditions import first_paying_level, main, skf_vs_ekf, table1_claims
 from evaluate.ri_vs_lsi_drift import parse_levels, summarise
 from evaluate.vio_degrade import VioDegrade
+from pipeline.config import load_config
 from pipeline.core.errors import InputError
+from pipeline.imu import ImuNoise
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -23,6 +25,7 @@ def test_degrade_scales_simulated_and_believed_noise_alike():
     base = SimConfig(seed=3)
     assert VioDegrade.of(1.0).sim(base) == base
     assert VioDegrade.of(1.0).config() == {"vio": {"pixel_sigma": 1.0}}
+    assert VioDegrade.of(3, 3).config() == VioDegrade.of(3).config()  # told = simulated: the default
     d = VioDegrade.of(3)
     s = d.sim(base)
     for name in (
@@ -38,6 +41,40 @@ def test_degrade_scales_simulated_and_believed_noise_alike():
     for bad in (0, -2.0, 101.0, "2", float("nan")):
         with pytest.raises(InputError, match="vio_noise_scale"):
             VioDegrade.of(bad)
+
+
+def _believed_imu(degrade: VioDegrade, base: SimConfig) -> ImuNoise:
+    """The IMU noise the MSCKF uses: the recording's calibration (written from the simulated figures) times the
+    pipeline's ``vio.imu_noise_inflation`` (as `pipeline.msckf` builds it)."""
+    s = degrade.sim(base)
+    calib = {
+        "imu": {
+            "gyroscope_noise_density": s.gyro_noise_density,
+            "gyroscope_random_walk": s.gyro_random_walk,
+            "accelerometer_noise_density": s.acc_noise_density,
+            "accelerometer_random_walk": s.acc_random_walk,
+        }
+    }
+    cfg = load_config(None, degrade.config())
+    return ImuNoise.from_calibration(calib, inflate=cfg.vio.imu_noise_inflation)
+
+
+def test_told_factor_changes_what_the_filter_is_told_not_the_simulation():
+    base = SimConfig(seed=3)
+    consistent, over, under = VioDegrade.of(4), VioDegrade.of(4, 1.5), VioDegrade.of(4, 8)
+    # the simulated sensors are those of the simulated factor, whatever the filter is told
+    assert over.sim(base) == consistent.sim(base) == under.sim(base)
+    assert over.told_scale == 1.5 and consistent.told_scale == 4.0
+    one = _believed_imu(VioDegrade.of(1.0), base)
+    for d, t in ((consistent, 4.0), (over, 1.5), (under, 8.0)):
+        cfg = load_config(None, d.config())
+        assert cfg.vio.pixel_sigma == pytest.approx(4 * base.pixel_sigma)  # the pixel noise is told right
+        got = _believed_imu(d, base)
+        for name in ("sigma_g", "sigma_a", "sigma_bg", "sigma_ba"):
+            assert getattr(got, name) == pytest.approx(t * getattr(one, name), rel=1e-12), (t, name)
+    for bad in (0, -1.0, 101.0, "2", float("nan"), True):
+        with pytest.raises(InputError, match=r"^vio_noise_told="):
+            VioDegrade.of(4, bad)
 
 
 def test_parse_levels():

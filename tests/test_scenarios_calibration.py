@@ -37,6 +37,7 @@ def test_planar_height_flagged_and_honest(tmp_path):
             assert v["reason"], a
             continue
         assert v["verdict"]["height_observable"] is False and v["verdict"]["planar_motion"] is True
+        assert v["verdict"]["bias"]["model"] == "per-anchor"  # 3 tags, one offset: no spurious per-link
         assert v["z_error_sigmas"] <= 2.0, (a, v["z_error_sigmas"])
         assert v["error_horizontal_m"] < 1.0
     assert "schedule" in pipe.dir.file("config.toml").read_text()
@@ -156,12 +157,13 @@ def _right_or_not_determined(runs, max_horizontal_m):
 
 
 def test_per_link_nees_within_chi2_bounds(tmp_path):
-    """Per-link bias as filter states (links/<id>): over 3 fixed seeds x 6 anchors the anchor position NEES when
-    the anchors join the filter and after refinement both lie inside the two-sided 95 % chi2 bounds."""
-    joined, final, runs = _monte_carlo(
-        tmp_path, "per-link", (1, 2, 3), uwb={"bias": "per-link"}, duration=60.0
-    )
+    """Per-link bias as filter states (links/<id>), chosen by the plain default (``uwb.bias = "auto"``, `link_bias`:
+    the offsets differ and predict held-out ranges) on every anchor: over 3 fixed seeds x 6 anchors the anchor position
+    NEES when the anchors join the filter and after refinement both lie inside the two-sided 95 % chi2 bounds."""
+    joined, final, runs = _monte_carlo(tmp_path, "per-link", (1, 2, 3), duration=60.0)
     assert len(joined) >= 15 and len(final) == 18
+    models = [v["verdict"]["bias"] for m in runs for v in m["anchors"].values() if v["determined"]]
+    assert all(b["model"] == "per-link" for b in models), models
     assert _inside(joined) and _inside(final)
     _right_or_not_determined(runs, 0.3)
 
