@@ -13,6 +13,10 @@ else the chosen initialiser's ``cov`` in ``init.json``) and ``uwbcal.truth``. Pr
   ``not_determined`` (the ids; each reason is in ``anchors[<id>].reason``, stated once), ``missing`` (truth anchors the run neither estimated nor declared).
 - ``nees_anchor_position``: ANEES of the anchor positions over the anchors with a covariance, with the χ² bounds
   of a mean of that many 3-dof values (``consistency.chi2_bounds(n, 3)``).
+  A run in a static initialiser's own frame is compared after the trajectory's fitted alignment, but its NEES
+  are taken in the filter's gauge (`evaluation.initial_pose_alignment`), as the pose NEES: the fitted alignment
+  is a transform of its own, whose error (the trajectory's drift averaged over the flight) the anchors'
+  covariance does not hold; ``nees_anchor_position_fitted`` keeps the ANEES after the fitted alignment.
 When the truth is not in the run's frame (``anchors_frame`` not odometry/world), only the frame-free distances
 are reported.
 """
@@ -198,8 +202,13 @@ def aligned_anchors(run: RunAnchors, al) -> RunAnchors:
     return RunAnchors(est, dict(run.undetermined), states)
 
 
-def anchor_metrics(run: RunAnchors, ref: AnchorReference | None) -> tuple[dict, dict, list[str]]:
-    """(metrics["anchors"], the top-level anchor keys of metrics.json, warnings); see the module docstring."""
+def anchor_metrics(
+    run: RunAnchors, ref: AnchorReference | None, nees_states: dict | None = None
+) -> tuple[dict, dict, list[str]]:
+    """(metrics["anchors"], the top-level anchor keys of metrics.json, warnings); see the module docstring.
+    ``nees_states``: the (x, P) the NEES are taken of when they live in another frame than the errors' (a
+    static-initialised run: errors after the trajectory's fitted alignment, NEES in the filter's own gauge);
+    default ``run.states``."""
     anchors: dict[str, dict] = {}
     for aid, a in run.estimates.items():
         anchors[aid] = {
@@ -259,7 +268,7 @@ def anchor_metrics(run: RunAnchors, ref: AnchorReference | None) -> tuple[dict, 
     if np.isfinite(ae.mean_abs_gamma):
         top["gamma_error"] = ae.mean_abs_gamma
     vals = []
-    for aid, (x, P) in run.states.items():
+    for aid, (x, P) in (run.states if nees_states is None else nees_states).items():
         if aid not in truth:
             continue
         p_true = np.asarray(truth[aid]["position"], float)

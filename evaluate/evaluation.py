@@ -86,6 +86,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         gt = None
         metrics["warnings"].append(f"no trajectory metrics: {exc}")
     al = None
+    gauge = None  # a static-initialised run: its filter's gauge (yaw and position of the first pose)
     if gt is not None and len(traj):
         cmp = compare(traj.t_ns, traj.p, traj.q_xyzw, gt)
         al = fit_alignment(cmp.p_est, cmp.p_gt, align)
@@ -97,14 +98,16 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         if cmp.q_gt is not None:
             R_gt = quat_to_rot(cmp.q_gt)
             metrics["ormse_deg"] = ormse_deg_by_segment(R_al, R_gt, masks)
+            if static_frame:
+                gauge = initial_pose_alignment(R_est[0], cmp.p_est[0], R_gt[0], cmp.p_gt[0])
             if (align == "none" or static_frame) and traj.cov is not None:
                 # NEES of the body pose (the lever arm is zero for full-pose ground truth). In the static
                 # initialiser's frame: after the alignment that is its gauge (yaw and position of the first pose
                 # set to the ground truth's; the filter's covariance starts ~0 in them), not a fitted one (that
                 # would take out error the covariance accounts for)
                 ga = Alignment()
-                if static_frame:
-                    ga = initial_pose_alignment(R_est[0], cmp.p_est[0], R_gt[0], cmp.p_gt[0])
+                if gauge is not None:
+                    ga = gauge
                     metrics["nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
                 A = np.eye(6)
                 A[3:, 3:] = ga.R
@@ -127,12 +130,23 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     cfg = tomllib.loads((run_dir / "config.toml").read_text())  # parsed by run_recording_path already
     run_anchors = read_run_anchors(run_dir, (cfg.get("uwb") or {}).get("init_method"))
     own_frame = run_anchors.estimates  # the frame of the run's trajectory, which the range check uses
+    nees_states = None
+    fitted_nees = None
     if static_frame and al is not None and ref is not None and ref.kind == "simulated":
-        # estimated in the static initialiser's frame: compared (and reported) after the trajectory's alignment
+        # estimated in the static initialiser's frame: compared (and reported) after the trajectory's alignment;
+        # their NEES in the filter's gauge, as the pose NEES (the fitted alignment's own error, the trajectory's
+        # drift averaged over the flight, is not in the anchors' covariance)
+        if gauge is not None:
+            nees_states = aligned_anchors(run_anchors, gauge).states
+            metrics["anchor_nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
         run_anchors = aligned_anchors(run_anchors, al)
         metrics["anchor_alignment"] = f"{align} alignment of the trajectory (static initialiser's frame)"
+        if nees_states is not None:
+            fitted_nees = anchor_metrics(run_anchors, ref)[1].get("nees_anchor_position")
     if run_anchors.estimates or run_anchors.undetermined:
-        anchors, top, warns = anchor_metrics(run_anchors, ref)
+        anchors, top, warns = anchor_metrics(run_anchors, ref, nees_states)
+        if fitted_nees is not None:
+            top["nees_anchor_position_fitted"] = fitted_nees
         metrics.update(top)
         metrics["warnings"].extend(warns)
         metrics["warnings"].extend(range_quality(reader, traj, own_frame))
@@ -238,7 +252,7 @@ def render_metrics(metrics: dict, fmt: str = "md") -> str:
     for aid in at.get("not_determined", []):
         reason = metrics.get("anchors", {}).get(aid, {}).get("reason", "")
         lines.append(f"anchor {aid} not determined: {reason}")
-    for key in ("nees_pose", "nees_anchor", "nees_anchor_position"):
+    for key in ("nees_pose", "nees_anchor", "nees_anchor_position", "nees_anchor_position_fitted"):
         if key in metrics and "mean" in metrics[key]:
             n = metrics[key]
             lo, hi = n["bounds"]

@@ -219,6 +219,27 @@ def test_report_undetermined_nees_and_render(tmp_path):
     assert "horizontal mean 0.150 m, max 0.200 m (2 of 4)" in text and "1 pairs" in text
 
 
+def test_nees_in_the_filters_gauge_errors_after_the_fitted_alignment(tmp_path):
+    """A static-initialised run: errors (and sigmas) after the trajectory's fitted alignment, the NEES of the
+    states the evaluator passes in the filter's gauge (here the fitted frame shifted by 0.1 m in y): by hand."""
+    from evaluate.align import Alignment
+    from evaluate.anchor_report import aligned_anchors
+
+    run = read_run_anchors(_run_dir(tmp_path / "run"), "ri")
+    ref = AnchorReference({k: {"position": v} for k, v in TRUTH.items()}, "simulated", "simulated", True)
+    gauge = aligned_anchors(run, Alignment(t=np.array([0.0, -0.1, 0.0]))).states
+    anchors, top, _ = anchor_metrics(run, ref, gauge)
+    fitted = anchor_metrics(run, ref)[0]
+    assert anchors["0"]["error_xyz"] == pytest.approx([0.1, 0.0, 0.0])  # errors: the fitted frame's
+    assert anchors["1"]["error_m"] == fitted["1"]["error_m"] == pytest.approx(0.2)
+    # NEES: e = (0.1, -0.1, 0) and (0, 0.1, 0) under diag(0.01, 0.04, 0.25)
+    assert anchors["0"]["nees_position"] == pytest.approx(1.0 + 0.01 / 0.04)
+    assert anchors["1"]["nees_position"] == pytest.approx(0.01 / 0.04)
+    assert top["nees_anchor_position"]["mean"] == pytest.approx((1.25 + 0.25) / 2)
+    # 5 dof with the simulated truth's beta = 1, gamma = 0: + (0.1)^2 / 1e-2 for gamma
+    assert anchors["0"]["nees"] == pytest.approx(1.25 + 1.0)
+
+
 def test_report_truth_in_another_frame_is_frame_free_only(tmp_path):
     run = read_run_anchors(_run_dir(tmp_path / "run"), "ri")
     ref = AnchorReference({k: {"position": v} for k, v in TRUTH.items()}, "published", "published", False)
