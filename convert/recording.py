@@ -175,7 +175,8 @@ class RecordingWriter:
         seq = self._seq[topic]
         self._seq[topic] = seq + 1
         t_ns = int(t_ns)
-        self._writer.add_message(cid, log_time=t_ns, data=bytes(cdr), publish_time=t_ns, sequence=seq)
+        # the buffer as it is: the chunk builder copies it in (no bytes() copy of every image first)
+        self._writer.add_message(cid, log_time=t_ns, data=cdr, publish_time=t_ns, sequence=seq)
         self._span(topic, t_ns, t_ns, 1)
 
     def _write_rows(self, topic: str, msgtype: str, t_ns: np.ndarray, rows: np.ndarray | list[bytes]) -> None:

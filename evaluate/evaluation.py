@@ -149,6 +149,14 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
                     metrics["warnings"].append(
                         f"anchor {aid} not determined: {anchors[aid].get('reason', '')}"
                     )
+        states_path = run_dir / "anchor_states.json"
+        if states_path.is_file():  # heights flagged at init that refinement regained (pipeline/height_regain)
+            for aid, s in read_json(states_path).items():
+                if aid in anchors and isinstance(s, dict) and s.get("height_regained"):
+                    v = dict(anchors[aid].get("verdict") or {})
+                    v.update(height_observable=True, height_regained=s["height_regained"])
+                    v.pop("message", None)
+                    anchors[aid]["verdict"] = v
         metrics["anchors"] = anchors
         vals = [a["nees"] for a in anchors.values() if "nees" in a]
         if vals:

@@ -27,8 +27,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-PLANAR_RATIO = 0.1
+PLANAR_RATIO = 0.1  # smallest extent below this x the largest: 2-D closed forms (the 3-D ones are ill-posed)
 LINE_RATIO = 0.03  # second extent below this x the first: the tag moved along a line
+NORMAL_SNR = 3.0  # the height needs the motion's spread along the normal >= this x what corrupts it there
 
 
 @dataclass
@@ -42,6 +43,8 @@ class SearchResult:
     scale: float  # robust residual sigma of the inliers [m]
     cov: np.ndarray  # (3+L, 3+L) covariance of (p world, gamma_l), residual-scaled
     planar: bool = False  # the trajectory is planar (smallest extent < PLANAR_RATIO x largest)
+    normal_spread: float = float("nan")  # std of the carrier's positions along the plane normal [m]
+    normal_sigma: float = 0.0  # what corrupts them there: pose sigma along the normal (+) attitude x arm [m]
     height_observable: bool = True
     mirror: bool = False  # the mirror across the motion plane fits as well
     mirror_p: np.ndarray | None = None  # the other basin (world) when ``mirror``
@@ -50,6 +53,7 @@ class SearchResult:
     n_used: int = 0
     costs: dict = field(default_factory=dict)
     beta: float = 1.0  # range scale of the fit (1 unless the search estimated it under a beta prior)
+    residuals: np.ndarray | None = None  # (n_used,) of the fit over the ranges it used (model tests)
 
     @property
     def ok(self) -> bool:
@@ -296,6 +300,9 @@ def search_anchor(
     max_abs_gamma: float = 2.0,
     gamma_prior: tuple[float, float] | None = None,
     beta_prior: tuple[float, float] | None = None,
+    pos_cov: np.ndarray | None = None,
+    arm_xyz: np.ndarray | None = None,
+    attitude_sigma: np.ndarray | None = None,
     seed: int = 0,
 ) -> SearchResult:
     """Global search for the anchor ranged by the tag positions ``xyz`` (N, 3) with ranges ``d`` (N,) over links
@@ -307,6 +314,16 @@ def search_anchor(
     5 sigma_range)); ``height_sigma_max``: height sigma above which the height is flagged unobservable.
     ``beta_prior`` (mean, sigma): estimate the range scale too (as the initialiser does), marginalised out of
     the covariance; None: beta = 1.
+
+    The height (the anchor's component along the motion plane's normal) is observable only when (a) the
+    carrier's own spread along the normal (the tag positions less their world-rotated antenna arms ``arm_xyz``
+    (N, 3): the arms' swing out of the plane rests on the arms' calibration and the attitude, so it is not
+    taken as signal) is at least ``NORMAL_SNR`` x what corrupts it there (`normal_corruption`: the pose sigma
+    along the normal from ``pos_cov`` (N, 3, 3) and the arms' direction error from the attitude sigma
+    ``attitude_sigma`` (N,) [rad]), (b) its sigma from the ranges, inflated by the errors-in-variables term
+    |b_3| x corruption / spread, is <= ``height_sigma_max`` and (c) the mirror across the plane fits
+    distinctly worse (cost difference over the residuals' correlation inflation kappa >= ``mirror_chi2``).
+    Otherwise it is flagged with an honest sigma that reaches the other basin.
     """
     xyz = np.asarray(xyz, float).reshape(-1, 3)
     d = np.asarray(d, float).reshape(-1)
@@ -334,6 +351,14 @@ def search_anchor(
             links_all,
         )
     planar = bool(ext[2] < PLANAR_RATIO * ext[0])
+    arms = None if arm_xyz is None else np.asarray(arm_xyz, float).reshape(-1, 3)[sel]
+    sig_n = normal_corruption(
+        Vt[2],
+        None if pos_cov is None else np.asarray(pos_cov, float).reshape(-1, 3, 3)[sel],
+        arms,
+        None if attitude_sigma is None else np.asarray(attitude_sigma, float).reshape(-1)[sel],
+    )
+    spread_n = ext[2] if arms is None else float(np.std((xyz[sel] - arms) @ Vt[2]))
     y = (xyz[sel] - c) @ Vt.T
     dd = d[sel]
     links, li = _link_index(link[sel])
@@ -402,33 +427,36 @@ def search_anchor(
         best, mir = mir, best
         r = best.r
     whit = scale2**2 / max(sig, 1e-3) ** 2  # cost units -> whitened squared residuals
-    dcost = (mir.cost - best.cost) * whit
-    mirror = bool(dcost < mirror_chi2 and np.linalg.norm(mir.b - best.b) > 1e-3)
     # covariance (residual-scaled, inflated for time-correlated errors)
     from .uwb_init import noise_inflation
 
     tsel = None if t_ns is None else np.asarray(t_ns)[sel]
     kappa = noise_inflation(tsel, r / max(sig, 1e-6), inl.astype(float)) if tsel is not None else 1.0
+    dcost = (mir.cost - best.cost) * whit / kappa  # correlated residuals carry kappa x less evidence
+    mirror = bool(dcost < mirror_chi2 and np.linalg.norm(mir.b - best.b) > 1e-3)
     info = best.info / max(sig, 1e-6) ** 2 / kappa
     try:
         cov_y = np.linalg.inv(info)
     except np.linalg.LinAlgError:
         cov_y = np.linalg.pinv(info)
-    # height along the normal: FIM sigma when b_3 is informative, else the curvature bound
-    sig_b3 = float(np.sqrt(max(cov_y[2, 2], 0.0)))
+    # height along the normal: the ranges' sigma, plus the errors-in-variables term (the tag's normal
+    # coordinate, which carries the height's information, is off by sig_n against its spread spread_n)
+    sig_fim = float(np.sqrt(max(cov_y[2, 2], 0.0)))
+    sig_b3 = float(np.hypot(sig_fim, abs(best.b[2]) * sig_n / max(spread_n, 1e-9)))
     b = best.b.copy()
-    height_ok = (not planar) and sig_b3 <= height_sigma_max
+    normal_ok = bool(spread_n >= NORMAL_SNR * sig_n)
+    height_ok = normal_ok and sig_b3 <= height_sigma_max and not mirror
     inflate = not height_ok
-    if planar:
+    if planar and not height_ok:
         # both signs fit by construction: the basin on the normal's side (up), whose ranges are the same as the
         # mirror's, with a sigma from the ranges' curvature that reaches the mirror within 2 sigma
         s_hat, s_sig = _height_squared(y, dd, li, L, best, sig, kappa)
         bound = float(np.sqrt(max(s_hat, b[2] ** 2, 0.0) + 2.0 * s_sig))
         b[2] = abs(best.b[2])
         sigma_h = max(bound, abs(best.b[2]))
-    elif mirror:  # the data prefer this basin, weakly: keep it, the sigma reaches the other one
-        sigma_h = max(sig_b3, 0.5 * abs(best.b[2] - mir.b[2]))
-        inflate = sigma_h > sig_b3
+    elif not height_ok:  # the data prefer this basin, not enough: the sigma reaches the other one
+        reach = 0.5 * abs(best.b[2] - mir.b[2]) if mirror else 0.0
+        sigma_h = max(sig_b3, reach, 0.0 if normal_ok else abs(best.b[2]))
     else:
         sigma_h = sig_b3
     T = np.zeros((3 + L, 3 + L))
@@ -443,6 +471,8 @@ def search_anchor(
         Tp[:3, :3] = P
         cov = Tp @ cov @ Tp.T
         cov[:3, :3] += sigma_h**2 * np.outer(n, n)
+    else:  # the errors-in-variables part of the height's variance
+        cov[:3, :3] += (sig_b3**2 - sig_fim**2) * np.outer(Vt[2], Vt[2])
     p_world = c + b @ Vt
     # keep the search's inliers over the input ranges
     inliers = np.zeros(n_all, bool)
@@ -466,14 +496,22 @@ def search_anchor(
         sig,
         cov,
         planar=planar,
+        normal_spread=float(spread_n),
+        normal_sigma=float(sig_n),
         height_observable=bool(height_ok),
         mirror=mirror,
         mirror_p=(c + mir.b @ Vt) if mirror else None,
         sigma_h=float(sigma_h),
         normal=Vt[2].copy(),
         n_used=len(dd),
-        costs={"best": best.cost * whit, "mirror": mir.cost * whit, "inlier_fraction": frac, "kappa": kappa},
+        costs={
+            "best": best.cost * whit,
+            "mirror": mir.cost * whit,
+            "inlier_fraction": frac,
+            "kappa": kappa,
+        },
         beta=float(best.beta),
+        residuals=best.r.copy(),
     )
     spread_ok = sig <= max_spread_factor * max(sigma_range, 0.05)
     if np.any(np.abs(best.g - g_fix) > max_abs_gamma):
@@ -496,6 +534,24 @@ def search_anchor(
             "(the ranges so far do not pin it down)"
         )
     return res
+
+
+def normal_corruption(
+    n: np.ndarray,
+    pos_cov: np.ndarray | None = None,
+    arm_xyz: np.ndarray | None = None,
+    attitude_sigma: np.ndarray | None = None,
+) -> float:
+    """What corrupts the tag positions along the unit normal ``n`` [m]: the rms pose sigma along it (position
+    covariances (N, 3, 3)) and the world-rotated antenna arms' (N, 3) direction error from the attitude sigma
+    (N,) [rad], added in quadrature."""
+    v = 0.0
+    if pos_cov is not None and len(pos_cov):
+        pn = np.einsum("i,nij,j->n", n, pos_cov, n)
+        v += float(np.mean(np.where(np.isfinite(pn), np.maximum(pn, 0.0), 0.0)))
+    if arm_xyz is not None and attitude_sigma is not None and len(attitude_sigma):
+        v += float(np.mean((np.nan_to_num(attitude_sigma) * np.linalg.norm(arm_xyz, axis=1)) ** 2))
+    return float(np.sqrt(v))
 
 
 def _height_squared(y, d, li, L, fit: _Refined, sig: float, kappa: float) -> tuple[float, float]:

@@ -23,6 +23,7 @@ from .anchor_search import SearchResult, search_anchor
 from .core.geometry import quat_slerp, quat_to_rot
 from .core.names import INIT_METHODS, REFINE_METHODS
 from .core.uwb_model import jacobians, range_model, range_variance
+from .link_bias import bias_evidence
 from .state import Kind, State, UpdateResult, Vec, chi2_ppf, ekf_update, remove_probes, schmidt_update
 from .uwb_init import InitResult, InitWindow, initialize_anchor
 
@@ -112,11 +113,18 @@ class UwbConfig(BaseModel):
         "initialiser's start and observability verdict; false: the paper's multi-start (closed form, mirror, "
         "perturbed)",
     )
+    regain_heights: bool = Field(
+        True,
+        description="refinement re-searches an anchor whose height init flagged unobservable as its ranges grow "
+        "(x1.5) and re-initialises it when the motion has revealed the height (height_regain); false: a flagged "
+        "height stays at its init value and sigma",
+    )
     bias: Literal["auto", "per-anchor", "per-link"] = Field(
         "auto",
         description="range offset model: per-anchor (one gamma) or per-link (gamma + an offset per (tag, antenna) "
-        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links and "
-        "their offsets differ beyond their uncertainty",
+        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links, "
+        "their offsets differ beyond their uncertainty and the differences predict held-out ranges (over time and "
+        "over the sides of the carrier facing the anchor: a delay, not an antenna pattern; link_bias)",
     )
     lever_arms: Literal["auto", "given", "planar"] = Field(
         "auto",
@@ -320,6 +328,7 @@ def initialize_anchors(
             sr = searches.get(a)
             if sr is None:
                 sr = searches[a] = search_window(w, config, sigma, calibration)
+        evidence = bias_evidence(sr, w.tag_xyz, w.d, w.links(), w.t_ns, w.R) if sr is not None else None
         out[a] = initialize_anchor(
             w,
             _method(method or config.init_method),
@@ -337,10 +346,12 @@ def initialize_anchors(
             correlation_block_s=config.correlation_block_s,
             search=sr,
             per_link=config.bias == "per-link"
-            or (config.bias == "auto" and sr is not None and per_link_supported(sr)),
+            or (config.bias == "auto" and evidence is not None and evidence["model"] == "per-link"),
             max_ranges=config.max_init_ranges,
             z_prior=config.z_prior(a),
         )
+        if evidence is not None and out[a].ok:  # the bias model used and the evidence, for init/metrics.json
+            out[a].verdict["bias"] = evidence | {"model": "per-link" if out[a].link_offsets else "per-anchor"}
     return out
 
 
@@ -358,36 +369,65 @@ def search_window(
         return _not_determined(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
+    pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
     kw = dict(
         t_ns=w.t_ns,
         sigma_range=sigma,
         min_ranges=max(config.min_ranges, 30),
         max_sigma_horizontal=config.max_sigma_horizontal_m,
         gamma_prior=config.gamma_prior(calibration),
+        pos_cov=pos_cov,
+        arm_xyz=np.einsum("nij,nj->ni", w.R, w.p_T),
+        attitude_sigma=np.sqrt(np.maximum(np.trace(w.P_pose[:, 0:3, 0:3], axis1=1, axis2=2), 0.0) / 3.0),
     )
     sr = search_anchor(w.tag_xyz, w.d, w.links(), **kw)
     bp = config.init_beta_prior(calibration)
-    if not sr.ok and bp is not None and "range offset" in sr.reason:
+    if bp is None:
+        return sr
+    if not sr.ok and "range offset" in sr.reason:
         # a fit that needs metres of offset: on a one-sided arc the fixed scale (beta = 1) is traded against the
         # anchor's distance; refit with beta under its prior, as the initialiser estimates it
         sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
-        if sb.ok:
+        return sb if sb.ok else sr
+    if sr.ok and sr.costs.get("kappa", 1.0) > 1.0:
+        # the fixed-scale fit leaves time-correlated residuals; a scale error does (its residual grows with the
+        # range along the path, and the fit bends the anchor's position, height first, to absorb it). The scale
+        # is estimated when it removes that correlation and the ranges demand it (`beta_supported`)
+        sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
+        pose_var = float(np.mean(np.trace(pos_cov, axis1=1, axis2=2))) / 3.0 * _pose_error_run(w, calibration)
+        if sb.ok and sb.costs.get("kappa", 1.0) < sr.costs["kappa"] and beta_supported(sr, sb, pose_var):
             return sb
     return sr
 
 
-def per_link_supported(sr: SearchResult, z: float = 3.0) -> bool:
-    """Several links whose offsets differ beyond their uncertainty (the per-link model is then supported).
+def _pose_error_run(w: InitWindow, calibration: Mapping | None) -> float:
+    """How many of the window's ranges share one pose error: for a bounded pose source (calibration
+    ``odometry.error_model = "bounded"``, a Gauss-Markov error with ``correlation_time_s``, default 10 s) the
+    ranges within two correlation times; 1 for a drifting source (VIO, dead reckoning: its error within the
+    window is its covariance's growth, already small against the ranges' noise)."""
+    odo = ((calibration or {}).get("odometry") or {}) if isinstance(calibration, Mapping) else {}
+    if str(odo.get("error_model") or "drift") != "bounded" or w.t_ns is None or len(w) < 2:
+        return 1.0
+    tau = float(odo.get("correlation_time_s") or 10.0)
+    span = max(float(w.t_ns.max() - w.t_ns.min()) * 1e-9, 1e-9)
+    return float(np.clip(len(w) * 2.0 * tau / span, 1.0, len(w)))
 
-    Each difference g_i - g_j is tested against its own sigma, sqrt(P_ii + P_jj - 2 P_ij): the offsets share the
-    anchor's range error (a radial shift moves them all), so their differences are far better determined than
-    each offset alone."""
-    if not sr.ok or len(sr.gamma) < 2:
+
+def beta_supported(
+    fixed: SearchResult, fitted: SearchResult, pose_var: float = 0.0, chi2_1: float = 10.83
+) -> bool:
+    """The range scale beta (``fitted``) explains the ranges better than beta = 1 (``fixed``, the same ranges):
+    the drop of the squared residual sum, both truncated at 3 x the fitted residual sigma (NLOS junk must not
+    vote), over the noise a range carries (that variance plus the pose variance ``pose_var`` [m^2] along the
+    line of sight, times the ranges that share one pose error (`_pose_error_run`): a pose error bends the
+    ranges as a scale does) and over the fitted model's correlation inflation kappa, exceeds ``chi2_1`` (chi2 with 1 dof at 99.9 %)."""
+    rf, rb = fixed.residuals, fitted.residuals
+    if rf is None or rb is None or len(rf) != len(rb) or not np.isfinite(fitted.scale) or fitted.scale <= 0:
         return False
-    sd = np.sqrt(np.maximum(np.diag(sr.cov)[3:], 0.0))
-    g = sr.gamma
-    i, j = np.triu_indices(len(g), 1)
-    return bool(np.any(np.abs(g[i] - g[j]) > z * np.hypot(sd[i], sd[j])))
+    c2 = (3.0 * fitted.scale) ** 2
+    drop = float(np.sum(np.minimum(rf**2, c2)) - np.sum(np.minimum(rb**2, c2)))
+    kappa = max(float(fitted.costs.get("kappa", 1.0)), 1.0)
+    return bool(drop / (fitted.scale**2 + max(pose_var, 0.0)) / kappa > chi2_1)
 
 
 # -----------------------------------------------------------------------------------------------------------------
@@ -740,6 +780,8 @@ class UwbUpdater:
         self.fixed_height: set = set()
         # a planar carrier's estimated lever arms (planar_levers.PlanarLevers): p_T from the attitude
         self.planar_arms: Any = None
+        # heights flagged at init, regained when the motion later reveals them (height_regain.HeightRegain)
+        self.regain: Any = None
 
     @classmethod
     def from_config(
@@ -900,12 +942,14 @@ class UwbUpdater:
         rec.residual.append(r)
         rec.nis.append(res.nis)
         rec.rejected.append(not res.accepted)
+        if in_state and self.regain is not None and meas.anchor in self.regain:
+            self._watch_height(state, pose_var, pose, [meas])
         return res
 
     def update_epoch(self, state: State, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
         """All ranges of one epoch (the same stamp, hence the same pose) in one stacked `ekf_update`: block
         Jacobians (the pose block of every row, each anchor's block on its rows), per-row gate / robust weight
-        on the marginal innovation variance (``per_row``), one Joseph update. One range: exactly `update`.
+        on the marginal innovation variance (``per_row``), one covariance update. One range: exactly `update`.
         Mode ``none`` records each range as `update` does. The records get the anchor state after the epoch."""
         if len(batch) == 1 or self.mode == "none":
             res = None
@@ -982,7 +1026,46 @@ class UwbUpdater:
             rec.residual.append(float(r[i]))
             rec.nis.append(float(res.row_nis[i]))
             rec.rejected.append(not bool(ok[i]))
+        if self.regain is not None:
+            watched = [m for m, n in zip(rows, names, strict=True) if m.anchor in self.regain and n in state]
+            if watched:
+                self._watch_height(state, pose_var, pose, watched)
         return res
+
+    def _watch_height(self, state: State, pose_var: str, pose: Any, rows: Sequence[RangeMeasurement]) -> None:
+        """Hand the ranges of anchors whose height is flagged to `regain` with the pose they were taken at; an
+        anchor whose height the grown window now reveals replaces its variable by the new initialisation (all
+        its ranges so far, none counted twice) and its height is estimated from then on."""
+        P6 = state.cov(pose_var)[0:6, 0:6]
+        p_T = self._arms(pose.R, rows)
+        for i, m in enumerate(rows):
+            name = anchor_var(m.anchor)
+            if name not in state:
+                continue
+            new = self.regain.record(
+                m.anchor,
+                m.t_ns,
+                m.distance,
+                int(link_id(m.tag, m.antenna)),
+                p_T[i],
+                pose.R,
+                pose.p,
+                P6,
+                float(state.value(name).x[2]),
+            )
+            if new is None:
+                continue
+            state.remove(name)
+            if link_var(m.anchor) in state:
+                state.remove(link_var(m.anchor))
+            add_anchor_to_state(state, m.anchor, new, pose_var=self.pose_var, **self.join_kw)
+            self.fixed_height.discard(m.anchor)
+            self.inflation[m.anchor] = float(new.noise_inflation)
+            self.link_offsets.pop(m.anchor, None)
+            self.link_cols.pop(m.anchor, None)
+            if new.link_offsets:
+                self.link_offsets[m.anchor] = new.link_offsets
+                self.link_cols[m.anchor] = link_columns(list(new.link_offsets))
 
     def arrays(self) -> dict[Any, dict[str, np.ndarray]]:
         return {a: rec.arrays() for a, rec in self.records.items()}

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .anchor_search import SearchResult, plane_frame, subsample
+from .anchor_search import NORMAL_SNR, SearchResult, plane_frame, subsample
 from .core.names import INIT_METHODS
 from .core.uwb_model import jacobians, range_variance, tag_positions
 from .fim import FimReport, assess_observability
@@ -623,11 +623,22 @@ def search_verdict(search: SearchResult) -> dict:
     out["residual_sigma_m"] = float(search.scale)
     if search.mirror_p is not None:
         out["mirror_position"] = [float(v) for v in search.mirror_p]
+    out["normal_spread_m"] = float(search.normal_spread)
+    out["normal_sigma_m"] = float(search.normal_sigma)
     if not search.height_observable:
-        why = "planar tag motion" if search.planar else "weak out-of-plane geometry"
+        if search.normal_spread < NORMAL_SNR * search.normal_sigma:
+            why = (
+                f"the carrier's spread along the motion plane's normal, {search.normal_spread:.3f} m, is under "
+                f"{NORMAL_SNR:g} x what corrupts it there ({search.normal_sigma:.3f} m: pose sigma, attitude x arm)"
+            )
+        elif search.mirror:
+            why = "the mirror across the motion plane fits as well"
+        else:
+            why = "planar tag motion" if search.planar else "weak out-of-plane geometry"
+        where = "the basin above the motion plane" if search.planar else "the basin the ranges prefer"
         msg = (
-            f"height unobservable ({why}): reported at {search.p[2]:.2f} +- {search.sigma_h:.2f} m (the basin "
-            "above the motion plane; its sigma reaches the mirror below); horizontal position estimated"
+            f"height unobservable ({why}): reported at {search.p[2]:.2f} +- {search.sigma_h:.2f} m ({where}; "
+            "its sigma reaches the mirror across it); horizontal position estimated"
         )
         if search.mirror:
             msg += "; the mirror across the motion plane fits equally (two basins)"

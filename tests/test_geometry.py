@@ -8,6 +8,7 @@ from pipeline.core.geometry import (
     compose,
     compose_jacobians,
     exp_so3,
+    exp_so3_each,
     exp_so3_rodrigues,
     jr_inv_so3,
     jr_so3,
@@ -84,3 +85,9 @@ def test_scalar_so3_helpers_match_the_vectorised_ones(angle):
     assert np.allclose(left_jacobian_so3(w), jr_so3(-w), atol=1e-9)
     if angle < 3.0:
         assert np.allclose(left_jacobian_so3(w, inverse=True), jr_inv_so3(-w), atol=1e-9)
+
+
+def test_exp_so3_each_is_the_one_vector_path_bit_for_bit():
+    rng = np.random.default_rng(3)
+    w = np.vstack([rng.normal(size=(50, 3)) * 10.0 ** rng.uniform(-9, 0.5, (50, 1)), np.zeros((1, 3))])
+    np.testing.assert_array_equal(exp_so3_each(w), np.stack([exp_so3(v) for v in w]))

@@ -142,6 +142,9 @@ def test_pipeline_on_hybrid_from_static_init(hybrid, tmp_path):
     lo, hi = m["nees_pose"]["bounds"]
     assert lo < m["nees_pose"]["mean"] < 2 * hi
     assert m["anchor_error_m"] < 0.6
+    for a, v in m["anchors"].items():  # 3-D flight: every height estimated, inside 3 sigma
+        assert v["verdict"]["height_observable"] is True, (a, v["verdict"])
+        assert abs(v["error_xyz"][2]) <= 3 * v["sigma_xyz"][2], (a, v["error_xyz"], v["sigma_xyz"])
     assert not [w for w in m["warnings"] if "biased" in w]  # anchors checked in the trajectory's own frame
     lo, hi = m["nees_anchor_position"]["bounds"]
     assert lo < m["nees_anchor_position"]["mean"] < hi

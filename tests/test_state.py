@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pipeline.core.geometry import exp_so3, log_so3
-from pipeline.state import ImuState, Kind, Pose, State, Vec, ekf_update
+from pipeline.state import ImuState, Kind, Pose, State, Vec, _lower_solve, ekf_update
 
 
 def _random_spd(rng, n):
@@ -285,3 +285,33 @@ def test_dropping_most_of_the_state_packs_the_covariance():
     assert s.names == ["imu", "anchor/1"] and s.anchors == {1: "anchor/1"}
     assert s.size <= 2 * 20  # 40 probes (240 rows) gone: at most as many free rows as used ones are left
     assert all(np.array_equal(s.cov(a, b), c) for (a, b), c in keep.items())
+
+
+def test_boxplus_of_many_poses_is_pose_boxplus_bit_for_bit():
+    rng = np.random.default_rng(4)
+    s = State()
+    s.add("v", Vec(rng.normal(size=2)), np.eye(2))
+    for k in range(5):
+        s.add(f"c{k}", Pose(exp_so3(rng.normal(size=3)), rng.normal(size=3)), np.eye(6))
+    dx = rng.normal(size=s.size) * 1e-2
+    dx[s.slice("c2")] = 0.0  # no correction: the value object stays
+    before = {n: s.value(n) for n in s.names}
+    s.boxplus(dx)
+    for n in s.names:
+        expect = before[n].boxplus(dx[s.slice(n)]) if dx[s.slice(n)].any() else before[n]
+        got = s.value(n)
+        for name in ("R", "p") if isinstance(got, Pose) else ("x",):
+            np.testing.assert_array_equal(getattr(got, name), getattr(expect, name))
+    assert s.value("c2") is before["c2"]
+
+
+def test_lower_solve_is_scipys_solve_triangular_bit_for_bit():
+    from scipy.linalg import solve_triangular
+
+    rng = np.random.default_rng(5)
+    for n, k in [(1, 1), (3, 2), (40, 70)]:
+        L = np.linalg.cholesky(_random_spd(rng, n))
+        for b in (rng.normal(size=n), rng.normal(size=(k, n)).T):
+            np.testing.assert_array_equal(
+                _lower_solve(L, b), solve_triangular(L, b, lower=True, check_finite=False)
+            )

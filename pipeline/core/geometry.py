@@ -60,6 +60,33 @@ def _exp_so3_one(x: float, y: float, z: float) -> np.ndarray:
     )
 
 
+def exp_so3_each(w: np.ndarray) -> np.ndarray:
+    """``exp_so3`` of each row of ``w`` (N, 3) with the numbers of the one-vector path (`exp_so3` of a (3,)
+    vector), bit for bit: the same expressions in the same order, elementwise over the rows, and ``math``'s sine
+    and cosine (numpy's vectorised ones may differ in the last bit). For updating many poses at once."""
+    x, y, z = w[:, 0], w[:, 1], w[:, 2]
+    t2 = x * x + y * y + z * z
+    a = np.empty(len(t2))
+    b = np.empty(len(t2))
+    for i, s2 in enumerate(t2.tolist()):
+        if s2 < 1e-14:
+            a[i], b[i] = 1.0 - s2 / 6.0, 0.5 - s2 / 24.0
+        else:
+            t = math.sqrt(s2)
+            a[i], b[i] = math.sin(t) / t, (1.0 - math.cos(t)) / s2
+    out = np.empty((len(t2), 3, 3))
+    out[:, 0, 0] = 1.0 - b * (y * y + z * z)
+    out[:, 0, 1] = b * x * y - a * z
+    out[:, 0, 2] = b * x * z + a * y
+    out[:, 1, 0] = b * x * y + a * z
+    out[:, 1, 1] = 1.0 - b * (x * x + z * z)
+    out[:, 1, 2] = b * y * z - a * x
+    out[:, 2, 0] = b * x * z - a * y
+    out[:, 2, 1] = b * y * z + a * x
+    out[:, 2, 2] = 1.0 - b * (x * x + y * y)
+    return out
+
+
 def log_so3(R: np.ndarray) -> np.ndarray:
     """Rotation vector(s) of (3, 3) or (N, 3, 3) rotation matrices (robust near 0 and pi)."""
     R = np.asarray(R, dtype=float)

@@ -34,6 +34,19 @@ def run(ctx: StageContext) -> StageResult:
             "pose_correlation_s": tau,
         },
     )
+    regain = None
+    if cfg.search and cfg.regain_heights and cfg.refine_method != "none":
+        from ..height_regain import HeightRegain
+        from ..uwb_filter import initialize_anchors, search_window
+
+        sigma = cfg.sigma(cal) * cfg.sigma_scale
+        regain = updater.regain = HeightRegain(
+            results,
+            lambda w: search_window(w, cfg, sigma, cal),
+            lambda a, w, sr: initialize_anchors({a: w}, cfg, cal, method=cfg.init_method, searches={a: sr})[
+                a
+            ],
+        )
     with ctx.runlog("refine") as log:
         log.stage("refine", win.init_end_ns)
         run_estimator(
@@ -82,10 +95,19 @@ def run(ctx: StageContext) -> StageResult:
             f"refine: anchors {sorted(updater.pending)} were determined only by all their ranges; reported at "
             "their initial estimate"
         )
+    regained = regain.summary() if regain is not None else {}
     for a, s in states.items():  # a height the data cannot see stays as uncertain as at init
         r = results.get(rd.anchor_key(a))
-        if r is not None and not r.verdict.get("height_observable", True):
+        if a in regained:
+            s["height_regained"] = regained[a]
+        elif r is not None and not r.verdict.get("height_observable", True):
             s["P"] = _keep_height_sigma(s["P"], r.cov)
+    if regained:
+        warns.append(
+            "refine: height regained for anchors "
+            + ", ".join(f"{a} at {g['t_s'] - win.init_end_ns * 1e-9:.0f} s" for a, g in regained.items())
+            + " into refinement (the motion left the init window's plane; re-initialised from all their ranges)"
+        )
     ctx.dir.save_json("anchor_states.json", states)
     label = f"{cfg.init_method}+{cfg.refine_method}"
     rd.write_anchors(
