@@ -93,15 +93,18 @@ def test_large_area_far_ranges_intermittent():
     assert abs(res.p[2] - anchor[2]) <= 2 * max(res.sigma_h, 1e-3)
 
 
-def test_per_link_offsets_recovered_and_supported():
-    rng = np.random.default_rng(4)
-    n = 6000
+def _three_link_track(n: int = 6000):
+    """200 s of 3-D motion with three antennas (links 0, 1, 2 in turn) and one anchor: (n, t, link, xyz, anchor)."""
     t = np.linspace(0, 200, n)
     body = np.c_[5 * np.cos(t / 15), 4 * np.sin(t / 11), 1.0 + 0.8 * np.sin(t / 5)]
     link = np.arange(n) % 3
     lever = np.array([[0.2, 0.0, 0.0], [-0.2, 0.1, 0.0], [0.0, -0.2, 0.05]])
-    xyz = body + lever[link]
-    anchor = np.array([-6.0, 3.0, 2.5])
+    return n, t, link, body + lever[link], np.array([-6.0, 3.0, 2.5])
+
+
+def test_per_link_offsets_recovered_and_supported():
+    rng = np.random.default_rng(4)
+    n, t, link, xyz, anchor = _three_link_track()
     offs = np.array([0.1, 0.3, 0.47])
     d = np.linalg.norm(xyz - anchor, axis=1) + offs[link] + rng.normal(0, 0.02, n)
     res = search_anchor(xyz, d, link, t_ns=t * 1e9, sigma_range=0.02)
@@ -118,13 +121,7 @@ def test_per_link_rejected_when_the_differences_are_not_a_constant_of_the_link()
     offsets then differ beyond their sigma (the contrast test passes; at least 3 of 5 seeds), one segment's do not
     predict another's: the blocked cross-validation finds no gain and the anchor stays per-anchor. Constant
     offsets of the class (U(0.1, 0.5) m per link, differing by > 0.1 m) on the same track switch to per-link."""
-    n = 6000
-    t = np.linspace(0, 200, n)
-    body = np.c_[5 * np.cos(t / 15), 4 * np.sin(t / 11), 1.0 + 0.8 * np.sin(t / 5)]
-    link = np.arange(n) % 3
-    lever = np.array([[0.2, 0.0, 0.0], [-0.2, 0.1, 0.0], [0.0, -0.2, 0.05]])
-    xyz = body + lever[link]
-    anchor = np.array([-6.0, 3.0, 2.5])
+    n, t, link, xyz, anchor = _three_link_track()
     rho = np.linalg.norm(xyz - anchor, axis=1)
     seg = np.arange(n) * 5 // n
     n_differ = 0
