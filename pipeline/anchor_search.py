@@ -54,6 +54,9 @@ class SearchResult:
     costs: dict = field(default_factory=dict)
     beta: float = 1.0  # range scale of the fit (1 unless the search estimated it under a beta prior)
     residuals: np.ndarray | None = None  # (n_used,) of the fit over the ranges it used (model tests)
+    # why not determined, for callers to act on (the reason is for people): "offset" = the fit needs an implausible
+    # range offset (the geometry trades the distance against it), "" otherwise
+    code: str = ""
 
     @property
     def ok(self) -> bool:
@@ -385,6 +388,7 @@ def search_anchor(
             n_all,
             links_all,
             planar=planar,
+            code="offset",
         )
     # score and pre-refine on a coarser even subset; the final passes use every sampled range
     q = subsample(len(dd), n_score)
@@ -516,6 +520,7 @@ def search_anchor(
     spread_ok = sig <= max_spread_factor * max(sigma_range, 0.05)
     if np.any(np.abs(best.g - g_fix) > max_abs_gamma):
         res.status = "not determined"
+        res.code = "offset"
         res.reason = (
             f"the best fit needs a range offset of {best.g[np.argmax(np.abs(best.g - g_fix))]:.1f} m (more than "
             f"{max_abs_gamma:g} m from {g_fix:g} m): the "

@@ -384,7 +384,7 @@ def search_window(
     bp = config.init_beta_prior(calibration)
     if bp is None:
         return sr
-    if not sr.ok and "range offset" in sr.reason:
+    if not sr.ok and sr.code == "offset":
         # a fit that needs metres of offset: on a one-sided arc the fixed scale (beta = 1) is traded against the
         # anchor's distance; refit with beta under its prior, as the initialiser estimates it
         sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
