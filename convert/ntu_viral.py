@@ -445,7 +445,7 @@ def convert_bag(
     }
     for src, dst in BAG_CAMS.items():
         routes[src] = BagRoute(
-            ("sensor_msgs/msg/Image",), passthrough(dst, msgs.IMAGE, check, image=True), dst
+            ("sensor_msgs/msg/Image",), passthrough(dst, msgs.IMAGE, check), dst
         )
     antenna_file = find_antennas(path, antennas)
     hasher = Hasher([path] + ([antenna_file] if antenna_file else []))
