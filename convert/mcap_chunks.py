@@ -27,13 +27,13 @@ from __future__ import annotations
 
 import struct
 import zlib
-from io import RawIOBase
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
+from io import RawIOBase
 
 import zstandard
-from mcap.opcode import Opcode
 from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
 from mcap.records import ChunkIndex, MessageIndex
 from mcap.writer import CompressionType, IndexType, Writer
 

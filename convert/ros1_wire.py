@@ -166,7 +166,9 @@ def image_cdr(raw: memoryview) -> tuple[str, bytearray, memoryview]:
     step, dlen = _II.unpack_from(raw, pos + 1)
     pos += 9
     if pos + dlen != len(raw):
-        raise ValueError(f"image message of {len(raw)} bytes, its fields and {dlen} pixel bytes take {pos + dlen}")
+        raise ValueError(
+            f"image message of {len(raw)} bytes, its fields and {dlen} pixel bytes take {pos + dlen}"
+        )
     _align(out, 4)
     out += height_width
     out += _U32.pack(elen + 1)
