@@ -438,20 +438,16 @@ class ViconPoses:
     per message (~23 MB for an hour at 100 Hz)."""
 
     def __init__(self, check: StampCheck) -> None:
-        from rosbags.typesys import Stores, get_typestore
-
-        self._ts1 = get_typestore(Stores.ROS1_NOETIC)
         self._check = check
         self._t: list[int] = []
         self._rows: list[tuple[float, ...]] = []
 
     def __call__(self, writer: RecordingWriter, conn, bag_t: int, raw) -> None:
-        m = self._ts1.deserialize_ros1(raw, "geometry_msgs/msg/TransformStamped")
+        row = ros1_wire.transform_stamped(raw)
         t = header_time(raw, bag_t)
         self._check(TOPIC_GT_POSE, t)
-        tr, q = m.transform.translation, m.transform.rotation
         self._t.append(t)
-        self._rows.append((tr.x, tr.y, tr.z, q.x, q.y, q.z, q.w))
+        self._rows.append(row)
 
     def write(self, writer: RecordingWriter) -> None:
         if not self._t:

@@ -6,7 +6,8 @@ uncompressed chunk is read into one reused buffer (no fresh bytes per chunk and 
 valid until the next message is taken; a handler that keeps data copies it. Damaged records raise
 ``rosbags.rosbag1.ReaderError`` as the reader does.
 
-`image_cdr` / `stamped_doubles_cdr` turn a ROS1 ``sensor_msgs/Image`` / a message of a header and doubles only
+`transform_stamped` reads the 7 numbers of a ROS1 ``geometry_msgs/TransformStamped``. `image_cdr` /
+`stamped_doubles_cdr` turn a ROS1 ``sensor_msgs/Image`` / a message of a header and doubles only
 (``sensor_msgs/Imu``, ``geometry_msgs/PointStamped``) into the CDR that ``Typestore.ros1_to_cdr`` makes, the
 pixels as a view of the input instead of a copy (`tests/test_ros1_wire.py` compares them byte for byte).
 Malformed messages raise ValueError.
@@ -23,6 +24,7 @@ from rosbags.rosbag1.reader import ReaderError, RecordType, decompressors
 
 _U32 = struct.Struct("<I")
 _II = struct.Struct("<II")
+_7D = struct.Struct("<7d")
 _CDR_LE = b"\x00\x01\x00\x00"  # CDR encapsulation header, little endian
 _NO_COMPRESSION = decompressors["none"]
 
@@ -178,3 +180,16 @@ def image_cdr(raw: memoryview) -> tuple[str, bytearray, memoryview]:
     _align(out, 4)
     out += _II.pack(step, dlen)
     return encoding.decode("ascii", "replace"), out, raw[pos:]
+
+
+def transform_stamped(raw: memoryview) -> tuple[float, ...]:
+    """ROS1 geometry_msgs/TransformStamped -> (translation x, y, z, rotation x, y, z, w)."""
+    (flen,) = _U32.unpack_from(raw, 12)
+    pos = 16 + flen
+    (clen,) = _U32.unpack_from(raw, pos)  # child_frame_id
+    pos += 4 + clen
+    if pos + _7D.size != len(raw):
+        raise ValueError(
+            f"message of {len(raw)} bytes, expected {pos + _7D.size} (header, child frame, 7 float64)"
+        )
+    return _7D.unpack_from(raw, pos)
