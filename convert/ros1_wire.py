@@ -1,7 +1,7 @@
 """ROS1 bag messages without copies, and ROS1 -> CDR of the pass-through message types as byte pieces.
 
 `messages` yields the messages of an opened ``rosbags.rosbag1.Reader`` in the reader's own order (its per-connection
-indices merged by time, as ``Reader.messages``), each as a memoryview into the chunk it was read with: an
+indices merged by time, as ``Reader.messages`` merges them), each as a memoryview into the chunk it was read with: an
 uncompressed chunk is read into one reused buffer (no fresh bytes per chunk and per message). A message's view is
 valid until the next message is taken; a handler that keeps data copies it. Damaged records raise
 ``rosbags.rosbag1.ReaderError`` as the reader does.
@@ -15,11 +15,11 @@ Malformed messages raise ValueError.
 
 from __future__ import annotations
 
-import heapq
 import os
 import struct
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 
+import numpy as np
 from rosbags.rosbag1.reader import ReaderError, RecordType, decompressors
 
 _U32 = struct.Struct("<I")
@@ -65,6 +65,17 @@ def _pread(fd: int, view: memoryview, offset: int) -> int:
     return got
 
 
+def _merged(indexes: Iterable[list]) -> Iterator[tuple[int, int, int]]:
+    """(time, chunk position, offset) of the index entries in ``heapq.merge`` order (the reader's): by time, ties
+    in the order of the indices, then of the entries (each index is sorted by time)."""
+    entries = [np.array(idx, np.int64).reshape(-1, 3) for idx in indexes]
+    if not entries:
+        return iter(())
+    e = np.concatenate(entries)
+    e = e[np.argsort(e[:, 0], kind="stable")]
+    return zip(*(e[:, k].tolist() for k in range(3)), strict=True)
+
+
 def messages(reader, connections: Sequence) -> Iterator[tuple[object, int, memoryview]]:
     """(connection, bag time [ns], raw message view) of ``connections`` in the order of ``reader.messages``."""
     bio = reader.bio
@@ -72,10 +83,9 @@ def messages(reader, connections: Sequence) -> Iterator[tuple[object, int, memor
         raise ReaderError("Rosbag is not open.")
     fd = bio.fileno()
     connmap = {c.id: c for c in reader.connections}
-    indexes = [reader.indexes[c.id] for c in connections]
     buf = bytearray()
     view, size, current = memoryview(buf), 0, -1
-    for time, chunk_pos, offset in heapq.merge(*indexes):
+    for time, chunk_pos, offset in _merged(reader.indexes[c.id] for c in connections):
         if chunk_pos != current:
             chunk = reader.chunks[chunk_pos]
             if chunk.decompressor is _NO_COMPRESSION:
