@@ -49,6 +49,13 @@ _U64 = struct.Struct("<Q")
 _PATCH_U64 = _U64.pack_into
 
 
+def _nbytes(data) -> int:
+    t = type(data)
+    if t is bytes or t is bytearray:
+        return len(data)
+    return data.nbytes if t is memoryview else memoryview(data).nbytes
+
+
 class _ChunkBuffer(RecordBuilder):
     """The chunk's RecordBuilder on a preallocated bytearray from ``pool`` (grown only for a chunk that outgrows
     it). `take` hands the filled buffer out and continues in a fresh one."""
@@ -67,14 +74,17 @@ class _ChunkBuffer(RecordBuilder):
     def count(self) -> int:
         return self._pos
 
-    def write(self, data) -> None:
-        n = len(data) if type(data) is bytes else memoryview(data).nbytes
-        end = self._pos + n
+    def reserve(self, end: int) -> bytearray:
+        """The buffer, grown if it is shorter than ``end`` bytes (the content up to the count kept)."""
         if end > len(self._buf):
             grown = bytearray(max(end, 2 * len(self._buf)))
             grown[: self._pos] = memoryview(self._buf)[: self._pos]
             self._buf = grown
-        self._buf[self._pos : end] = data  # same length: a copy in place
+        return self._buf
+
+    def write(self, data) -> None:
+        end = self._pos + _nbytes(data)
+        self.reserve(end)[self._pos : end] = data  # same length: a copy in place
         self._pos = end
 
     def start_record(self, opcode) -> None:
@@ -110,7 +120,7 @@ class _Positioned:
         self._pos = stream.tell()
 
     def write(self, data) -> int:
-        n = len(data) if type(data) is bytes else memoryview(data).nbytes
+        n = _nbytes(data)
         self._stream.write(data)
         self._pos += n
         return n
@@ -148,8 +158,8 @@ class PipelinedWriter(Writer):
         self._Writer__chunk_builder.record_writer = _ChunkBuffer(capacity, self._buffers)
 
     def add_message(self, channel_id: int, log_time: int, data, publish_time: int, sequence: int = 0) -> None:
-        """``Writer.add_message`` into the chunk, the same bytes and indices with one header pack and two writes
-        instead of a Message object and six builder calls. ``data``: bytes, a byte buffer, or a tuple of them
+        """``Writer.add_message`` into the chunk, the same bytes and indices with the header packed in place and
+        one copy per payload piece instead of a Message object and six builder calls. ``data``: bytes, a byte buffer, or a tuple of them
         (the payload in pieces); copied into the chunk here, so a caller may reuse it."""
         builder = self._Writer__chunk_builder
         if builder is None:
@@ -171,18 +181,25 @@ class PipelinedWriter(Writer):
         if index is None:
             index = builder.message_indices[channel_id] = MessageIndex(channel_id=channel_id, records=[])
         rw = builder.record_writer
-        index.records.append((log_time, rw.count))
+        pos = rw._pos
+        index.records.append((log_time, pos))
         builder.num_messages += 1
-        parts = data if isinstance(data, tuple) else (data,)
-        size = sum(len(p) if type(p) is bytes else memoryview(p).nbytes for p in parts)
-        rw.write(
-            _MESSAGE_HEAD.pack(
-                Opcode.MESSAGE, _MESSAGE_FIELDS + size, channel_id, sequence, log_time, publish_time
-            )
+        if type(data) is tuple:
+            parts, sizes = data, [_nbytes(p) for p in data]
+        else:
+            parts, sizes = (data,), (_nbytes(data),)
+        size = sum(sizes)
+        end = pos + _MESSAGE_HEAD.size + size
+        buf = rw.reserve(end)
+        _MESSAGE_HEAD.pack_into(
+            buf, pos, Opcode.MESSAGE, _MESSAGE_FIELDS + size, channel_id, sequence, log_time, publish_time
         )
-        for p in parts:
-            rw.write(p)
-        if rw.count > self._Writer__chunk_size:
+        pos += _MESSAGE_HEAD.size
+        for p, n in zip(parts, sizes, strict=True):
+            buf[pos : pos + n] = p  # same length: a copy in place
+            pos += n
+        rw._pos = end
+        if end > self._Writer__chunk_size:
             self._Writer__finalize_chunk()
 
     # -- the overridden private step of Writer: hand the chunk to a worker, write the oldest ones --------------
