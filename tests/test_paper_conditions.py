@@ -11,7 +11,7 @@ import pytest
 
 from convert.simulator import SimConfig
 from evaluate.paired import paired_difference
-from evaluate.paper_conditions import first_paying_level, main, skf_vs_ekf, table1_claims
+from evaluate.paper_conditions import first_paying_level, main, skf_vs_ekf, table1_claims, write_report
 from evaluate.ri_vs_lsi_drift import parse_levels, summarise
 from evaluate.vio_degrade import VioDegrade
 from pipeline.config import load_config
@@ -248,3 +248,21 @@ def test_ri_vs_lsi_drift_experiment_on_a_short_simulation(tmp_path):
     assert table["vio_sigma_m"][1] > 2 * table["vio_sigma_m"][0]
     assert (tmp_path / "ri_vs_lsi_drift.png").read_bytes()[:8] == PNG
     assert set(extra["summary"]) == {f"k{k}.{m}.anchor_error_m" for k in (1, 3) for m in ("lsi", "ri")}
+
+
+def test_table1_report_sets_both_prmse_windows_beside_the_paper(tmp_path):
+    """A finished table1 folder -> Markdown with each prior's cell table (refinement- and calibration-window
+    PRMSE beside the paper's one PRMSE), the paired differences, the claims, and the three-panel plot."""
+
+    folder = tmp_path / "t1"
+    folder.mkdir()
+    _table1_runs(np.random.default_rng(1)).write_parquet(folder / "runs.parquet")
+    config = {"experiment": "table1", "runs": 5, "jobs": 2, "scheduler": None, "seed": 0, "prior": "both"}
+    (folder / "config.json").write_text(json.dumps(config))
+    (folder / "summary.json").write_text(json.dumps({"wall_s": 12.0}))
+    written = write_report([folder], [], tmp_path / "out")
+    text = written[0].read_text()
+    assert "prmse_calib_m_ours" in text and "prmse_m_paper" in text and "prmse_calib_d_m" in text
+    assert "EKF better PRMSE (calibration window)" in text
+    assert text.count("### prior = ") == 2
+    assert written[1].stat().st_size > 10_000
