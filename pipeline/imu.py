@@ -36,6 +36,7 @@ from .core.geometry import I3, exp_jr_so3, skew
 from .state import ImuState
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
+_EYE15 = np.eye(15)  # copied, never changed (np.eye costs more than a copy)
 
 
 @dataclass(frozen=True)
@@ -123,7 +124,7 @@ def propagate(
     uses ``x`` itself.
     """
     n = dt.shape[0]
-    Phi = np.eye(15)
+    Phi = _EYE15.copy()
     Q = np.zeros((15, 15))
     if n == 0:
         return Propagation(x, Phi, Q)

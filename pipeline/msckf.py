@@ -26,8 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.linalg import solve_triangular
-from scipy.linalg.lapack import dpstrf
+from scipy.linalg.lapack import dpstrf, dtrtrs
 
 from pipeline.core.errors import InputError
 
@@ -196,22 +195,26 @@ def triangulate(
     As[~ok] = I3
     pf = np.linalg.solve(As, rhs[..., None])[..., 0]
     Rcw = np.swapaxes(Rw, -1, -2)
+    Rcw_xy, Rcw_z = Rcw[..., :2, :], Rcw[..., 2:3, :]
+    w_r, w_z = wv[..., 0], wv[..., 0, 0]
     eye_eps = 1e-9 * I3
     for _ in range(iterations):
         pc = np.einsum("fmij,fmj->fmi", Rcw, pf[:, None, :] - pw)
         z = pc[..., 2]
         zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
         nrm = pc[..., :2] / zs[..., None]
-        r = (xy - nrm) * wv[..., 0]
+        r = (xy - nrm) * w_r
         # d normalised / d pf = ([[1, 0, -x], [0, 1, -y]] / z) R_cw, written out row by row
-        J = (Rcw[..., :2, :] - nrm[..., None] * Rcw[..., 2:3, :]) * (wv[..., 0, 0] / zs)[..., None, None]
+        J = (Rcw_xy - nrm[..., None] * Rcw_z) * (w_z / zs)[..., None, None]
         J2 = J.reshape(F, 2 * M, 3)
-        Hn = np.swapaxes(J2, 1, 2) @ J2
+        J2t = np.swapaxes(J2, 1, 2)
+        Hn = J2t @ J2
         Hn += (1e-9 * np.trace(Hn, axis1=1, axis2=2))[:, None, None] * I3 + eye_eps
-        g = (np.swapaxes(J2, 1, 2) @ r.reshape(F, 2 * M, 1))[..., 0]
+        g = (J2t @ r.reshape(F, 2 * M, 1))[..., 0]
         bad = ~(ok & np.isfinite(Hn).all(axis=(1, 2)) & np.isfinite(g).all(axis=1))
-        Hn[bad] = I3
-        g[bad] = 0.0
+        if bad.any():
+            Hn[bad] = I3
+            g[bad] = 0.0
         try:
             step = np.linalg.solve(Hn, g[..., None])[..., 0]
         except np.linalg.LinAlgError:
@@ -241,7 +244,15 @@ def compress_normal(H: np.ndarray, r: np.ndarray, rel_tol: float = 1e-12) -> tup
     U = np.triu(U[:rank])
     Hc = np.empty_like(U)
     Hc[:, piv] = U
-    rc = solve_triangular(U[:, :rank], b[piv[:rank]], trans="T", lower=False, check_finite=False)
+    # U[:, :rank]^T rc = b[piv]: the LAPACK call scipy's ``solve_triangular(..., trans="T")`` makes, without its
+    # ~30 us of wrappers (a C-ordered matrix goes in transposed, as scipy passes it: the same numbers)
+    Ur = U[:, :rank]
+    if Ur.flags.f_contiguous:
+        rc, info = dtrtrs(Ur, b[piv[:rank]], lower=0, trans=1)
+    else:
+        rc, info = dtrtrs(Ur.T, b[piv[:rank]], lower=1, trans=0)
+    if info != 0:
+        raise FloatingPointError(f"dtrtrs failed (info {info})")
     return Hc, rc
 
 
@@ -698,7 +709,7 @@ class MsckfEstimator:
         k = len(r)
         Hp = (H_pose * w[:, :, None]).reshape(nf, M, 2, 6)[good]
         Ho, ro = nullspace_project(Hf, Hp, C[good], nc, r, valid[good])
-        Sidx = np.concatenate([np.arange(self.state.slice(n).start, self.state.slice(n).stop) for n in names])
+        Sidx = self.state.index(names)
         Pcc = self.state.P[Sidx][:, Sidx]  # rows first: a row gather is a copy of rows
         HoP = (Ho.reshape(-1, 6 * nc) @ Pcc).reshape(Ho.shape)  # one GEMM instead of k small ones
         S = HoP @ np.swapaxes(Ho, 1, 2) + np.eye(2 * M - 3)
@@ -712,7 +723,7 @@ class MsckfEstimator:
         if not n_used:
             return
         H, rr = compress_normal(Ho[accept].reshape(-1, 6 * nc), ro[accept].reshape(-1))
-        ekf_update(self.state, {n: H[:, 6 * j : 6 * j + 6] for j, n in enumerate(names)}, rr, 1.0)
+        ekf_update(self.state, (names, H), rr, 1.0)
         self.stats.updates += 1
 
     def _trace(

@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -202,7 +202,8 @@ class State:
         names = list(names)
         if not names:
             return np.zeros(0, int)
-        return np.concatenate([np.arange(self._slices[n].start, self._slices[n].stop) for n in names])
+        sls = [self._slices[n] for n in names]
+        return _ranges(np.array([sl.start for sl in sls]), np.array([sl.stop - sl.start for sl in sls]))
 
     def dim(self, name: str) -> int:
         return self._values[name].dim
@@ -491,10 +492,33 @@ def chi2_ppf(quantile: float, dof: int) -> float:
 
 
 def _stacked_jacobian(
-    state: State, H: Mapping[str, np.ndarray], m: int
+    state: State, H: Mapping[str, np.ndarray] | tuple[Sequence[str], np.ndarray], m: int
 ) -> tuple[slice | np.ndarray, np.ndarray]:
     """The update's Jacobian blocks as one (m, k) matrix over covariance indices ``idx`` (a slice, i.e. no copy of
-    P's columns, when the variables are contiguous in the state, e.g. the MSCKF's clones)."""
+    P's columns, when the variables are contiguous in the state, e.g. the MSCKF's clones), its columns in the
+    order of the variables in P. ``H`` is a mapping variable -> block, or ``(names, dense)``: the names' blocks
+    side by side in one matrix (the MSCKF's compressed Jacobian; one column permutation instead of a block per
+    variable)."""
+    if isinstance(H, tuple):
+        names, dense = H
+        dense = np.asarray(dense, float).reshape(m, -1)
+        sls = [state.slice(v) for v in names]
+        if not sls:
+            return slice(0, 0), np.zeros((m, 0))
+        start = np.array([sl.start for sl in sls])
+        dim = np.array([sl.stop - sl.start for sl in sls])
+        if dim.sum() != dense.shape[1]:
+            raise ValueError(f"Jacobian with {dense.shape[1]} columns for variables of dimension {dim.sum()}")
+        order = np.argsort(start, kind="stable")
+        offset = np.cumsum(dim) - dim  # column of each variable's block in ``dense``
+        if (order == np.arange(len(order))).all():
+            Hd = np.ascontiguousarray(dense)  # the layout BLAS sees decides its rounding: as the concatenation
+        else:
+            Hd = dense[:, _ranges(offset[order], dim[order])]
+        start, dim = start[order], dim[order]
+        if (start[1:] == start[:-1] + dim[:-1]).all():
+            return slice(int(start[0]), int(start[-1] + dim[-1])), Hd
+        return _ranges(start, dim), Hd
     blocks = sorted(
         ((state.slice(v), np.asarray(Hb, float).reshape(m, -1)) for v, Hb in H.items()),
         key=lambda x: x[0].start,
@@ -507,6 +531,12 @@ def _stacked_jacobian(
         idx = np.concatenate([np.arange(sl.start, sl.stop) for sl, _ in blocks])
     Hd = blocks[0][1] if len(blocks) == 1 else np.concatenate([Hb for _, Hb in blocks], axis=1)
     return idx, Hd
+
+
+def _ranges(start: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """``concatenate([arange(s, s + n) for s, n in zip(start, length)])`` in three array operations."""
+    total = int(length.sum())
+    return np.repeat(start - (np.cumsum(length) - length), length) + np.arange(total)
 
 
 @dataclass
@@ -557,7 +587,7 @@ def _lower_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def ekf_update(
     state: State,
-    H: Mapping[str, np.ndarray],
+    H: Mapping[str, np.ndarray] | tuple[Sequence[str], np.ndarray],
     r: np.ndarray,
     R: np.ndarray | float,
     *,
@@ -567,7 +597,8 @@ def ekf_update(
     robust_R: float | np.ndarray | None = None,
     per_row: bool = False,
 ) -> UpdateResult:
-    """The one EKF update: ``r = sum_v H[v] dx_v + n``, n ~ N(0, R).
+    """The one EKF update: ``r = sum_v H[v] dx_v + n``, n ~ N(0, R). ``H`` maps variables to their blocks, or
+    is ``(names, dense)`` with the names' blocks side by side in one matrix.
 
     ``schmidt`` names variables that are *considered* but not estimated (Schmidt-Kalman filter; the state's own
     ``considered`` variables are always among them): their
@@ -649,10 +680,12 @@ def ekf_update(
     # columns e.
     mask = np.ones(n, bool)
     mask[state.index(schmidt)] = False
-    e = np.flatnonzero(mask)
-    W_e = W[:, e]
+    e: np.ndarray | slice = np.flatnonzero(mask)
+    if len(e) and e[-1] - e[0] + 1 == len(e):  # one block of rows: slices instead of gathers and scatters
+        e = slice(int(e[0]), int(e[-1]) + 1)
+    W_e = np.asfortranarray(W[:, e])  # the layout of a column gather (BLAS' rounding depends on it)
     P = state.P
-    F = P[e, :]
+    F = P[e, :].copy() if isinstance(e, slice) else P[e, :]
     F += P[:, e].T
     F *= 0.5
     F -= W_e.T @ W

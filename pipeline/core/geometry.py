@@ -20,6 +20,9 @@ I3.flags.writeable = False
 def skew(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrix(es) of vector(s) ``v`` with shape (3,) or (N, 3)."""
     v = np.asarray(v, dtype=float)
+    if v.shape == (3,):  # one vector (the propagation's Phi blocks): one array from Python floats
+        x, y, z = v.tolist()
+        return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     out = np.zeros(v.shape[:-1] + (3, 3))
     out[..., 0, 1] = -v[..., 2]
     out[..., 0, 2] = v[..., 1]
@@ -66,14 +69,16 @@ def exp_so3_each(w: np.ndarray) -> np.ndarray:
     and cosine (numpy's vectorised ones may differ in the last bit). For updating many poses at once."""
     x, y, z = w[:, 0], w[:, 1], w[:, 2]
     t2 = x * x + y * y + z * z
-    a = np.empty(len(t2))
-    b = np.empty(len(t2))
-    for i, s2 in enumerate(t2.tolist()):
+    a_, b_ = [], []  # Python lists, one array each at the end (item assignment into numpy costs more)
+    for s2 in t2.tolist():
         if s2 < 1e-14:
-            a[i], b[i] = 1.0 - s2 / 6.0, 0.5 - s2 / 24.0
+            a_.append(1.0 - s2 / 6.0)
+            b_.append(0.5 - s2 / 24.0)
         else:
             t = math.sqrt(s2)
-            a[i], b[i] = math.sin(t) / t, (1.0 - math.cos(t)) / s2
+            a_.append(math.sin(t) / t)
+            b_.append((1.0 - math.cos(t)) / s2)
+    a, b = np.array(a_), np.array(b_)
     out = np.empty((len(t2), 3, 3))
     out[:, 0, 0] = 1.0 - b * (y * y + z * z)
     out[:, 0, 1] = b * x * y - a * z
