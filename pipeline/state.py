@@ -512,7 +512,7 @@ def _stacked_jacobian(
         order = np.argsort(start, kind="stable")
         offset = np.cumsum(dim) - dim  # column of each variable's block in ``dense``
         if (order == np.arange(len(order))).all():
-            Hd = np.ascontiguousarray(dense)  # the layout BLAS sees decides its rounding: as the concatenation
+            Hd = np.ascontiguousarray(dense)  # BLAS' rounding depends on the layout: C, as a concatenation
         else:
             Hd = dense[:, _ranges(offset[order], dim[order])]
         start, dim = start[order], dim[order]
