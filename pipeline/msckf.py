@@ -666,10 +666,11 @@ class MsckfEstimator:
         valid = np.arange(M)[None, :] < counts[:, None]
         O = np.where(valid, starts[:, None] + np.arange(M)[None, :], starts[:, None])
         orow = rows[O]
-        clone_t = np.asarray(self.clones, np.int64)
+        clones = self.state.clones
+        clone_t = np.array([t for t, _ in clones], np.int64)
         nc = len(clone_t)
         C = np.searchsorted(clone_t, db.t[orow])  # (F, M) clone index
-        names = [_clone_name(t) for t in self.clones]
+        names = [n for _, n in clones]
         cur = [self.state.value(n) for n in names]
         Rc = np.stack([c.R for c in cur])
         pc = np.stack([c.p for c in cur])

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
+import operator
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -157,6 +158,7 @@ class State:
         self._nav: str | None = None
         # Schmidt (considered) variables: zero gain in every update, cross-covariances tracked
         self.considered: set[str] = set()
+        self._pose_stack: tuple | None = None  # the last `_boxplus_poses` result (values, R, p)
 
     # -- the covariance ------------------------------------------------------------------------------------
     @property
@@ -447,17 +449,29 @@ class State:
 
     def _boxplus_poses(self, dx: np.ndarray, poses: list[tuple[str, int]]) -> None:
         """`Pose.boxplus` of many poses in one pass, the same numbers (`exp_so3_each`, one stacked product);
-        poses with a zero correction keep their value."""
+        poses with a zero correction keep their value. The stacked result is kept: when the next update moves the
+        same poses, still these values (values are replaced, never changed in place), it starts from it instead
+        of stacking them again (the clone window between two updates)."""
         rows = np.array([start for _, start in poses])[:, None] + np.arange(6)
         d = dx[rows]
         moved = np.flatnonzero(d.any(axis=1))
         if not len(moved):
             return
-        d = d[moved]
-        R = np.stack([self._values[poses[i][0]].R for i in moved]) @ exp_so3_each(d[:, 0:3])
-        p = np.stack([self._values[poses[i][0]].p for i in moved]) + d[:, 3:6]
-        for k, i in enumerate(moved.tolist()):
-            self._values[poses[i][0]] = _fresh(Pose, R=R[k], p=p[k])
+        if len(moved) < len(poses):
+            d = d[moved]
+            poses = [poses[i] for i in moved.tolist()]
+        names = [n for n, _ in poses]
+        vals = [self._values[n] for n in names]
+        last = getattr(self, "_pose_stack", None)
+        if last is not None and len(last[0]) == len(vals) and all(map(operator.is_, last[0], vals)):
+            R0, p0 = last[1], last[2]
+        else:
+            R0, p0 = np.stack([v.R for v in vals]), np.stack([v.p for v in vals])
+        R = R0 @ exp_so3_each(d[:, 0:3])
+        p = p0 + d[:, 3:6]
+        new = [_fresh(Pose, R=R[k], p=p[k]) for k in range(len(names))]
+        self._values.update(zip(names, new, strict=True))
+        self._pose_stack = (new, R, p)
 
 
 def add_probe(state: State, t_ns: int) -> str:
