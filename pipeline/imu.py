@@ -166,17 +166,13 @@ def propagate(
     A = -np.swapaxes(R, 1, 2) @ C  # d dtheta_k / d bg (body frame of R_k)
     Amid = np.swapaxes(dRh, 1, 2) @ A[:-1] - Jrh * (0.5 * dt)[:, None, None]
     Rm_skew_a = Rm @ skew(a)
-    E = -(Rm_skew_a @ Amid) * dt3  # d dv_k / d bg
-    Vb = np.zeros((n, 3, 3))
-    Vb[1:] = np.cumsum(E, axis=0)[:-1]
+    # d dv_k / d bg and d dv_k / d ba side by side: one cumulative sum and one sum for both bias blocks
+    E = np.concatenate([-(Rm_skew_a @ Amid) * dt3, -Rm * dt3], axis=2)
+    V = np.zeros((n, 3, 6))
+    V[1:] = np.cumsum(E, axis=0)[:-1]
     Phi[0:3, 9:12] = A[-1]
-    Phi[6:9, 9:12] = E.sum(axis=0)
-    Phi[3:6, 9:12] = (Vb * dt3 + 0.5 * E * dt3).sum(axis=0)
-    Ea = -Rm * dt3  # d dv_k / d ba
-    Va = np.zeros((n, 3, 3))
-    Va[1:] = np.cumsum(Ea, axis=0)[:-1]
-    Phi[6:9, 12:15] = Ea.sum(axis=0)
-    Phi[3:6, 12:15] = (Va * dt3 + 0.5 * Ea * dt3).sum(axis=0)
+    Phi[6:9, 9:15] = E.sum(axis=0)
+    Phi[3:6, 9:15] = (V * dt3 + 0.5 * E * dt3).sum(axis=0)
 
     # -- white noise: effect of a measurement perturbation in sub-interval k on the end state ---------------
     rem = T - tau[1:]  # time from the end of sub-interval k to the interval end
