@@ -730,7 +730,7 @@ class MsckfEstimator:
         if not n_used:
             return
         H, rr = compress_normal(Ho[accept].reshape(-1, 6 * nc), ro[accept].reshape(-1))
-        ekf_update(self.state, (names, H), rr, 1.0)
+        ekf_update(self.state, {n: H[:, 6 * j : 6 * j + 6] for j, n in enumerate(names)}, rr, 1.0)
         self.stats.updates += 1
 
     def _trace(

@@ -14,7 +14,7 @@ import dataclasses
 import enum
 import functools
 import operator
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -506,33 +506,10 @@ def chi2_ppf(quantile: float, dof: int) -> float:
 
 
 def _stacked_jacobian(
-    state: State, H: Mapping[str, np.ndarray] | tuple[Sequence[str], np.ndarray], m: int
+    state: State, H: Mapping[str, np.ndarray], m: int
 ) -> tuple[slice | np.ndarray, np.ndarray]:
     """The update's Jacobian blocks as one (m, k) matrix over covariance indices ``idx`` (a slice, i.e. no copy of
-    P's columns, when the variables are contiguous in the state, e.g. the MSCKF's clones), its columns in the
-    order of the variables in P. ``H`` is a mapping variable -> block, or ``(names, dense)``: the names' blocks
-    side by side in one matrix (the MSCKF's compressed Jacobian; one column permutation instead of a block per
-    variable)."""
-    if isinstance(H, tuple):
-        names, dense = H
-        dense = np.asarray(dense, float).reshape(m, -1)
-        sls = [state.slice(v) for v in names]
-        if not sls:
-            return slice(0, 0), np.zeros((m, 0))
-        start = np.array([sl.start for sl in sls])
-        dim = np.array([sl.stop - sl.start for sl in sls])
-        if dim.sum() != dense.shape[1]:
-            raise ValueError(f"Jacobian with {dense.shape[1]} columns for variables of dimension {dim.sum()}")
-        order = np.argsort(start, kind="stable")
-        offset = np.cumsum(dim) - dim  # column of each variable's block in ``dense``
-        if (order == np.arange(len(order))).all():
-            Hd = np.ascontiguousarray(dense)  # BLAS' rounding depends on the layout: C, as a concatenation
-        else:
-            Hd = dense[:, _ranges(offset[order], dim[order])]
-        start, dim = start[order], dim[order]
-        if (start[1:] == start[:-1] + dim[:-1]).all():
-            return slice(int(start[0]), int(start[-1] + dim[-1])), Hd
-        return _ranges(start, dim), Hd
+    P's columns, when the variables are contiguous in the state, e.g. the MSCKF's clones)."""
     blocks = sorted(
         ((state.slice(v), np.asarray(Hb, float).reshape(m, -1)) for v, Hb in H.items()),
         key=lambda x: x[0].start,
@@ -601,7 +578,7 @@ def _lower_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def ekf_update(
     state: State,
-    H: Mapping[str, np.ndarray] | tuple[Sequence[str], np.ndarray],
+    H: Mapping[str, np.ndarray],
     r: np.ndarray,
     R: np.ndarray | float,
     *,
@@ -611,8 +588,7 @@ def ekf_update(
     robust_R: float | np.ndarray | None = None,
     per_row: bool = False,
 ) -> UpdateResult:
-    """The one EKF update: ``r = sum_v H[v] dx_v + n``, n ~ N(0, R). ``H`` maps variables to their blocks, or
-    is ``(names, dense)`` with the names' blocks side by side in one matrix.
+    """The one EKF update: ``r = sum_v H[v] dx_v + n``, n ~ N(0, R).
 
     ``schmidt`` names variables that are *considered* but not estimated (Schmidt-Kalman filter; the state's own
     ``considered`` variables are always among them): their
