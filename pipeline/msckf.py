@@ -532,8 +532,7 @@ class MsckfEstimator:
                 dt, w, a = imu_intervals(imu_t, gyro, acc, self.t_ns, t1)
                 prop = propagate(x, dt, w, a, self.noise, self.state.fej("imu"))
             self.state.propagate("imu", prop.Phi, prop.Q)
-            self.state.set_value("imu", prop.state)
-            self.state.set_fej("imu", prop.state)
+            self.state.set_propagated("imu", prop.state)
             self.t_ns = t1
 
     def _record(self) -> None:

@@ -221,6 +221,12 @@ class State:
         """Linearisation point: the first estimate when FEJ is on, else the current estimate."""
         return self._fej[name] if self.use_fej else self._values[name]
 
+    def set_propagated(self, name: str, value: Value) -> None:
+        """A propagated estimate, which is also the variable's new first estimate: one object for both (values are
+        replaced, never changed in place), no copy."""
+        self._values[name] = value
+        self._fej[name] = value
+
     def set_fej(self, name: str, value: Value) -> None:
         self._fej[name] = dataclasses.replace(value)  # __post_init__ copies the arrays
 
