@@ -102,12 +102,16 @@ def imu_intervals(
     w[1:-1], a[1:-1] = gyro[i0:i1], acc[i0:i1]
     for row, t, j in ((0, t0_ns, i0), (-1, t1_ns, i1)):  # interpolate the ends, hold beyond the data
         lo, hi = min(max(j - 1, 0), n - 1), min(j, n - 1)
-        s = 0.0 if hi == lo else min(max((t - t_ns[lo]) / (t_ns[hi] - t_ns[lo]), 0.0), 1.0)
+        t_lo = int(t_ns[lo])  # Python integers: exact differences, the same quotient as numpy's
+        s = 0.0 if hi == lo else min(max((t - t_lo) / (int(t_ns[hi]) - t_lo), 0.0), 1.0)
         w[row] = (1 - s) * gyro[lo] + s * gyro[hi]
         a[row] = (1 - s) * acc[lo] + s * acc[hi]
     dt = np.diff(tf)
+    wm, am = 0.5 * (w[1:] + w[:-1]), 0.5 * (a[1:] + a[:-1])
     keep = dt > 0
-    return dt[keep], (0.5 * (w[1:] + w[:-1]))[keep], (0.5 * (a[1:] + a[:-1]))[keep]
+    if keep.all():
+        return dt, wm, am
+    return dt[keep], wm[keep], am[keep]
 
 
 def propagate(
