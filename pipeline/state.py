@@ -159,6 +159,7 @@ class State:
         # Schmidt (considered) variables: zero gain in every update, cross-covariances tracked
         self.considered: set[str] = set()
         self._pose_stack: tuple | None = None  # the last `_boxplus_poses` result (values, R, p)
+        self._plan: tuple | None = None  # `_box_plan`
 
     # -- the covariance ------------------------------------------------------------------------------------
     @property
@@ -305,7 +306,7 @@ class State:
             P[:n_old, sl] = cross.T
         P[sl, sl] = 0.5 * (P_new + P_new.T)
         self._names.append(name)
-        self._clones = None
+        self._clones = self._plan = None
         self._values[name] = value
         self._fej[name] = dataclasses.replace(value)  # __post_init__ copies the arrays
         self._slices[name] = sl
@@ -411,7 +412,7 @@ class State:
             self._n = last.start
         self.considered.discard(name)
         self._names.remove(name)
-        self._clones = None
+        self._clones = self._plan = None
         del self._values[name]
         del self._fej[name]
         del self._info[name]
@@ -437,21 +438,45 @@ class State:
             start += d
         self._n = n
         self._free = []
+        self._plan = None
 
     def boxplus(self, dx: np.ndarray, names: Iterable[str] | None = None) -> None:
         considered = self.considered
         poses: list[tuple[str, int]] = []
-        for n in names if names is not None else self._names:
-            if n in considered:  # Schmidt (considered) variables get exactly zero corrections
-                continue
-            sl = self._slices[n]
-            value = self._values[n]
-            if type(value) is Pose:  # the clones: all at once below
-                poses.append((n, sl.start))
-            elif dx[sl].any():
-                self._values[n] = value.boxplus(dx[sl])
+        if names is None:  # every variable: which ones have a nonzero correction, in one array operation
+            plan, bounds = self._box_plan()
+            nonzero = np.logical_or.reduceat(dx != 0, bounds)[::2] if len(bounds) else ()
+            for (n, sl, is_pose), moved in zip(plan, nonzero, strict=True):
+                if n in considered:  # Schmidt (considered) variables get exactly zero corrections
+                    continue
+                if is_pose:  # the clones: all at once below
+                    poses.append((n, sl.start))
+                elif moved:
+                    self._values[n] = self._values[n].boxplus(dx[sl])
+        else:
+            for n in names:
+                if n in considered:
+                    continue
+                sl = self._slices[n]
+                value = self._values[n]
+                if type(value) is Pose:
+                    poses.append((n, sl.start))
+                elif dx[sl].any():
+                    self._values[n] = value.boxplus(dx[sl])
         if poses:
             self._boxplus_poses(dx, poses)
+
+    def _box_plan(self) -> tuple[list[tuple[str, slice, bool]], np.ndarray]:
+        """(name, slot, is a Pose) of the variables in slot order, and the bounds [start_0, stop_0, start_1, ...]
+        of their slots without the last stop (the end of P), for `np.logical_or.reduceat`; kept until a variable
+        is added, removed or moved."""
+        cached = getattr(self, "_plan", None)
+        if cached is None:
+            names = sorted(self._names, key=lambda n: self._slices[n].start)
+            plan = [(n, self._slices[n], type(self._values[n]) is Pose) for n in names]
+            bounds = np.array([b for _, sl, _ in plan for b in (sl.start, sl.stop)][:-1], np.intp)
+            cached = self._plan = (plan, bounds)
+        return cached
 
     def _boxplus_poses(self, dx: np.ndarray, poses: list[tuple[str, int]]) -> None:
         """`Pose.boxplus` of many poses in one pass, the same numbers (`exp_so3_each`, one stacked product);
