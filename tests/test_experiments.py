@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import polars as pl
 from typer.testing import CliRunner
 
@@ -49,6 +50,16 @@ def test_table1_cells_on_a_short_simulation(tmp_path):
     # SKF never moves the navigation state: its trajectory is the same for every cell of a seed
     skf = runs.filter(runs["method"] == "skf")["prmse_m"].to_list()
     assert max(skf) - min(skf) < 1e-9
+    # the calibration PRMSE pools the initialisation window (the VIO's, per-axis RMSE x sqrt 3) with the
+    # refinement window, so it lies between the two windows' PRMSEs and never equals the refinement's alone
+    init = runs["vio_rmse_m"].to_numpy() * np.sqrt(3.0)
+    refine, calib = runs["prmse_m"].to_numpy(), runs["prmse_calib_m"].to_numpy()
+    assert np.all(calib >= np.minimum(init, refine) - 1e-12) and np.all(
+        calib <= np.maximum(init, refine) + 1e-12
+    )
+    assert np.all(np.abs(calib - refine) > 1e-6)
+    assert "prmse_calib_m_ours" in table.columns and "prmse_calib_m_paper" not in table.columns
+    assert {f"si0.1_su1.0.{m}.prmse_calib_m" for m in ("ekf", "skf")} <= set(extra["summary"])
 
 
 def test_experiment_params_are_checked_and_typed(tmp_path):

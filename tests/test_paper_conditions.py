@@ -11,7 +11,7 @@ import pytest
 
 from convert.simulator import SimConfig
 from evaluate.paired import paired_difference
-from evaluate.paper_conditions import first_paying_level, main, skf_vs_ekf, table1_claims
+from evaluate.paper_conditions import first_paying_level, main, skf_vs_ekf, table1_claims, write_report
 from evaluate.ri_vs_lsi_drift import parse_levels, summarise
 from evaluate.vio_degrade import VioDegrade
 from pipeline.config import load_config
@@ -158,6 +158,7 @@ def _table1_runs(rng) -> pl.DataFrame:
                             "sigma_u": su,
                             "method": m,
                             "prmse_m": 0.38 + extra,
+                            "prmse_calib_m": 0.30 + 0.05 * (m == "skf"),
                             "anchor_error_m": base + extra,
                             "rejected": 0,
                             "vio_sigma_m": 0.05,
@@ -183,6 +184,11 @@ def test_skf_vs_ekf_is_paired_per_seed():
     assert claims[("σ_I=0.3, σ_U=1", "SKF better anchors")] == "yes"
     assert claims[("σ_I=0.5, σ_U=0.9", "SKF better PRMSE")] == "yes"
     assert claims[("σ_I=0.1, σ_U=1", "EKF better PRMSE")] == "unclear"
+    # the calibration-window PRMSE is paired and judged on its own, against the paper's one PRMSE
+    assert r[(0.1, 1.0)]["prmse_calib_d_m"] == pytest.approx(-0.05)
+    assert r[(0.5, 0.9)]["prmse_calib_paper_d"] == pytest.approx(0.679 - 0.495)
+    assert claims[("σ_I=0.1, σ_U=1", "EKF better PRMSE (calibration window)")] == "yes"
+    assert claims[("σ_I=0.5, σ_U=0.9", "SKF better PRMSE (calibration window)")] == "no"
     flipped = d.with_columns(
         -pl.col("anchor_d_m"),
         -pl.col("anchor_hi").alias("anchor_lo"),
@@ -242,3 +248,21 @@ def test_ri_vs_lsi_drift_experiment_on_a_short_simulation(tmp_path):
     assert table["vio_sigma_m"][1] > 2 * table["vio_sigma_m"][0]
     assert (tmp_path / "ri_vs_lsi_drift.png").read_bytes()[:8] == PNG
     assert set(extra["summary"]) == {f"k{k}.{m}.anchor_error_m" for k in (1, 3) for m in ("lsi", "ri")}
+
+
+def test_table1_report_sets_both_prmse_windows_beside_the_paper(tmp_path):
+    """A finished table1 folder -> Markdown with each prior's cell table (refinement- and calibration-window
+    PRMSE beside the paper's one PRMSE), the paired differences, the claims, and the three-panel plot."""
+
+    folder = tmp_path / "t1"
+    folder.mkdir()
+    _table1_runs(np.random.default_rng(1)).write_parquet(folder / "runs.parquet")
+    config = {"experiment": "table1", "runs": 5, "jobs": 2, "scheduler": None, "seed": 0, "prior": "both"}
+    (folder / "config.json").write_text(json.dumps(config))
+    (folder / "summary.json").write_text(json.dumps({"wall_s": 12.0}))
+    written = write_report([folder], [], tmp_path / "out")
+    text = written[0].read_text()
+    assert "prmse_calib_m_ours" in text and "prmse_m_paper" in text and "prmse_calib_d_m" in text
+    assert "EKF better PRMSE (calibration window)" in text
+    assert text.count("### prior = ") == 2
+    assert written[1].stat().st_size > 10_000
