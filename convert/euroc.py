@@ -19,7 +19,7 @@ import numpy as np
 from pipeline.core.errors import InputError
 from pipeline.core.progress import progress
 
-from . import msgs
+from . import msgs, ros1_wire
 from .recording import (
     META_CALIBRATION,
     META_SOURCE,
@@ -43,7 +43,6 @@ from .sources import (
     read_csv_strings,
     read_tum,
     ros1_header_stamp,
-    ros1_image_encoding,
     source_metadata,
     stream_bag,
     summary,
@@ -402,19 +401,33 @@ def header_time(raw, bag_t: int) -> int:
     return t if t > 0 else int(bag_t)
 
 
-def passthrough(out_topic: str, msgtype: str, check: StampCheck, image: bool = False):
-    ts = msgs.typestore()
+# float64 values after the header of the pass-through types made of a header and doubles only
+STAMPED_DOUBLES = {msgs.IMU: 37, msgs.POINT_STAMPED: 3}
 
-    def handle(writer: RecordingWriter, conn, bag_t: int, raw) -> None:
-        if image:
-            enc = ros1_image_encoding(raw)
+
+def passthrough(out_topic: str, msgtype: str, check: StampCheck):
+    """Handler writing a ROS1 message as CDR (`ros1_wire`): Image (mono8; the pixels go from the bag's chunk into
+    the recording's chunk with no copy between) or a type of `STAMPED_DOUBLES`."""
+    if msgtype == msgs.IMAGE:
+
+        def handle(writer: RecordingWriter, conn, bag_t: int, raw) -> None:
+            enc, head, pixels = ros1_wire.image_cdr(raw)
             if enc not in ("mono8", "8UC1"):
                 raise Drop(f"image encoding {enc!r}, expected mono8")
+            t = header_time(raw, bag_t)
+            check(out_topic, t)
+            writer.write_raw(out_topic, t, msgtype, (head, pixels))
+
+        return handle
+    n = STAMPED_DOUBLES[msgtype]
+
+    def handle_doubles(writer: RecordingWriter, conn, bag_t: int, raw) -> None:
+        cdr = ros1_wire.stamped_doubles_cdr(raw, n)
         t = header_time(raw, bag_t)
         check(out_topic, t)
-        writer.write_raw(out_topic, t, msgtype, ts.ros1_to_cdr(raw, msgtype))
+        writer.write_raw(out_topic, t, msgtype, cdr)
 
-    return handle
+    return handle_doubles
 
 
 class ViconPoses:
@@ -425,20 +438,16 @@ class ViconPoses:
     per message (~23 MB for an hour at 100 Hz)."""
 
     def __init__(self, check: StampCheck) -> None:
-        from rosbags.typesys import Stores, get_typestore
-
-        self._ts1 = get_typestore(Stores.ROS1_NOETIC)
         self._check = check
         self._t: list[int] = []
         self._rows: list[tuple[float, ...]] = []
 
     def __call__(self, writer: RecordingWriter, conn, bag_t: int, raw) -> None:
-        m = self._ts1.deserialize_ros1(raw, "geometry_msgs/msg/TransformStamped")
+        row = ros1_wire.transform_stamped(raw)
         t = header_time(raw, bag_t)
         self._check(TOPIC_GT_POSE, t)
-        tr, q = m.transform.translation, m.transform.rotation
         self._t.append(t)
-        self._rows.append((tr.x, tr.y, tr.z, q.x, q.y, q.z, q.w))
+        self._rows.append(row)
 
     def write(self, writer: RecordingWriter) -> None:
         if not self._t:
@@ -552,7 +561,7 @@ def convert_bag(path: Path, output: str | Path, groundtruth: Path | None = None)
         BAG_VICON: BagRoute(("geometry_msgs/msg/TransformStamped",), vicon, TOPIC_GT_POSE),
     }
     for src, dst in BAG_CAMS.items():
-        routes[src] = BagRoute(img_types, passthrough(dst, msgs.IMAGE, check, image=True), dst)
+        routes[src] = BagRoute(img_types, passthrough(dst, msgs.IMAGE, check), dst)
     gt = None
     files = [path]
     if groundtruth is not None:

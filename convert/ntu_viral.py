@@ -444,9 +444,7 @@ def convert_bag(
         BAG_LEICA: BagRoute(("geometry_msgs/msg/PoseStamped",), leica_handler(check), TOPIC_GT_POSITION),
     }
     for src, dst in BAG_CAMS.items():
-        routes[src] = BagRoute(
-            ("sensor_msgs/msg/Image",), passthrough(dst, msgs.IMAGE, check, image=True), dst
-        )
+        routes[src] = BagRoute(("sensor_msgs/msg/Image",), passthrough(dst, msgs.IMAGE, check), dst)
     antenna_file = find_antennas(path, antennas)
     hasher = Hasher([path] + ([antenna_file] if antenna_file else []))
     with RecordingWriter(output) as w:

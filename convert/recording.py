@@ -169,13 +169,14 @@ class RecordingWriter:
             span[0] = min(span[0], lo)
             span[1] = max(span[1], hi)
 
-    def write_raw(self, topic: str, t_ns: int, msgtype: str, cdr: bytes | memoryview) -> None:
-        """Write an already CDR-encoded message (fast pass-through for converters)."""
+    def write_raw(self, topic: str, t_ns: int, msgtype: str, cdr: bytes | memoryview | tuple) -> None:
+        """Write an already CDR-encoded message (fast pass-through for converters); ``cdr`` may be a tuple of
+        byte buffers, the message in pieces (e.g. an image's head and a view of its pixels)."""
         cid = self._channel(topic, msgtype)
         seq = self._seq[topic]
         self._seq[topic] = seq + 1
         t_ns = int(t_ns)
-        # the buffer as it is: the chunk builder copies it in (no bytes() copy of every image first)
+        # the buffers as they are: the chunk builder copies them in (no bytes() copy of every image first)
         self._writer.add_message(cid, log_time=t_ns, data=cdr, publish_time=t_ns, sequence=seq)
         self._span(topic, t_ns, t_ns, 1)
 
