@@ -36,6 +36,7 @@ from .core.geometry import I3, exp_jr_so3, skew
 from .state import ImuState
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
+_EYE15 = np.eye(15)  # copied, never changed (np.eye costs more than a copy)
 
 
 @dataclass(frozen=True)
@@ -101,12 +102,16 @@ def imu_intervals(
     w[1:-1], a[1:-1] = gyro[i0:i1], acc[i0:i1]
     for row, t, j in ((0, t0_ns, i0), (-1, t1_ns, i1)):  # interpolate the ends, hold beyond the data
         lo, hi = min(max(j - 1, 0), n - 1), min(j, n - 1)
-        s = 0.0 if hi == lo else min(max((t - t_ns[lo]) / (t_ns[hi] - t_ns[lo]), 0.0), 1.0)
+        t_lo = int(t_ns[lo])  # Python integers: exact differences, the same quotient as numpy's
+        s = 0.0 if hi == lo else min(max((t - t_lo) / (int(t_ns[hi]) - t_lo), 0.0), 1.0)
         w[row] = (1 - s) * gyro[lo] + s * gyro[hi]
         a[row] = (1 - s) * acc[lo] + s * acc[hi]
     dt = np.diff(tf)
+    wm, am = 0.5 * (w[1:] + w[:-1]), 0.5 * (a[1:] + a[:-1])
     keep = dt > 0
-    return dt[keep], (0.5 * (w[1:] + w[:-1]))[keep], (0.5 * (a[1:] + a[:-1]))[keep]
+    if keep.all():
+        return dt, wm, am
+    return dt[keep], wm[keep], am[keep]
 
 
 def propagate(
@@ -123,7 +128,7 @@ def propagate(
     uses ``x`` itself.
     """
     n = dt.shape[0]
-    Phi = np.eye(15)
+    Phi = _EYE15.copy()
     Q = np.zeros((15, 15))
     if n == 0:
         return Propagation(x, Phi, Q)
@@ -155,43 +160,46 @@ def propagate(
     Phi[0:3, 0:3] = R[-1].T @ x0.R
     Phi[6:9, 0:3] = -skew(v[-1] - x0.v - GRAVITY * T) @ x0.R
     Phi[3:6, 0:3] = -skew(p[-1] - x0.p - x0.v * T - 0.5 * GRAVITY * T * T) @ x0.R
+    dt3 = dt[:, None, None]
     Phi[3:6, 6:9] = T * I3
 
     # -- bias columns --------------------------------------------------------------------------------------------
     Jr, Jrh = Jboth[:n], Jboth[n:]
     C = np.zeros((n + 1, 3, 3))
-    C[1:] = np.cumsum(R[1:] @ Jr * dt[:, None, None], axis=0)
+    C[1:] = np.cumsum(R[1:] @ Jr * dt3, axis=0)
     A = -np.swapaxes(R, 1, 2) @ C  # d dtheta_k / d bg (body frame of R_k)
     Amid = np.swapaxes(dRh, 1, 2) @ A[:-1] - Jrh * (0.5 * dt)[:, None, None]
-    skew_a = skew(a)
-    E = -(Rm @ skew_a @ Amid) * dt[:, None, None]  # d dv_k / d bg
-    Vb = np.zeros((n, 3, 3))
-    Vb[1:] = np.cumsum(E, axis=0)[:-1]
+    Rm_skew_a = Rm @ skew(a)
+    # d dv_k / d bg and d dv_k / d ba side by side: one cumulative sum and one sum for both bias blocks
+    E = np.concatenate([-(Rm_skew_a @ Amid) * dt3, -Rm * dt3], axis=2)
+    V = np.zeros((n, 3, 6))
+    V[1:] = np.cumsum(E, axis=0)[:-1]
     Phi[0:3, 9:12] = A[-1]
-    Phi[6:9, 9:12] = E.sum(axis=0)
-    Phi[3:6, 9:12] = (Vb * dt[:, None, None] + 0.5 * E * dt[:, None, None]).sum(axis=0)
-    Ea = -Rm * dt[:, None, None]  # d dv_k / d ba
-    Va = np.zeros((n, 3, 3))
-    Va[1:] = np.cumsum(Ea, axis=0)[:-1]
-    Phi[6:9, 12:15] = Ea.sum(axis=0)
-    Phi[3:6, 12:15] = (Va * dt[:, None, None] + 0.5 * Ea * dt[:, None, None]).sum(axis=0)
+    Phi[6:9, 9:15] = E.sum(axis=0)
+    Phi[3:6, 9:15] = (V * dt3 + 0.5 * E * dt3).sum(axis=0)
 
     # -- white noise: effect of a measurement perturbation in sub-interval k on the end state ---------------
     rem = T - tau[1:]  # time from the end of sub-interval k to the interval end
     Rk1 = R[1:]
     Ftt = R[-1].T @ Rk1  # (n, 3, 3) R_1^T R_{k+1}
-    Fvt = -skew(v[-1] - v[1:] - GRAVITY * rem[:, None]) @ Rk1
-    Fpt = -skew(p[-1] - p[1:] - v[1:] * rem[:, None] - 0.5 * GRAVITY * rem[:, None] ** 2) @ Rk1
+    rem1 = rem[:, None]
+    # the velocity and position rows of both, stacked: one skew and one product
+    Fvp = -skew(
+        np.concatenate(
+            [v[-1] - v[1:] - GRAVITY * rem1, p[-1] - p[1:] - v[1:] * rem1 - 0.5 * GRAVITY * rem1**2]
+        )
+    ) @ np.concatenate([Rk1, Rk1])
     # gyro: dtheta_{k+1} = Jr dt dw; dv_{k+1} = -Rm [a]x Jrh dt^2/2 dw; dp_{k+1} = dv_{k+1} dt / 2
-    gth = Jr * dt[:, None, None]
-    gv = -(Rm @ skew_a @ Jrh) * (0.5 * dt * dt)[:, None, None]
+    gth = Jr * dt3
+    gv = -(Rm_skew_a @ Jrh) * (0.5 * dt * dt)[:, None, None]
+    Fg = Fvp @ np.concatenate([gth, gth])
     Gg = np.zeros((n, 9, 3))
     Gg[:, 0:3] = Ftt @ gth
-    Gg[:, 6:9] = Fvt @ gth + gv
-    Gg[:, 3:6] = Fpt @ gth + rem[:, None, None] * gv + 0.5 * dt[:, None, None] * gv
+    Gg[:, 6:9] = Fg[:n] + gv
+    Gg[:, 3:6] = Fg[n:] + rem[:, None, None] * gv + 0.5 * dt3 * gv
     # acc: dv_{k+1} = Rm dt da; dp_{k+1} = Rm dt^2/2 da
     Ga = np.zeros((n, 9, 3))
-    Ga[:, 6:9] = Rm * dt[:, None, None]
+    Ga[:, 6:9] = Rm * dt3
     Ga[:, 3:6] = Rm * (dt * rem + 0.5 * dt * dt)[:, None, None]
     dt_nom = 1.0 / noise.rate_hz
     deff = np.minimum(dt, dt_nom)

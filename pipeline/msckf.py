@@ -26,8 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.linalg import solve_triangular
-from scipy.linalg.lapack import dpstrf
+from scipy.linalg.lapack import dpstrf, dtrtrs
 
 from pipeline.core.errors import InputError
 
@@ -196,22 +195,26 @@ def triangulate(
     As[~ok] = I3
     pf = np.linalg.solve(As, rhs[..., None])[..., 0]
     Rcw = np.swapaxes(Rw, -1, -2)
+    Rcw_xy, Rcw_z = Rcw[..., :2, :], Rcw[..., 2:3, :]
+    w_r, w_z = wv[..., 0], wv[..., 0, 0]
     eye_eps = 1e-9 * I3
     for _ in range(iterations):
         pc = np.einsum("fmij,fmj->fmi", Rcw, pf[:, None, :] - pw)
         z = pc[..., 2]
         zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
         nrm = pc[..., :2] / zs[..., None]
-        r = (xy - nrm) * wv[..., 0]
+        r = (xy - nrm) * w_r
         # d normalised / d pf = ([[1, 0, -x], [0, 1, -y]] / z) R_cw, written out row by row
-        J = (Rcw[..., :2, :] - nrm[..., None] * Rcw[..., 2:3, :]) * (wv[..., 0, 0] / zs)[..., None, None]
+        J = (Rcw_xy - nrm[..., None] * Rcw_z) * (w_z / zs)[..., None, None]
         J2 = J.reshape(F, 2 * M, 3)
-        Hn = np.swapaxes(J2, 1, 2) @ J2
+        J2t = np.swapaxes(J2, 1, 2)
+        Hn = J2t @ J2
         Hn += (1e-9 * np.trace(Hn, axis1=1, axis2=2))[:, None, None] * I3 + eye_eps
-        g = (np.swapaxes(J2, 1, 2) @ r.reshape(F, 2 * M, 1))[..., 0]
+        g = (J2t @ r.reshape(F, 2 * M, 1))[..., 0]
         bad = ~(ok & np.isfinite(Hn).all(axis=(1, 2)) & np.isfinite(g).all(axis=1))
-        Hn[bad] = I3
-        g[bad] = 0.0
+        if bad.any():
+            Hn[bad] = I3
+            g[bad] = 0.0
         try:
             step = np.linalg.solve(Hn, g[..., None])[..., 0]
         except np.linalg.LinAlgError:
@@ -241,7 +244,15 @@ def compress_normal(H: np.ndarray, r: np.ndarray, rel_tol: float = 1e-12) -> tup
     U = np.triu(U[:rank])
     Hc = np.empty_like(U)
     Hc[:, piv] = U
-    rc = solve_triangular(U[:, :rank], b[piv[:rank]], trans="T", lower=False, check_finite=False)
+    # U[:, :rank]^T rc = b[piv]: the LAPACK call scipy's ``solve_triangular(..., trans="T")`` makes, without its
+    # ~30 us of wrappers (a C-ordered matrix goes in transposed, as scipy passes it: the same numbers)
+    Ur = U[:, :rank]
+    if Ur.flags.f_contiguous:
+        rc, info = dtrtrs(Ur, b[piv[:rank]], lower=0, trans=1)
+    else:
+        rc, info = dtrtrs(Ur.T, b[piv[:rank]], lower=1, trans=0)
+    if info != 0:
+        raise FloatingPointError(f"dtrtrs failed (info {info})")
     return Hc, rc
 
 
@@ -309,11 +320,17 @@ def nullspace_project(
     m, q = two_m // 2, two_m - 3
     Qm = np.linalg.qr(H_f, mode="complete")[0]
     Nt = np.swapaxes(Qm[:, :, 3:], 1, 2)  # (K, q, 2m)
-    blocks = np.einsum("kqmi,kmij->kmqj", Nt.reshape(K, q, m, 2), H_pose)  # (K, m, q, 6)
+    N4 = Nt.reshape(K, q, m, 2)
+    # (K, q, m, 6): the projected 2x6 block of each observation, its two products written out in the layout of
+    # Ho (the numbers of einsum "kqmi,kmij->kqmj", at half its cost)
+    blocks = N4[..., 0, None] * H_pose[:, None, :, 0, :] + N4[..., 1, None] * H_pose[:, None, :, 1, :]
+    if m == n_clones and (valid is None or valid.all()) and (C == np.arange(m)).all():
+        # every feature seen in every clone, in clone order (the usual case at a full window): Ho is the blocks
+        return blocks.reshape(K, q, 6 * n_clones), (Nt @ r[..., None])[..., 0]
     cols = C if valid is None else np.where(valid, C, n_clones)  # ignored slots go to a dropped column
-    Ho = np.zeros((K, n_clones + 1, q, 6))
-    Ho[np.arange(K)[:, None], cols] = blocks
-    Ho = Ho[:, :n_clones].transpose(0, 2, 1, 3).reshape(K, q, 6 * n_clones)
+    Ho = np.zeros((K, q, n_clones + 1, 6))
+    Ho[np.arange(K)[:, None], :, cols] = np.swapaxes(blocks, 1, 2)
+    Ho = Ho[:, :, :n_clones].reshape(K, q, 6 * n_clones)
     return Ho, (Nt @ r[..., None])[..., 0]
 
 
@@ -515,8 +532,7 @@ class MsckfEstimator:
                 dt, w, a = imu_intervals(imu_t, gyro, acc, self.t_ns, t1)
                 prop = propagate(x, dt, w, a, self.noise, self.state.fej("imu"))
             self.state.propagate("imu", prop.Phi, prop.Q)
-            self.state.set_value("imu", prop.state)
-            self.state.set_fej("imu", prop.state)
+            self.state.set_propagated("imu", prop.state)
             self.t_ns = t1
 
     def _record(self) -> None:
@@ -655,10 +671,11 @@ class MsckfEstimator:
         valid = np.arange(M)[None, :] < counts[:, None]
         O = np.where(valid, starts[:, None] + np.arange(M)[None, :], starts[:, None])
         orow = rows[O]
-        clone_t = np.asarray(self.clones, np.int64)
+        clones = self.state.clones
+        clone_t = np.array([t for t, _ in clones], np.int64)
         nc = len(clone_t)
         C = np.searchsorted(clone_t, db.t[orow])  # (F, M) clone index
-        names = [_clone_name(t) for t in self.clones]
+        names = [n for _, n in clones]
         cur = [self.state.value(n) for n in names]
         Rc = np.stack([c.R for c in cur])
         pc = np.stack([c.p for c in cur])
@@ -698,7 +715,7 @@ class MsckfEstimator:
         k = len(r)
         Hp = (H_pose * w[:, :, None]).reshape(nf, M, 2, 6)[good]
         Ho, ro = nullspace_project(Hf, Hp, C[good], nc, r, valid[good])
-        Sidx = np.concatenate([np.arange(self.state.slice(n).start, self.state.slice(n).stop) for n in names])
+        Sidx = self.state.index(names)
         Pcc = self.state.P[Sidx][:, Sidx]  # rows first: a row gather is a copy of rows
         HoP = (Ho.reshape(-1, 6 * nc) @ Pcc).reshape(Ho.shape)  # one GEMM instead of k small ones
         S = HoP @ np.swapaxes(Ho, 1, 2) + np.eye(2 * M - 3)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
+import operator
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -157,6 +158,8 @@ class State:
         self._nav: str | None = None
         # Schmidt (considered) variables: zero gain in every update, cross-covariances tracked
         self.considered: set[str] = set()
+        self._pose_stack: tuple | None = None  # the last `_boxplus_poses` result (values, R, p)
+        self._plan: tuple | None = None  # `_box_plan`
 
     # -- the covariance ------------------------------------------------------------------------------------
     @property
@@ -202,7 +205,8 @@ class State:
         names = list(names)
         if not names:
             return np.zeros(0, int)
-        return np.concatenate([np.arange(self._slices[n].start, self._slices[n].stop) for n in names])
+        sls = [self._slices[n] for n in names]
+        return _ranges(np.array([sl.start for sl in sls]), np.array([sl.stop - sl.start for sl in sls]))
 
     def dim(self, name: str) -> int:
         return self._values[name].dim
@@ -217,6 +221,12 @@ class State:
     def fej(self, name: str) -> Value:
         """Linearisation point: the first estimate when FEJ is on, else the current estimate."""
         return self._fej[name] if self.use_fej else self._values[name]
+
+    def set_propagated(self, name: str, value: Value) -> None:
+        """A propagated estimate, which is also the variable's new first estimate: one object for both (values are
+        replaced, never changed in place), no copy."""
+        self._values[name] = value
+        self._fej[name] = value
 
     def set_fej(self, name: str, value: Value) -> None:
         self._fej[name] = dataclasses.replace(value)  # __post_init__ copies the arrays
@@ -296,7 +306,7 @@ class State:
             P[:n_old, sl] = cross.T
         P[sl, sl] = 0.5 * (P_new + P_new.T)
         self._names.append(name)
-        self._clones = None
+        self._clones = self._plan = None
         self._values[name] = value
         self._fej[name] = dataclasses.replace(value)  # __post_init__ copies the arrays
         self._slices[name] = sl
@@ -402,7 +412,7 @@ class State:
             self._n = last.start
         self.considered.discard(name)
         self._names.remove(name)
-        self._clones = None
+        self._clones = self._plan = None
         del self._values[name]
         del self._fej[name]
         del self._info[name]
@@ -428,35 +438,71 @@ class State:
             start += d
         self._n = n
         self._free = []
+        self._plan = None
 
     def boxplus(self, dx: np.ndarray, names: Iterable[str] | None = None) -> None:
         considered = self.considered
         poses: list[tuple[str, int]] = []
-        for n in names if names is not None else self._names:
-            if n in considered:  # Schmidt (considered) variables get exactly zero corrections
-                continue
-            sl = self._slices[n]
-            value = self._values[n]
-            if type(value) is Pose:  # the clones: all at once below
-                poses.append((n, sl.start))
-            elif dx[sl].any():
-                self._values[n] = value.boxplus(dx[sl])
+        if names is None:  # every variable: which ones have a nonzero correction, in one array operation
+            plan, bounds = self._box_plan()
+            nonzero = np.logical_or.reduceat(dx != 0, bounds)[::2] if len(bounds) else ()
+            for (n, sl, is_pose), moved in zip(plan, nonzero, strict=True):
+                if n in considered:  # Schmidt (considered) variables get exactly zero corrections
+                    continue
+                if is_pose:  # the clones: all at once below
+                    poses.append((n, sl.start))
+                elif moved:
+                    self._values[n] = self._values[n].boxplus(dx[sl])
+        else:
+            for n in names:
+                if n in considered:
+                    continue
+                sl = self._slices[n]
+                value = self._values[n]
+                if type(value) is Pose:
+                    poses.append((n, sl.start))
+                elif dx[sl].any():
+                    self._values[n] = value.boxplus(dx[sl])
         if poses:
             self._boxplus_poses(dx, poses)
 
+    def _box_plan(self) -> tuple[list[tuple[str, slice, bool]], np.ndarray]:
+        """(name, slot, is a Pose) of the variables in slot order, and the bounds [start_0, stop_0, start_1, ...]
+        of their slots without the last stop (the end of P), for `np.logical_or.reduceat`; kept until a variable
+        is added, removed or moved."""
+        cached = getattr(self, "_plan", None)
+        if cached is None:
+            names = sorted(self._names, key=lambda n: self._slices[n].start)
+            plan = [(n, self._slices[n], type(self._values[n]) is Pose) for n in names]
+            bounds = np.array([b for _, sl, _ in plan for b in (sl.start, sl.stop)][:-1], np.intp)
+            cached = self._plan = (plan, bounds)
+        return cached
+
     def _boxplus_poses(self, dx: np.ndarray, poses: list[tuple[str, int]]) -> None:
         """`Pose.boxplus` of many poses in one pass, the same numbers (`exp_so3_each`, one stacked product);
-        poses with a zero correction keep their value."""
+        poses with a zero correction keep their value. The stacked result is kept: when the next update moves the
+        same poses, still these values (values are replaced, never changed in place), it starts from it instead
+        of stacking them again (the clone window between two updates)."""
         rows = np.array([start for _, start in poses])[:, None] + np.arange(6)
         d = dx[rows]
         moved = np.flatnonzero(d.any(axis=1))
         if not len(moved):
             return
-        d = d[moved]
-        R = np.stack([self._values[poses[i][0]].R for i in moved]) @ exp_so3_each(d[:, 0:3])
-        p = np.stack([self._values[poses[i][0]].p for i in moved]) + d[:, 3:6]
-        for k, i in enumerate(moved.tolist()):
-            self._values[poses[i][0]] = _fresh(Pose, R=R[k], p=p[k])
+        if len(moved) < len(poses):
+            d = d[moved]
+            poses = [poses[i] for i in moved.tolist()]
+        names = [n for n, _ in poses]
+        vals = [self._values[n] for n in names]
+        last = getattr(self, "_pose_stack", None)
+        if last is not None and len(last[0]) == len(vals) and all(map(operator.is_, last[0], vals)):
+            R0, p0 = last[1], last[2]
+        else:
+            R0, p0 = np.stack([v.R for v in vals]), np.stack([v.p for v in vals])
+        R = R0 @ exp_so3_each(d[:, 0:3])
+        p = p0 + d[:, 3:6]
+        new = [_fresh(Pose, R=R[k], p=p[k]) for k in range(len(names))]
+        self._values.update(zip(names, new, strict=True))
+        self._pose_stack = (new, R, p)
 
 
 def add_probe(state: State, t_ns: int) -> str:
@@ -507,6 +553,12 @@ def _stacked_jacobian(
         idx = np.concatenate([np.arange(sl.start, sl.stop) for sl, _ in blocks])
     Hd = blocks[0][1] if len(blocks) == 1 else np.concatenate([Hb for _, Hb in blocks], axis=1)
     return idx, Hd
+
+
+def _ranges(start: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """``concatenate([arange(s, s + n) for s, n in zip(start, length)])`` in three array operations."""
+    total = int(length.sum())
+    return np.repeat(start - (np.cumsum(length) - length), length) + np.arange(total)
 
 
 @dataclass
@@ -649,10 +701,12 @@ def ekf_update(
     # columns e.
     mask = np.ones(n, bool)
     mask[state.index(schmidt)] = False
-    e = np.flatnonzero(mask)
-    W_e = W[:, e]
+    e: np.ndarray | slice = np.flatnonzero(mask)
+    if len(e) and e[-1] - e[0] + 1 == len(e):  # one block of rows: slices instead of gathers and scatters
+        e = slice(int(e[0]), int(e[-1]) + 1)
+    W_e = np.asfortranarray(W[:, e])  # the layout of a column gather (BLAS' rounding depends on it)
     P = state.P
-    F = P[e, :]
+    F = P[e, :].copy() if isinstance(e, slice) else P[e, :]
     F += P[:, e].T
     F *= 0.5
     F -= W_e.T @ W

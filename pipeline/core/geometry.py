@@ -20,6 +20,9 @@ I3.flags.writeable = False
 def skew(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrix(es) of vector(s) ``v`` with shape (3,) or (N, 3)."""
     v = np.asarray(v, dtype=float)
+    if v.shape == (3,):  # one vector (the propagation's Phi blocks): one array from Python floats
+        x, y, z = v.tolist()
+        return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     out = np.zeros(v.shape[:-1] + (3, 3))
     out[..., 0, 1] = -v[..., 2]
     out[..., 0, 2] = v[..., 1]
@@ -65,25 +68,31 @@ def exp_so3_each(w: np.ndarray) -> np.ndarray:
     vector), bit for bit: the same expressions in the same order, elementwise over the rows, and ``math``'s sine
     and cosine (numpy's vectorised ones may differ in the last bit). For updating many poses at once."""
     x, y, z = w[:, 0], w[:, 1], w[:, 2]
-    t2 = x * x + y * y + z * z
-    a = np.empty(len(t2))
-    b = np.empty(len(t2))
-    for i, s2 in enumerate(t2.tolist()):
+    xx, yy, zz = x * x, y * y, z * z
+    t2 = xx + yy + zz
+    a_, b_ = [], []  # Python lists, one array each at the end (item assignment into numpy costs more)
+    for s2 in t2.tolist():
         if s2 < 1e-14:
-            a[i], b[i] = 1.0 - s2 / 6.0, 0.5 - s2 / 24.0
+            a_.append(1.0 - s2 / 6.0)
+            b_.append(0.5 - s2 / 24.0)
         else:
             t = math.sqrt(s2)
-            a[i], b[i] = math.sin(t) / t, (1.0 - math.cos(t)) / s2
+            a_.append(math.sin(t) / t)
+            b_.append((1.0 - math.cos(t)) / s2)
+    a, b = np.array(a_), np.array(b_)
+    bx, by = b * x, b * y
+    bxy, bxz, byz = bx * y, bx * z, by * z  # b x y etc., evaluated left to right as in `_exp_so3_one`
+    ax, ay, az = a * x, a * y, a * z
     out = np.empty((len(t2), 3, 3))
-    out[:, 0, 0] = 1.0 - b * (y * y + z * z)
-    out[:, 0, 1] = b * x * y - a * z
-    out[:, 0, 2] = b * x * z + a * y
-    out[:, 1, 0] = b * x * y + a * z
-    out[:, 1, 1] = 1.0 - b * (x * x + z * z)
-    out[:, 1, 2] = b * y * z - a * x
-    out[:, 2, 0] = b * x * z - a * y
-    out[:, 2, 1] = b * y * z + a * x
-    out[:, 2, 2] = 1.0 - b * (x * x + y * y)
+    out[:, 0, 0] = 1.0 - b * (yy + zz)
+    out[:, 0, 1] = bxy - az
+    out[:, 0, 2] = bxz + ay
+    out[:, 1, 0] = bxy + az
+    out[:, 1, 1] = 1.0 - b * (xx + zz)
+    out[:, 1, 2] = byz - ax
+    out[:, 2, 0] = bxz - ay
+    out[:, 2, 1] = byz + ax
+    out[:, 2, 2] = 1.0 - b * (xx + yy)
     return out
 
 
@@ -119,22 +128,25 @@ def exp_jr_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     the sine and cosine computed once (the IMU propagation needs both for every sample); the same numbers as the
     two functions."""
     w = np.asarray(w, dtype=float)
-    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    theta = np.sqrt(np.add.reduce(w * w, axis=-1))[..., None, None]  # np.linalg.norm's own expression
     K = skew(w)
     KK = K @ K
-    t2 = theta**2
-    small_e, small_j = theta < 1e-7, theta < 1e-5
+    small_e, small_j = theta < 1e-7, theta < 1e-5  # small_e implies small_j
     # one argument for the sine and cosine: theta wherever either function uses its closed form (theta >= 1e-7)
-    th = np.where(small_e, 1.0, theta)
+    th = np.where(small_e, 1.0, theta) if small_j.any() else theta
     sin, cos = np.sin(th), np.cos(th)
-    one_m_cos = 1.0 - cos
+    one_m_cos_th2 = (1.0 - cos) / th**2
     eye = I3
-    a = np.where(small_e, 1.0 - t2 / 6.0, sin / th)
-    b = np.where(small_e, 0.5 - t2 / 24.0, one_m_cos / th**2)
-    R = eye + a * K + b * KK
-    a = np.where(small_j, 0.5 - t2 / 24.0, one_m_cos / th**2)
-    b = np.where(small_j, 1.0 / 6.0 - t2 / 120.0, (th - sin) / th**3)
-    return R, eye - a * K + b * KK
+    if small_j.any():  # the series near zero where the closed forms lose digits
+        t2 = theta**2
+        a = np.where(small_e, 1.0 - t2 / 6.0, sin / th)
+        b = np.where(small_e, 0.5 - t2 / 24.0, one_m_cos_th2)
+        R = eye + a * K + b * KK
+        a = np.where(small_j, 0.5 - t2 / 24.0, one_m_cos_th2)
+        b = np.where(small_j, 1.0 / 6.0 - t2 / 120.0, (th - sin) / th**3)
+        return R, eye - a * K + b * KK
+    R = eye + (sin / th) * K + one_m_cos_th2 * KK
+    return R, eye - one_m_cos_th2 * K + ((th - sin) / th**3) * KK
 
 
 def jr_inv_so3(w: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import skew
+from .geometry import I3, skew
 
 
 @dataclass
@@ -30,36 +30,50 @@ def _broadcast(R: np.ndarray, p: np.ndarray, p_T: np.ndarray, x_U: np.ndarray):
     p_T = np.asarray(p_T, float).reshape(-1, 3)
     x_U = np.asarray(x_U, float).reshape(-1, 5)
     n = max(R.shape[0], p.shape[0], p_T.shape[0], x_U.shape[0])  # one pose, many ranges: broadcast the pose
-    p_T = np.broadcast_to(p_T, (n, 3))
-    x_U = np.broadcast_to(x_U, (n, 5))
-    return np.broadcast_to(R, (n, 3, 3)), np.broadcast_to(p, (n, 3)), p_T, x_U
+    # (broadcast_to only where a leading size differs: it costs a few us per call, and this runs per range)
+    return (
+        R if R.shape[0] == n else np.broadcast_to(R, (n, 3, 3)),
+        p if p.shape[0] == n else np.broadcast_to(p, (n, 3)),
+        p_T if p_T.shape[0] == n else np.broadcast_to(p_T, (n, 3)),
+        x_U if x_U.shape[0] == n else np.broadcast_to(x_U, (n, 5)),
+    )
 
 
 def tag_positions(R: np.ndarray, p: np.ndarray, p_T: np.ndarray) -> np.ndarray:
     """World position of the tag antenna, p + R p_T, (N,3)."""
     R, p, p_T, _ = _broadcast(R, p, p_T, np.zeros(5))
+    return _tag(R, p, p_T)
+
+
+def _tag(R: np.ndarray, p: np.ndarray, p_T: np.ndarray) -> np.ndarray:
+    """`tag_positions` of arrays broadcast already."""
     return p + np.einsum("nij,nj->ni", R, p_T)
+
+
+def _norm_rows(v: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(v, axis=1)`` of a real (N, 3) array by its own expression, without its wrapper."""
+    return np.sqrt(np.add.reduce(v * v, axis=1))
 
 
 def range_model(R: np.ndarray, p: np.ndarray, p_T: np.ndarray, x_U: np.ndarray) -> np.ndarray:
     """The paper's range model, noise-free: h = beta |p + R p_T - p_a| + gamma for x_U = [p_a, beta, gamma];
     (N,) ranges."""
     R, p, p_T, x_U = _broadcast(R, p, p_T, x_U)
-    rho = np.linalg.norm(tag_positions(R, p, p_T) - x_U[:, :3], axis=1)
+    rho = _norm_rows(_tag(R, p, p_T) - x_U[:, :3])
     return x_U[:, 3] * rho + x_U[:, 4]
 
 
 def jacobians(R: np.ndarray, p: np.ndarray, p_T: np.ndarray, x_U: np.ndarray) -> RangeJacobians:
     """h, H_I = beta u^T [-R [p_T]x, I] and H_U = [-beta u^T, rho, 1] (paper eq. uwb_j, right perturbation)."""
     R, p, p_T, x_U = _broadcast(R, p, p_T, x_U)
-    diff = tag_positions(R, p, p_T) - x_U[:, :3]
-    rho = np.linalg.norm(diff, axis=1)
+    diff = _tag(R, p, p_T) - x_U[:, :3]
+    rho = _norm_rows(diff)
     u = diff / np.maximum(rho, 1e-9)[:, None]
     beta = x_U[:, 3]
     n = rho.shape[0]
     G = np.zeros((n, 3, 6))
     G[:, :, 0:3] = -R @ skew(p_T)
-    G[:, :, 3:6] = np.eye(3)
+    G[:, :, 3:6] = I3
     H_I = beta[:, None] * np.einsum("ni,nij->nj", u, G)
     H_U = np.empty((n, 5))
     H_U[:, :3] = -beta[:, None] * u
