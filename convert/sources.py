@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
+from rosbags.serde import SerdeError
 
 from pipeline.core.errors import InputError
 from pipeline.core.progress import progress
@@ -538,7 +539,7 @@ def _stream_bag(path: Path, writer, routes: dict[str, BagRoute], drops: Drops, l
                         route.handler(writer, conn, bag_t, raw)
                     except Drop as d:
                         drops.add(route.out_topic, str(d), 1, f"{conn.topic} @ bag t={bag_t}")
-                    except (struct.error, ValueError, IndexError, UnicodeDecodeError) as exc:
+                    except (struct.error, ValueError, IndexError, UnicodeDecodeError, SerdeError) as exc:
                         drops.add(
                             route.out_topic,
                             f"undecodable message ({type(exc).__name__})",

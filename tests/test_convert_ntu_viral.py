@@ -115,7 +115,11 @@ def _header(T, t, frame, seq=0):
     )
 
 
-def _write_ntu_bag(bag: Path, data_dir: Path, n_ranges: int = 300, extra_topic: bool = True) -> dict:
+def _write_ntu_bag(
+    bag: Path, data_dir: Path, n_ranges: int = 300, extra_topic: bool = True, damaged: tuple[int, ...] = ()
+) -> dict:
+    """A synthetic NTU-VIRAL bag from eee_01's ranges; the range and Leica messages numbered in ``damaged`` are
+    written cut short (a corrupt message in an intact bag)."""
     from rosbags.rosbag1 import Writer
 
     ts = ros1_typestore()
@@ -176,7 +180,8 @@ def _write_ntu_bag(bag: Path, data_dir: Path, n_ranges: int = 300, extra_topic: 
                 rqst_antenna_offset=Point(x=-0.6, y=0.45, z=0.0),
                 rspd_antenna_offset=Point(x=0.0, y=0.0, z=0.0),
             )
-            w.write(c_r, int(ref.t_ns[k]) + 700_000, ts.serialize_ros1(m, UWB_RANGE_ROS1))
+            raw = ts.serialize_ros1(m, UWB_RANGE_ROS1)
+            w.write(c_r, int(ref.t_ns[k]) + 700_000, raw[:20] if k in damaged else raw)
         V3 = T["geometry_msgs/msg/Vector3"]
         for k, t in enumerate(t_imu):
             m = T["sensor_msgs/msg/Imu"](
@@ -196,7 +201,8 @@ def _write_ntu_bag(bag: Path, data_dir: Path, n_ranges: int = 300, extra_topic: 
                     position=Point(*p_l[k]), orientation=T["geometry_msgs/msg/Quaternion"](x=0, y=0, z=0, w=1)
                 ),
             )
-            w.write(c_l, int(t) + 500_000, ts.serialize_ros1(m, "geometry_msgs/msg/PoseStamped"))
+            raw = ts.serialize_ros1(m, "geometry_msgs/msg/PoseStamped")
+            w.write(c_l, int(t) + 500_000, raw[:30] if k in damaged else raw)
         for k, t in enumerate(t_img):
             for cam, conn in enumerate(c_c):
                 img = synthetic_image(2 * k + cam, 32, 24)
@@ -252,6 +258,19 @@ def test_bag_roundtrip(data_dir, tmp_path):
     assert cal["uwb"]["gamma_prior"]["mean"] == pytest.approx(0.75)
     assert cal["cameras"]["cam0"]["T_imu_cam"][1][3] == pytest.approx(-0.12431302)  # left camera
     assert cal["groundtruth"]["frame"] == "prism"
+
+
+def test_bag_damaged_messages_dropped_and_counted(data_dir, tmp_path):
+    """A range and a Leica message cut short inside an intact bag: each dropped with its reason and counted,
+    the rest converts."""
+    bag = tmp_path / "d.bag"
+    ref = _write_ntu_bag(bag, data_dir, n_ranges=50, extra_topic=False, damaged=(5,))
+    convert_ntu_viral(bag, tmp_path / "d.mcap", antennas=data_dir / "ntu_viral/uwb_antennas.yaml")
+    rec = RecordingReader(tmp_path / "d.mcap")
+    undecodable = {d["topic"]: d["count"] for d in rec.source["dropped"] if "undecodable" in d["reason"]}
+    assert len(undecodable) == 2 and set(undecodable.values()) == {1}
+    assert len(rec.read_ranges()) == 49
+    assert len(rec.read_positions().t_ns) == len(ref["t_l"]) - 1
 
 
 def test_bag_truncated(data_dir, tmp_path):
