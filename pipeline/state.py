@@ -447,12 +447,15 @@ class State:
             plan, bounds = self._box_plan()
             nonzero = np.logical_or.reduceat(dx != 0, bounds)[::2] if len(bounds) else ()
             for (n, sl, is_pose), moved in zip(plan, nonzero, strict=True):
-                if n in considered:  # Schmidt (considered) variables get exactly zero corrections
+                if not moved or n in considered:  # considered (Schmidt) variables: exactly zero corrections
                     continue
                 if is_pose:  # the clones: all at once below
                     poses.append((n, sl.start))
-                elif moved:
+                else:
                     self._values[n] = self._values[n].boxplus(dx[sl])
+            if poses:
+                self._boxplus_poses(dx, poses, moved=True)
+            return
         else:
             for n in names:
                 if n in considered:
@@ -478,19 +481,20 @@ class State:
             cached = self._plan = (plan, bounds)
         return cached
 
-    def _boxplus_poses(self, dx: np.ndarray, poses: list[tuple[str, int]]) -> None:
+    def _boxplus_poses(self, dx: np.ndarray, poses: list[tuple[str, int]], moved: bool = False) -> None:
         """`Pose.boxplus` of many poses in one pass, the same numbers (`exp_so3_each`, one stacked product);
-        poses with a zero correction keep their value. The stacked result is kept: when the next update moves the
-        same poses, still these values (values are replaced, never changed in place), it starts from it instead
-        of stacking them again (the clone window between two updates)."""
-        rows = np.array([start for _, start in poses])[:, None] + np.arange(6)
-        d = dx[rows]
-        moved = np.flatnonzero(d.any(axis=1))
-        if not len(moved):
-            return
-        if len(moved) < len(poses):
-            d = d[moved]
-            poses = [poses[i] for i in moved.tolist()]
+        poses with a zero correction keep their value (``moved``: the caller kept only poses with a nonzero one).
+        The stacked result is kept: when the next update moves the same poses, still these values (values are
+        replaced, never changed in place), it starts from it instead of stacking them again (the clone window
+        between two updates)."""
+        d = dx[np.array([start for _, start in poses])[:, None] + _SIX]
+        if not moved:
+            keep = np.flatnonzero(d.any(axis=1))
+            if not len(keep):
+                return
+            if len(keep) < len(poses):
+                d = d[keep]
+                poses = [poses[i] for i in keep.tolist()]
         names = [n for n, _ in poses]
         vals = [self._values[n] for n in names]
         last = getattr(self, "_pose_stack", None)
@@ -500,9 +504,16 @@ class State:
             R0, p0 = np.stack([v.R for v in vals]), np.stack([v.p for v in vals])
         R = R0 @ exp_so3_each(d[:, 0:3])
         p = p0 + d[:, 3:6]
-        new = [_fresh(Pose, R=R[k], p=p[k]) for k in range(len(names))]
+        new = []
+        for Rk, pk in zip(R, p, strict=True):  # `_fresh` written out: one small object per pose
+            obj = object.__new__(Pose)
+            obj.__dict__ = {"R": Rk, "p": pk}
+            new.append(obj)
         self._values.update(zip(names, new, strict=True))
         self._pose_stack = (new, R, p)
+
+
+_SIX = np.arange(6)
 
 
 def add_probe(state: State, t_ns: int) -> str:
