@@ -160,6 +160,7 @@ class State:
         self.considered: set[str] = set()
         self._pose_stack: tuple | None = None  # the last `_boxplus_poses` result (values, R, p)
         self._plan: tuple | None = None  # `_box_plan`
+        self._rows_cache: tuple | None = None  # `estimated_rows`
 
     # -- the covariance ------------------------------------------------------------------------------------
     @property
@@ -469,6 +470,23 @@ class State:
         if poses:
             self._boxplus_poses(dx, poses)
 
+    def estimated_rows(self, considered: Iterable[str]) -> np.ndarray | slice:
+        """The rows of P of every variable but ``considered`` (a slice when they are one block), kept for the
+        same set until a variable is added, removed or moved (the UWB updates ask for the same set every
+        range)."""
+        key = frozenset(considered)
+        plan = self._box_plan()
+        cached = getattr(self, "_rows_cache", None)
+        if cached is not None and cached[0] is plan and cached[1] == key:
+            return cached[2]
+        mask = np.ones(self._n, bool)
+        mask[self.index(key)] = False
+        e: np.ndarray | slice = np.flatnonzero(mask)
+        if len(e) and e[-1] - e[0] + 1 == len(e):  # one block of rows: slices instead of gathers and scatters
+            e = slice(int(e[0]), int(e[-1]) + 1)
+        self._rows_cache = (plan, key, e)
+        return e
+
     def _box_plan(self) -> tuple[list[tuple[str, slice, bool]], np.ndarray]:
         """(name, slot, is a Pose) of the variables in slot order, and the bounds [start_0, stop_0, start_1, ...]
         of their slots without the last stop (the end of P), for `np.logical_or.reduceat`; kept until a variable
@@ -692,8 +710,7 @@ def ekf_update(
         if wt < 1.0:
             S = S / wt
             cho = cho / np.sqrt(wt)
-    schmidt = list(schmidt)
-    schmidt += [v for v in state.considered if v not in schmidt]
+    schmidt = state.considered.union(schmidt)
     # P+ = P - P H^T S^-1 H P = P - W^T W with W = L^-1 (H P), S = L L^T (the Joseph form's value for this,
     # the optimal gain: K S K^T = K H P), dx = K r = W^T L^-1 r: one triangular solve and one symmetric product
     # (BLAS syrk) instead of the gain and three products with it.
@@ -710,11 +727,7 @@ def ekf_update(
     # as it is. The new rows e, symmetrised (P is symmetric only up to rounding, so both of its halves enter):
     # 0.5 (P_e: + (P_:e)^T) - A, and the block ee of that symmetrised again; one gather and one scatter of the
     # columns e.
-    mask = np.ones(n, bool)
-    mask[state.index(schmidt)] = False
-    e: np.ndarray | slice = np.flatnonzero(mask)
-    if len(e) and e[-1] - e[0] + 1 == len(e):  # one block of rows: slices instead of gathers and scatters
-        e = slice(int(e[0]), int(e[-1]) + 1)
+    e = state.estimated_rows(schmidt)
     W_e = np.asfortranarray(W[:, e])  # the layout of a column gather (BLAS' rounding depends on it)
     P = state.P
     F = P[e, :].copy() if isinstance(e, slice) else P[e, :]
