@@ -686,10 +686,16 @@ def ekf_update(
         if not rows.row_accepted.any():
             return UpdateResult(False, float("nan"), 0, rows.gate, rows.row_nis, rows.row_accepted)
         m, chi2_gate, robust = int(r.shape[0]), None, None
-    try:
-        cho = np.linalg.cholesky(S)
-    except np.linalg.LinAlgError as exc:
-        raise FloatingPointError(f"innovation covariance not positive definite ({m} rows)") from exc
+    # one row: the factor is the square root (what LAPACK's potrf computes), without numpy's wrapper
+    if m == 1:
+        if not S[0, 0] > 0.0:
+            raise FloatingPointError("innovation covariance not positive definite (1 rows)")
+        cho = np.sqrt(S)
+    else:
+        try:
+            cho = np.linalg.cholesky(S)
+        except np.linalg.LinAlgError as exc:
+            raise FloatingPointError(f"innovation covariance not positive definite ({m} rows)") from exc
     y = _lower_solve(cho, r)
     nis = float(y @ y)
     gate = chi2_ppf(chi2_gate, m) if chi2_gate is not None else None
