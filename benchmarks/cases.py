@@ -71,6 +71,9 @@ def _convert_bag(work: Path, quick: bool) -> tuple[float | None, dict]:
         "ours_peak_mb": res["uwbcal"]["peak_rss_mb"],
         "rosbags_convert_s": res["rosbags_convert_sqlite3"]["wall_s"],
         "time_ratio": res["time_ratio_vs_sqlite3"],
+        "ours_cpu_s": res["uwbcal"]["cpu_s"],
+        "rosbags_convert_cpu_s": res["rosbags_convert_sqlite3"]["cpu_s"],
+        "cpu_ratio": res["cpu_ratio_vs_sqlite3"],
     }
 
 
