@@ -644,8 +644,9 @@ class MsckfEstimator:
         if len(ids) == 0:
             self.stats.frames_without_features += 1
         else:
-            _, first = np.unique(ids, return_index=True)  # duplicate ids in one frame: keep the first
-            ids, uv = ids[first], uv[first]
+            if len(ids) > 1 and not (ids[1:] > ids[:-1]).all():  # unsorted or duplicate ids: keep the first
+                _, first = np.unique(ids, return_index=True)
+                ids, uv = ids[first], uv[first]
             self.db.add(t_ns, ids, uv, self.camera.undistort(uv))
         oldest = self.clones[0] if len(self.clones) > self.config.max_clones else None
         rows, drop = self.db.select(
@@ -663,11 +664,16 @@ class MsckfEstimator:
         cfg = self.config
         db = self.db
         rows = rows[np.lexsort((db.t[rows], db.ids[rows]))]
-        uid, fidx, counts = np.unique(db.ids[rows], return_inverse=True, return_counts=True)
-        nf = len(uid)
+        # the ids sorted: the tracks' lengths from where the id changes (np.unique without its sort)
+        sid = db.ids[rows]
+        new_track = np.empty(len(sid), bool)
+        new_track[:1] = True
+        np.not_equal(sid[1:], sid[:-1], out=new_track[1:])
+        starts = np.flatnonzero(new_track)
+        counts = np.diff(starts, append=len(sid))
+        nf = len(starts)
         M = int(counts.max())
         # padded (feature, observation) layout: slot j < counts[f] holds an observation, the rest are masked
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         valid = np.arange(M)[None, :] < counts[:, None]
         O = np.where(valid, starts[:, None] + np.arange(M)[None, :], starts[:, None])
         orow = rows[O]

@@ -160,6 +160,7 @@ class State:
         self.considered: set[str] = set()
         self._pose_stack: tuple | None = None  # the last `_boxplus_poses` result (values, R, p)
         self._plan: tuple | None = None  # `_box_plan`
+        self._rows_cache: tuple | None = None  # `estimated_rows`
 
     # -- the covariance ------------------------------------------------------------------------------------
     @property
@@ -447,12 +448,15 @@ class State:
             plan, bounds = self._box_plan()
             nonzero = np.logical_or.reduceat(dx != 0, bounds)[::2] if len(bounds) else ()
             for (n, sl, is_pose), moved in zip(plan, nonzero, strict=True):
-                if n in considered:  # Schmidt (considered) variables get exactly zero corrections
+                if not moved or n in considered:  # considered (Schmidt) variables: exactly zero corrections
                     continue
                 if is_pose:  # the clones: all at once below
                     poses.append((n, sl.start))
-                elif moved:
+                else:
                     self._values[n] = self._values[n].boxplus(dx[sl])
+            if poses:
+                self._boxplus_poses(dx, poses, moved=True)
+            return
         else:
             for n in names:
                 if n in considered:
@@ -466,6 +470,23 @@ class State:
         if poses:
             self._boxplus_poses(dx, poses)
 
+    def estimated_rows(self, considered: Iterable[str]) -> np.ndarray | slice:
+        """The rows of P of every variable but ``considered`` (a slice when they are one block), kept for the
+        same set until a variable is added, removed or moved (the UWB updates ask for the same set every
+        range)."""
+        key = frozenset(considered)
+        plan = self._box_plan()
+        cached = getattr(self, "_rows_cache", None)
+        if cached is not None and cached[0] is plan and cached[1] == key:
+            return cached[2]
+        mask = np.ones(self._n, bool)
+        mask[self.index(key)] = False
+        e: np.ndarray | slice = np.flatnonzero(mask)
+        if len(e) and e[-1] - e[0] + 1 == len(e):  # one block of rows: slices instead of gathers and scatters
+            e = slice(int(e[0]), int(e[-1]) + 1)
+        self._rows_cache = (plan, key, e)
+        return e
+
     def _box_plan(self) -> tuple[list[tuple[str, slice, bool]], np.ndarray]:
         """(name, slot, is a Pose) of the variables in slot order, and the bounds [start_0, stop_0, start_1, ...]
         of their slots without the last stop (the end of P), for `np.logical_or.reduceat`; kept until a variable
@@ -478,19 +499,20 @@ class State:
             cached = self._plan = (plan, bounds)
         return cached
 
-    def _boxplus_poses(self, dx: np.ndarray, poses: list[tuple[str, int]]) -> None:
+    def _boxplus_poses(self, dx: np.ndarray, poses: list[tuple[str, int]], moved: bool = False) -> None:
         """`Pose.boxplus` of many poses in one pass, the same numbers (`exp_so3_each`, one stacked product);
-        poses with a zero correction keep their value. The stacked result is kept: when the next update moves the
-        same poses, still these values (values are replaced, never changed in place), it starts from it instead
-        of stacking them again (the clone window between two updates)."""
-        rows = np.array([start for _, start in poses])[:, None] + np.arange(6)
-        d = dx[rows]
-        moved = np.flatnonzero(d.any(axis=1))
-        if not len(moved):
-            return
-        if len(moved) < len(poses):
-            d = d[moved]
-            poses = [poses[i] for i in moved.tolist()]
+        poses with a zero correction keep their value (``moved``: the caller kept only poses with a nonzero one).
+        The stacked result is kept: when the next update moves the same poses, still these values (values are
+        replaced, never changed in place), it starts from it instead of stacking them again (the clone window
+        between two updates)."""
+        d = dx[np.array([start for _, start in poses])[:, None] + _SIX]
+        if not moved:
+            keep = np.flatnonzero(d.any(axis=1))
+            if not len(keep):
+                return
+            if len(keep) < len(poses):
+                d = d[keep]
+                poses = [poses[i] for i in keep.tolist()]
         names = [n for n, _ in poses]
         vals = [self._values[n] for n in names]
         last = getattr(self, "_pose_stack", None)
@@ -500,9 +522,16 @@ class State:
             R0, p0 = np.stack([v.R for v in vals]), np.stack([v.p for v in vals])
         R = R0 @ exp_so3_each(d[:, 0:3])
         p = p0 + d[:, 3:6]
-        new = [_fresh(Pose, R=R[k], p=p[k]) for k in range(len(names))]
+        new = []
+        for Rk, pk in zip(R, p, strict=True):  # `_fresh` written out: one small object per pose
+            obj = object.__new__(Pose)
+            obj.__dict__ = {"R": Rk, "p": pk}
+            new.append(obj)
         self._values.update(zip(names, new, strict=True))
         self._pose_stack = (new, R, p)
+
+
+_SIX = np.arange(6)
 
 
 def add_probe(state: State, t_ns: int) -> str:
@@ -657,10 +686,16 @@ def ekf_update(
         if not rows.row_accepted.any():
             return UpdateResult(False, float("nan"), 0, rows.gate, rows.row_nis, rows.row_accepted)
         m, chi2_gate, robust = int(r.shape[0]), None, None
-    try:
-        cho = np.linalg.cholesky(S)
-    except np.linalg.LinAlgError as exc:
-        raise FloatingPointError(f"innovation covariance not positive definite ({m} rows)") from exc
+    # one row: the factor is the square root (what LAPACK's potrf computes), without numpy's wrapper
+    if m == 1:
+        if not S[0, 0] > 0.0:
+            raise FloatingPointError("innovation covariance not positive definite (1 rows)")
+        cho = np.sqrt(S)
+    else:
+        try:
+            cho = np.linalg.cholesky(S)
+        except np.linalg.LinAlgError as exc:
+            raise FloatingPointError(f"innovation covariance not positive definite ({m} rows)") from exc
     y = _lower_solve(cho, r)
     nis = float(y @ y)
     gate = chi2_ppf(chi2_gate, m) if chi2_gate is not None else None
@@ -681,8 +716,7 @@ def ekf_update(
         if wt < 1.0:
             S = S / wt
             cho = cho / np.sqrt(wt)
-    schmidt = list(schmidt)
-    schmidt += [v for v in state.considered if v not in schmidt]
+    schmidt = state.considered.union(schmidt)
     # P+ = P - P H^T S^-1 H P = P - W^T W with W = L^-1 (H P), S = L L^T (the Joseph form's value for this,
     # the optimal gain: K S K^T = K H P), dx = K r = W^T L^-1 r: one triangular solve and one symmetric product
     # (BLAS syrk) instead of the gain and three products with it.
@@ -699,11 +733,7 @@ def ekf_update(
     # as it is. The new rows e, symmetrised (P is symmetric only up to rounding, so both of its halves enter):
     # 0.5 (P_e: + (P_:e)^T) - A, and the block ee of that symmetrised again; one gather and one scatter of the
     # columns e.
-    mask = np.ones(n, bool)
-    mask[state.index(schmidt)] = False
-    e: np.ndarray | slice = np.flatnonzero(mask)
-    if len(e) and e[-1] - e[0] + 1 == len(e):  # one block of rows: slices instead of gathers and scatters
-        e = slice(int(e[0]), int(e[-1]) + 1)
+    e = state.estimated_rows(schmidt)
     W_e = np.asfortranarray(W[:, e])  # the layout of a column gather (BLAS' rounding depends on it)
     P = state.P
     F = P[e, :].copy() if isinstance(e, slice) else P[e, :]
