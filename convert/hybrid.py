@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.errors import InputError
+from pipeline.core.series import sliding_mean
 
 from .recording import (
     META_CALIBRATION,
@@ -96,15 +97,10 @@ def imu_agreement(traj: SplineTrajectory, imu: ImuSim, gravity: float, window_s:
     k = max(int(round(window_s / dt)), 1)
     if len(imu.t_ns) < k:
         return {}
-
-    def means(x: np.ndarray) -> np.ndarray:
-        c = np.vstack([np.zeros((1, 3)), np.cumsum(x, axis=0)])
-        return (c[k:] - c[:-k]) / k
-
-    fm, fp = means(imu.acc - imu.ba), means(f_pred)
+    fm, fp = sliding_mean(imu.acc - imu.ba, k), sliding_mean(f_pred, k)
     cos = np.sum(fm * fp, axis=1) / (np.linalg.norm(fm, axis=1) * np.linalg.norm(fp, axis=1))
     tilt = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    gyro = np.linalg.norm(means(imu.gyro - imu.bg - s.w), axis=1)
+    gyro = np.linalg.norm(sliding_mean(imu.gyro - imu.bg - s.w, k), axis=1)
     return {
         "window_s": window_s,
         "specific_force_angle_deg_median": float(np.median(tilt)),

@@ -27,6 +27,7 @@ import numpy as np
 
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import InputError
+from pipeline.core.series import sliding_mean
 
 APP_ID = "uwbcal"
 RUN_KINDS = ("simulation", "euroc", "ntu-viral")
@@ -157,8 +158,7 @@ def moving_nis(
     t, v = t[o], v[o]
     if len(v) < window:
         return t[:0], v[:0], float("nan"), float("nan")
-    c = np.concatenate([[0.0], np.cumsum(v)])
-    avg = (c[window:] - c[:-window]) / window
+    avg = sliding_mean(v, window)
     n = window * dof
     return (
         t[window - 1 :],

@@ -316,3 +316,14 @@ def test_moving_nis_band_holds_95_percent_of_consistent_averages() -> None:
     inside = np.mean((avg >= lo) & (avg <= hi))
     assert 0.93 < inside < 0.97
     assert 0.5 < np.mean(4 * avg > hi)  # a 4x over-confident filter leaves the band
+
+
+def test_sliding_mean_is_the_mean_of_each_window() -> None:
+    from pipeline.core.series import sliding_mean
+
+    x = np.random.default_rng(0).normal(size=(40, 3))
+    got = sliding_mean(x, 7)
+    assert got.shape == (34, 3)
+    np.testing.assert_allclose(got, [x[i : i + 7].mean(axis=0) for i in range(34)], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sliding_mean(x[:, 0], 40), [x[:, 0].mean()], atol=1e-12)
+    assert sliding_mean(x, 41).shape == (0, 3)
