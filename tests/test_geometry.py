@@ -91,3 +91,11 @@ def test_exp_so3_each_is_the_one_vector_path_bit_for_bit():
     rng = np.random.default_rng(3)
     w = np.vstack([rng.normal(size=(50, 3)) * 10.0 ** rng.uniform(-9, 0.5, (50, 1)), np.zeros((1, 3))])
     np.testing.assert_array_equal(exp_so3_each(w), np.stack([exp_so3(v) for v in w]))
+
+
+def test_norms_are_numpys_norms_bit_for_bit():
+    from pipeline.core.geometry import norms
+
+    x = np.random.default_rng(0).normal(size=(200, 3)) * np.logspace(-8, 3, 200)[:, None]
+    assert np.array_equal(norms(x), np.linalg.norm(x, axis=-1))
+    assert np.array_equal(norms(x[0]), np.linalg.norm(x[0]))

@@ -17,6 +17,11 @@ I3 = np.eye(3)  # read-only: the hot paths add it, never change it (np.eye costs
 I3.flags.writeable = False
 
 
+def norms(v: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(v, axis=-1)`` of a real array by its own expression, without its wrapper (hot paths)."""
+    return np.sqrt(np.add.reduce(v * v, axis=-1))
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrix(es) of vector(s) ``v`` with shape (3,) or (N, 3)."""
     v = np.asarray(v, dtype=float)
@@ -128,7 +133,7 @@ def exp_jr_so3(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     the sine and cosine computed once (the IMU propagation needs both for every sample); the same numbers as the
     two functions."""
     w = np.asarray(w, dtype=float)
-    theta = np.sqrt(np.add.reduce(w * w, axis=-1))[..., None, None]  # np.linalg.norm's own expression
+    theta = norms(w)[..., None, None]
     K = skew(w)
     KK = K @ K
     small_e, small_j = theta < 1e-7, theta < 1e-5  # small_e implies small_j

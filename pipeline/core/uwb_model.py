@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import I3, skew
+from .geometry import I3, norms, skew
 
 
 @dataclass
@@ -50,16 +50,11 @@ def _tag(R: np.ndarray, p: np.ndarray, p_T: np.ndarray) -> np.ndarray:
     return p + np.einsum("nij,nj->ni", R, p_T)
 
 
-def _norm_rows(v: np.ndarray) -> np.ndarray:
-    """``np.linalg.norm(v, axis=1)`` of a real (N, 3) array by its own expression, without its wrapper."""
-    return np.sqrt(np.add.reduce(v * v, axis=1))
-
-
 def range_model(R: np.ndarray, p: np.ndarray, p_T: np.ndarray, x_U: np.ndarray) -> np.ndarray:
     """The paper's range model, noise-free: h = beta |p + R p_T - p_a| + gamma for x_U = [p_a, beta, gamma];
     (N,) ranges."""
     R, p, p_T, x_U = _broadcast(R, p, p_T, x_U)
-    rho = _norm_rows(_tag(R, p, p_T) - x_U[:, :3])
+    rho = norms(_tag(R, p, p_T) - x_U[:, :3])
     return x_U[:, 3] * rho + x_U[:, 4]
 
 
@@ -67,7 +62,7 @@ def jacobians(R: np.ndarray, p: np.ndarray, p_T: np.ndarray, x_U: np.ndarray) ->
     """h, H_I = beta u^T [-R [p_T]x, I] and H_U = [-beta u^T, rho, 1] (paper eq. uwb_j, right perturbation)."""
     R, p, p_T, x_U = _broadcast(R, p, p_T, x_U)
     diff = _tag(R, p, p_T) - x_U[:, :3]
-    rho = _norm_rows(diff)
+    rho = norms(diff)
     u = diff / np.maximum(rho, 1e-9)[:, None]
     beta = x_U[:, 3]
     n = rho.shape[0]
