@@ -21,6 +21,7 @@ more rows than clone columns, and one ``ekf_update``.
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -83,6 +84,23 @@ class VioConfig(BaseModel):
     zupt_sigma_v: float = Field(0.01, gt=0, description="zero-velocity pseudo-measurement sigma [m/s]")
     zupt_max_velocity: float = Field(0.1, gt=0, description="no ZUPT while the estimated speed exceeds this")
     zupt_min_features: int = Field(10, ge=1, description="tracks needed for the disparity test")
+    consistency_window_s: float = Field(
+        2.0, gt=0, description="sliding window of the feature updates' chi2 rejection rate (warning)"
+    )
+    consistency_min_tracks: int = Field(20, ge=1, description="tracks a window needs to be judged")
+    consistency_max_rejected: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="fraction of a window's tracks failing the chi2 gate above which the vio stage warns that "
+        "the filter is inconsistent (consistent: 1 - chi2_quantile)",
+    )
+    zupt_disparity_baseline_s: float = Field(
+        0.3,
+        ge=0,
+        description="shortest time between the two frames of the disparity test: slow motion (a few cm/s) "
+        "shows above the pixel noise only over some tenths of a second, not over one frame",
+    )
 
 
 @dataclass
@@ -98,6 +116,11 @@ class VioStats:
     features_failed_triangulation: int = 0
     zupt_updates: int = 0
     zupt_time_s: float = 0.0
+    first_frame_ns: int | None = None
+    # per feature update: stamp, tracks that passed / failed the chi2 gate (the consistency warning's input)
+    update_t: list[int] = field(default_factory=list)
+    update_used: list[int] = field(default_factory=list)
+    update_rejected: list[int] = field(default_factory=list)
 
     def warnings(self) -> list[str]:
         out = []
@@ -111,6 +134,40 @@ class VioStats:
         if total and self.features_rejected_chi2 > 0.2 * total:
             out.append(f"vio: {self.features_rejected_chi2} of {total} feature tracks failed the chi2 test")
         return out
+
+    def rejection_rate(self, window_s: float, min_tracks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per feature update: its stamp, the fraction of the tracks tested in the trailing ``window_s`` that
+        failed the chi2 gate, and how many were tested (NaN fraction below ``min_tracks``)."""
+        t = np.asarray(self.update_t, np.int64)
+        c_used = np.concatenate([[0], np.cumsum(self.update_used)])
+        c_rej = np.concatenate([[0], np.cumsum(self.update_rejected)])
+        j = np.searchsorted(t, t - int(window_s * 1e9), "right")  # first update inside each window
+        i = np.arange(1, len(t) + 1)
+        rej = c_rej[i] - c_rej[j]
+        n = rej + c_used[i] - c_used[j]
+        frac = np.where(n >= min_tracks, rej / np.maximum(n, 1), np.nan)
+        return t, frac, n
+
+    def consistency_warnings(self, window_s: float, min_tracks: int, max_rejected: float) -> list[str]:
+        """A warning when the filter's own feature updates say it is inconsistent (no ground truth needed): in
+        some trailing window more than ``max_rejected`` of the tracks tested failed the chi2 gate (a consistent
+        filter rejects 1 - chi2_quantile of them, outliers aside)."""
+        if not self.update_t:
+            return []
+        t, frac, n = self.rejection_rate(window_s, min_tracks)
+        bad = frac > max_rejected  # NaN compares False
+        if not bad.any():
+            return []
+        t0 = self.first_frame_ns if self.first_frame_ns is not None else int(t[0])
+        k = int(np.nanargmax(np.where(bad, frac, np.nan)))
+        first, last = (t[bad][[0, -1]] - t0) * 1e-9
+        return [
+            f"vio: inconsistent visual updates from {first:.1f} s to {last:.1f} s after the first frame: up to "
+            f"{frac[k]:.0%} of the feature tracks of a {window_s:g} s window failed the chi2 test ({int(n[k])} "
+            f"tested at {(t[k] - t0) * 1e-9:.1f} s; threshold vio.consistency_max_rejected = {max_rejected:g}); "
+            "the MSCKF has likely diverged (its pose and covariance are not to be trusted there): check the "
+            "IMU noise, the static start / zero-velocity updates and the camera calibration"
+        ]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -441,6 +498,10 @@ class MsckfEstimator:
         self._chi2 = chi2_quantile(config.chi2_quantile, np.maximum(np.arange(2 * config.max_clones + 8), 1))
         self._static: tuple[int, int] | None = None  # (t0, t1): propagate with the zero-motion model in it
         self._last_frame: tuple[np.ndarray, np.ndarray] | None = None  # ids, pixels: disparity reference
+        self._last_frame_t = -1
+        # the recent frames (t, ids, pixels), every frame, static or not: the disparity reference when the last
+        # MSCKF frame is younger than vio.zupt_disparity_baseline_s
+        self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque()
         self.source = "recording"
         self._probe_period_ns: int | None = None  # pose probes for the UWB initialisation (start_probes)
         self._last_probe_ns: int | None = None
@@ -483,7 +544,10 @@ class MsckfEstimator:
 
     @property
     def warnings(self) -> list[str]:
-        return self.stats.warnings()
+        c = self.config
+        return self.stats.warnings() + self.stats.consistency_warnings(
+            c.consistency_window_s, c.consistency_min_tracks, c.consistency_max_rejected
+        )
 
     @property
     def clones(self) -> list[int]:
@@ -574,7 +638,9 @@ class MsckfEstimator:
         - the IMU samples pass a chi-squared test of the at-rest model (with the state covariance);
         - with at least ``zupt_min_features`` tracks in common with the reference frame, their disparity is
           pixel noise (chi-squared). The reference is the last frame that went through the MSCKF (static frames
-          do not replace it), so that a slow drift accumulates disparity instead of hiding below the noise.
+          do not replace it), so that a slow drift accumulates disparity instead of hiding below the noise, and
+          at least ``zupt_disparity_baseline_s`` before this frame (`_disparity_reference`): the first frame of a
+          slow motion must not be compared with the frame just before it only.
 
         The disparity test alone is not enough: with 1 px noise and tracks ~10 m away, slow flight (a few cm/s)
         passes it (false ZUPTs; docs/results/measurements.md). The IMU test rejects rotor vibration of a MAV
@@ -606,13 +672,41 @@ class MsckfEstimator:
         q = cfg.zupt_chi2_quantile
         if mean > chi2_ppf(q, 6) or mean + float((((r - rm) ** 2) / var).sum()) > chi2_ppf(q, 6 * n):
             return False
-        if self._last_frame is not None and len(ids):
-            ids0, uv0 = self._last_frame
+        ref = self._disparity_reference(t_ns)
+        if ref is not None and len(ids):
+            ids0, uv0 = ref
             common, i0, i1 = np.intersect1d(ids0, ids, assume_unique=False, return_indices=True)
             if len(common) >= cfg.zupt_min_features:
                 d2 = float(((uv[i1] - uv0[i0]) ** 2).sum()) / (2.0 * cfg.pixel_sigma**2)
                 return d2 < chi2_ppf(cfg.zupt_chi2_quantile, 2 * len(common))
         return True
+
+    def _disparity_reference(self, t_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The frame the disparity test compares with: the last MSCKF frame, or, when that one is younger than
+        ``zupt_disparity_baseline_s``, the newest recent frame at least that old (the oldest kept at the start).
+
+        Over one frame (50 ms at 20 Hz) a platform that has just started to move at 0.1 m/s shifts features a
+        few metres away by ~0.5 px, inside the 1 px noise of the two frames: the test passed and the ZUPT pinned
+        v = 0 while the MAV was climbing at 0.1 m/s (hybrid V1_01 take-off, the MSCKF then diverged). Over
+        0.3 s the same motion shows as ~4 px."""
+        if self._last_frame is None:
+            return None
+        if t_ns - self._last_frame_t >= self.config.zupt_disparity_baseline_s * 1e9 or not self._recent:
+            return self._last_frame
+        t_old = t_ns - self.config.zupt_disparity_baseline_s * 1e9
+        ref = self._recent[0]
+        for fr in self._recent:  # a handful of frames, oldest first
+            if fr[0] > t_old:
+                break
+            ref = fr
+        return ref[1], ref[2]
+
+    def _keep_recent(self, t_ns: int, ids: np.ndarray, uv: np.ndarray) -> None:
+        """Append the frame to the recent ones; drop those no longer needed as a disparity reference."""
+        self._recent.append((t_ns, ids, uv))
+        t_old = t_ns - self.config.zupt_disparity_baseline_s * 1e9
+        while len(self._recent) > 1 and self._recent[1][0] <= t_old:
+            self._recent.popleft()
 
     def _zupt(self, t0: int, t1: int, imu_t: np.ndarray, gyro: np.ndarray, acc: np.ndarray) -> None:
         """The zero-velocity update of (t0, t1] through `ekf_update`: the mean of the at-rest residuals (same
@@ -729,8 +823,12 @@ class MsckfEstimator:
         accept = nis < self._chi2[2 * counts[good] - 3]
         n_used = int(accept.sum())
         n_rej = k - n_used
-        self.stats.features_used += n_used
-        self.stats.features_rejected_chi2 += n_rej
+        st = self.stats
+        st.features_used += n_used
+        st.features_rejected_chi2 += n_rej
+        st.update_t.append(t_ns)
+        st.update_used.append(n_used)
+        st.update_rejected.append(n_rej)
         self._trace(trace, n_used, n_rej, float(nis[accept].sum()), pts[good][accept])
         if not n_used:
             return
@@ -816,6 +914,8 @@ class MsckfEstimator:
             if t_ns < self._first_imu:
                 self.stats.frames_before_imu += 1
             return
+        if self.stats.first_frame_ns is None:
+            self.stats.first_frame_ns = int(t_ns)
         args = self._imu
         t_prev = self._zupt_ref[0]  # the previous frame: ranges since then moved the state time
         static = self.config.zupt and self._detect_static(t_ns, ids, uv, *args)
@@ -831,9 +931,13 @@ class MsckfEstimator:
         else:
             self._camera_frame(t_ns, ids, uv, self._frame_trace)
         self._static = None
+        ok = np.isfinite(uv).all(axis=1) if len(uv) else np.zeros(0, bool)
+        frame_ok = (ids[ok], uv[ok])
         if not static or self._last_frame is None:
-            ok = np.isfinite(uv).all(axis=1) if len(uv) else np.zeros(0, bool)
-            self._last_frame = (ids[ok], uv[ok])
+            self._last_frame = frame_ok
+            self._last_frame_t = t_ns
+        if self.config.zupt_disparity_baseline_s > 0:
+            self._keep_recent(t_ns, *frame_ok)
         self._record()
         self._maybe_probe()
         self._zupt_reference()

@@ -18,6 +18,7 @@ from pipeline.msckf import (
     FeatureDatabase,
     MsckfEstimator,
     VioConfig,
+    VioStats,
     compress,
     feature_jacobians,
     nullspace_project,
@@ -355,6 +356,26 @@ def test_zupt_not_on_slow_constant_velocity(tmp_path):
     assert np.linalg.norm(est.state.value("imu").p - p[-1]) < 0.1
 
 
+def test_zupt_disparity_over_a_baseline(tmp_path):
+    """6 cm/s sideways, features 3-5 m away: 0.3 px of motion per frame, inside the 1 px noise of two frames;
+    the velocity test made weak on purpose (zupt_sigma_v 5 cm/s: the state of a filter that has been without
+    visual updates for a while, the hybrid V1_01 take-off). Compared over one frame (baseline 0, the old test)
+    the disparity passes and the ZUPT pins v = 0 on a moving platform; over 0.3 s (1.9 px) it refuses (measured:
+    82 vs 2 ZUPTs in 120 frames, the 2 in the first 0.3 s)."""
+    path = tmp_path / "slow.mcap"
+    p = _static_recording(path, v_const=0.06, depth=(3.0, 5.0))
+    reader = RecordingReader(path)
+    weak = {"zupt_sigma_v": 0.05}
+    old = MsckfEstimator.from_recording(reader, VioConfig(**weak, zupt_disparity_baseline_s=0.0))
+    run_estimator(old, reader, None, None)
+    assert old.stats.zupt_updates > 20, old.stats.zupt_updates
+    est = MsckfEstimator.from_recording(reader, VioConfig(**weak))
+    run_estimator(est, reader, None, None)
+    # only in the first 0.3 s (no frame that old yet: the oldest one is the reference)
+    assert est.stats.zupt_updates <= 3, est.stats.zupt_updates
+    assert np.linalg.norm(est.state.value("imu").p - p[-1]) < 0.1
+
+
 def test_zupt_stops_at_the_onset_of_motion(tmp_path):
     """At rest for 2 s, then acceleration growing from zero (jerk 1 m/s^3 sideways): the mean of the IMU residuals
     (tested on its own 6 dof, not drowned in the 6n of the samples) refuses the ZUPT within 0.15 s of the onset
@@ -418,3 +439,48 @@ def test_static_propagation_keeps_the_unobservable_subspace():
     assert np.allclose(prop.Phi @ nullspace(x_fej), nullspace(prop.state), atol=1e-12)
     assert np.allclose(prop.state.p, x.p + 0.05 * x.v) and np.allclose(prop.state.R, x.R)
     assert np.all(np.linalg.eigvalsh(prop.Q) >= -1e-18)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# consistency warning (the filter's own chi2 rejections, no ground truth)
+# ---------------------------------------------------------------------------------------------------------------
+def test_consistency_warning_windows():
+    """Sliding-window rejection rate from the per-update counts, against a direct count per window."""
+    st = VioStats(first_frame_ns=0)
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.integers(1, 3, 200)) * 50_000_000  # 50-100 ms apart
+    used = rng.integers(0, 8, 200)
+    rej = rng.integers(0, 3, 200)
+    rej[120:140] = 30  # a burst of rejections
+    st.update_t, st.update_used, st.update_rejected = list(t), list(used), list(rej)
+    tt, frac, n = st.rejection_rate(1.0, 20)
+    direct = np.full(len(t), np.nan)
+    for i in range(len(t)):
+        w = (t > t[i] - 1e9) & (t <= t[i])
+        nn = used[w].sum() + rej[w].sum()
+        assert n[i] == nn
+        if nn >= 20:
+            direct[i] = rej[w].sum() / nn
+    np.testing.assert_allclose(frac, direct, rtol=1e-12)
+    first, last = t[direct > 0.5][[0, -1]] * 1e-9
+    assert 120 <= np.argmax(direct > 0.5) < 140
+    warns = st.consistency_warnings(1.0, 20, 0.5)
+    assert len(warns) == 1 and f"from {first:.1f} s to {last:.1f} s" in warns[0]
+    rej[120:140] = 1
+    st.update_rejected = list(rej)
+    assert st.consistency_warnings(1.0, 20, 0.5) == []
+
+
+def test_consistency_warning_on_an_overconfident_filter(tmp_path):
+    """The synthetic fault: the filter told 0.2 px of pixel noise, the tracks carry 1 px (its NIS is 25x what
+    it expects): most tracks fail the chi2 gate and the warning names it; with the true noise, none."""
+    path = tmp_path / "cv.mcap"
+    _static_recording(path, duration=4.0, v_const=0.3, depth=(1.5, 2.5))
+    reader = RecordingReader(path)
+    good = MsckfEstimator.from_recording(reader, VioConfig(zupt=False))
+    run_estimator(good, reader, None, None)
+    assert good.stats.update_t and not [w for w in good.warnings if "inconsistent" in w]
+    bad = MsckfEstimator.from_recording(reader, VioConfig(zupt=False, pixel_sigma=0.2))
+    run_estimator(bad, reader, None, None)
+    warns = [w for w in bad.warnings if "inconsistent visual updates" in w]
+    assert len(warns) == 1 and "consistency_max_rejected" in warns[0], bad.warnings
