@@ -32,7 +32,7 @@ from scipy.linalg.lapack import dpstrf, dtrtrs
 from pipeline.core.errors import InputError
 
 from .camera import Camera
-from .core.geometry import I3, quat_slerp, quat_to_rot, skew
+from .core.geometry import I3, exp_so3, quat_slerp, quat_to_rot, skew
 from .core.topics import TOPIC_FEATURES, TOPIC_GT_IMU_BIAS, TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE
 from .estimator import RangeHandler, RangeMeasurement, Span, TrajectoryRecord
 from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
@@ -497,11 +497,12 @@ class MsckfEstimator:
         self._history = TrajectoryRecord()
         self._chi2 = chi2_quantile(config.chi2_quantile, np.maximum(np.arange(2 * config.max_clones + 8), 1))
         self._static: tuple[int, int] | None = None  # (t0, t1): propagate with the zero-motion model in it
-        self._last_frame: tuple[np.ndarray, np.ndarray] | None = None  # ids, pixels: disparity reference
+        # disparity reference: ids, pixels and the IMU orientation estimate of the last MSCKF frame
+        self._last_frame: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._last_frame_t = -1
-        # the recent frames (t, ids, pixels), every frame, static or not: the disparity reference when the last
-        # MSCKF frame is younger than vio.zupt_disparity_baseline_s
-        self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque()
+        # the recent frames (t, ids, pixels, orientation), every frame, static or not: the disparity reference when
+        # the last MSCKF frame is younger than vio.zupt_disparity_baseline_s
+        self._recent: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = deque()
         self.source = "recording"
         self._probe_period_ns: int | None = None  # pose probes for the UWB initialisation (start_probes)
         self._last_probe_ns: int | None = None
@@ -640,7 +641,8 @@ class MsckfEstimator:
           pixel noise (chi-squared). The reference is the last frame that went through the MSCKF (static frames
           do not replace it), so that a slow drift accumulates disparity instead of hiding below the noise, and
           at least ``zupt_disparity_baseline_s`` before this frame (`_disparity_reference`): the first frame of a
-          slow motion must not be compared with the frame just before it only.
+          slow motion must not be compared with the frame just before it only. The reference pixels are turned by
+          the rotation between the frames (`_derotate`): zero velocity, not zero rotation, is tested.
 
         The disparity test alone is not enough: with 1 px noise and tracks ~10 m away, slow flight (a few cm/s)
         passes it (false ZUPTs; docs/results/measurements.md). The IMU test rejects rotor vibration of a MAV
@@ -674,14 +676,27 @@ class MsckfEstimator:
             return False
         ref = self._disparity_reference(t_ns)
         if ref is not None and len(ids):
-            ids0, uv0 = ref
+            ids0, uv0, R0 = ref
             common, i0, i1 = np.intersect1d(ids0, ids, assume_unique=False, return_indices=True)
             if len(common) >= cfg.zupt_min_features:
-                d2 = float(((uv[i1] - uv0[i0]) ** 2).sum()) / (2.0 * cfg.pixel_sigma**2)
+                # the orientation now: the state's at the last frame and the mean gyro since (a few samples)
+                R1 = x.R @ exp_so3((gyro[sl].mean(axis=0) - x.bg) * ((t_ns - t_ref) * 1e-9))
+                uv_ref = self._derotate(uv0[i0], R0, R1)
+                d2 = float(((uv[i1] - uv_ref) ** 2).sum()) / (2.0 * cfg.pixel_sigma**2)
                 return d2 < chi2_ppf(cfg.zupt_chi2_quantile, 2 * len(common))
         return True
 
-    def _disparity_reference(self, t_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+    def _derotate(self, uv: np.ndarray, R_ref: np.ndarray, R_now: np.ndarray) -> np.ndarray:
+        """Pixels of the reference frame as the camera would see them now after a rotation only (IMU orientations
+        ``R_ref`` -> ``R_now``): the disparity test is of zero *velocity*, and a platform at rest still turns a
+        little (V1_01 on the ground: 0.05-0.08 deg in 0.3 s, 0.4-0.6 px, enough to fail the test over that
+        baseline); the camera's displacement from the rotation about the IMU (lever arm x angle) is left out."""
+        Ric = self.camera.R_imu_cam
+        R = Ric.T @ R_now.T @ R_ref @ Ric  # camera_now <- camera_ref
+        b = np.column_stack([self.camera.undistort(uv), np.ones(len(uv))]) @ R.T
+        return self.camera.project(b)
+
+    def _disparity_reference(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """The frame the disparity test compares with: the last MSCKF frame, or, when that one is younger than
         ``zupt_disparity_baseline_s``, the newest recent frame at least that old (the oldest kept at the start).
 
@@ -699,11 +714,11 @@ class MsckfEstimator:
             if fr[0] > t_old:
                 break
             ref = fr
-        return ref[1], ref[2]
+        return ref[1:]
 
-    def _keep_recent(self, t_ns: int, ids: np.ndarray, uv: np.ndarray) -> None:
+    def _keep_recent(self, t_ns: int, ids: np.ndarray, uv: np.ndarray, R: np.ndarray) -> None:
         """Append the frame to the recent ones; drop those no longer needed as a disparity reference."""
-        self._recent.append((t_ns, ids, uv))
+        self._recent.append((t_ns, ids, uv, R))
         t_old = t_ns - self.config.zupt_disparity_baseline_s * 1e9
         while len(self._recent) > 1 and self._recent[1][0] <= t_old:
             self._recent.popleft()
@@ -932,7 +947,7 @@ class MsckfEstimator:
             self._camera_frame(t_ns, ids, uv, self._frame_trace)
         self._static = None
         ok = np.isfinite(uv).all(axis=1) if len(uv) else np.zeros(0, bool)
-        frame_ok = (ids[ok], uv[ok])
+        frame_ok = (ids[ok], uv[ok], self.state.value("imu").R)
         if not static or self._last_frame is None:
             self._last_frame = frame_ok
             self._last_frame_t = t_ns
