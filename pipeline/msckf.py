@@ -503,6 +503,7 @@ class MsckfEstimator:
         # the recent frames (t, ids, pixels, orientation), every frame, static or not: the disparity reference when
         # the last MSCKF frame is younger than vio.zupt_disparity_baseline_s
         self._recent: deque[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = deque()
+        self._ref_xy: tuple[np.ndarray, np.ndarray] | None = None  # `_undistorted`: ids of the frame, its xy
         self.source = "recording"
         self._probe_period_ns: int | None = None  # pose probes for the UWB initialisation (start_probes)
         self._last_probe_ns: int | None = None
@@ -681,19 +682,27 @@ class MsckfEstimator:
             if len(common) >= cfg.zupt_min_features:
                 # the orientation now: the state's at the last frame and the mean gyro since (a few samples)
                 R1 = x.R @ exp_so3((gyro[sl].mean(axis=0) - x.bg) * ((t_ns - t_ref) * 1e-9))
-                uv_ref = self._derotate(uv0[i0], R0, R1)
+                uv_ref = self._derotate(self._undistorted(ids0, uv0)[i0], R0, R1)
                 d2 = float(((uv[i1] - uv_ref) ** 2).sum()) / (2.0 * cfg.pixel_sigma**2)
                 return d2 < chi2_ppf(cfg.zupt_chi2_quantile, 2 * len(common))
         return True
 
-    def _derotate(self, uv: np.ndarray, R_ref: np.ndarray, R_now: np.ndarray) -> np.ndarray:
-        """Pixels of the reference frame as the camera would see them now after a rotation only (IMU orientations
-        ``R_ref`` -> ``R_now``): the disparity test is of zero *velocity*, and a platform at rest still turns a
-        little (V1_01 on the ground: 0.05-0.08 deg in 0.3 s, 0.4-0.6 px, enough to fail the test over that
-        baseline); the camera's displacement from the rotation about the IMU (lever arm x angle) is left out."""
+    def _undistorted(self, ids: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """``camera.undistort(uv)`` of a reference frame, once per frame (in a static stretch the reference
+        stays the same frame for many frames)."""
+        if self._ref_xy is None or self._ref_xy[0] is not ids:
+            self._ref_xy = (ids, self.camera.undistort(uv))
+        return self._ref_xy[1]
+
+    def _derotate(self, xy: np.ndarray, R_ref: np.ndarray, R_now: np.ndarray) -> np.ndarray:
+        """Undistorted points ``xy`` of the reference frame in pixels as the camera would see them now after a
+        rotation only (IMU orientations ``R_ref`` -> ``R_now``): the disparity test is of zero *velocity*, and a
+        platform at rest still turns a little (V1_01 on the ground: 0.05-0.08 deg in 0.3 s, 0.4-0.6 px, enough
+        to fail the test over that baseline); the camera's displacement from the rotation about the IMU (lever
+        arm x angle) is left out."""
         Ric = self.camera.R_imu_cam
         R = Ric.T @ R_now.T @ R_ref @ Ric  # camera_now <- camera_ref
-        b = np.column_stack([self.camera.undistort(uv), np.ones(len(uv))]) @ R.T
+        b = np.column_stack([xy, np.ones(len(xy))]) @ R.T
         return self.camera.project(b)
 
     def _disparity_reference(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
