@@ -376,6 +376,32 @@ def test_zupt_disparity_over_a_baseline(tmp_path):
     assert np.linalg.norm(est.state.value("imu").p - p[-1]) < 0.1
 
 
+def test_disparity_reference_is_derotated():
+    """`_derotate` against the direct projection: far points (no lever-arm parallax) seen at IMU orientation R0,
+    turned to R1 (0.5 deg), land where the camera at R1 sees them; `_disparity_reference` picks the newest recent
+    frame at least the baseline old when the last MSCKF frame is younger."""
+    from pipeline.imu import ImuNoise
+
+    est = MsckfEstimator(VioConfig(), CAM, ImuNoise(1e-4, 1e-3, 1e-5, 1e-4))
+    rng = np.random.default_rng(1)
+    R0 = body_rotation(np.array([[0.05, -0.03, 0.4]]))[0]
+    R1 = R0 @ exp_so3(np.radians([0.3, -0.2, 0.35]))
+    Ric = CAM.R_imu_cam
+    bear = np.column_stack([rng.uniform(-0.4, 0.4, (50, 2)), np.ones(50)])  # reference camera frame
+    pw = (R0 @ Ric @ bear.T).T * 1e6  # world directions (far points), camera at the origin
+    uv0 = CAM.project(bear)
+    uv1 = CAM.project(pw @ (R1 @ Ric))  # camera_now = Ric^T R1^T world
+    np.testing.assert_allclose(est._derotate(CAM.undistort(uv0), R0, R1), uv1, atol=1e-6)
+    assert np.abs(uv1 - uv0).max() > 2.0  # the rotation moved them by pixels
+    ids = np.arange(50)
+    for k in range(10):  # frames every 50 ms, the last MSCKF frame at 0.4 s
+        est._keep_recent(k * 50_000_000, ids, uv0 + k, R0)
+    est._last_frame, est._last_frame_t = (ids, uv0 + 8, R0), 400_000_000
+    ref = est._disparity_reference(500_000_000)
+    assert (ref[1] == uv0 + 4).all()  # at 0.5 s: the newest frame at least 0.3 s old, the one at 0.2 s
+    assert est._disparity_reference(700_000_000) is est._last_frame  # the last MSCKF frame is 0.3 s old
+
+
 def test_zupt_stops_at_the_onset_of_motion(tmp_path):
     """At rest for 2 s, then acceleration growing from zero (jerk 1 m/s^3 sideways): the mean of the IMU residuals
     (tested on its own 6 dof, not drowned in the 6n of the samples) refuses the ZUPT within 0.15 s of the onset
