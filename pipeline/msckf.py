@@ -135,12 +135,18 @@ class VioStats:
             out.append(f"vio: {self.features_rejected_chi2} of {total} feature tracks failed the chi2 test")
         return out
 
-    def rejection_rate(self, window_s: float, min_tracks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per feature update: its stamp, the fraction of the tracks tested in the trailing ``window_s`` that
-        failed the chi2 gate, and how many were tested (NaN fraction below ``min_tracks``)."""
+    def rejection_rate(
+        self, window_s: float, min_tracks: int, start_ns: int | None = None, end_ns: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per feature update in ``[start_ns, end_ns)`` (None: open; a stage's stretch when the stats carry over
+        through a checkpoint): its stamp, the fraction of the tracks tested in the trailing ``window_s`` (inside
+        the stretch) that failed the chi2 gate, and how many were tested (NaN fraction below ``min_tracks``)."""
         t = np.asarray(self.update_t, np.int64)
-        c_used = np.concatenate([[0], np.cumsum(self.update_used)])
-        c_rej = np.concatenate([[0], np.cumsum(self.update_rejected)])
+        lo = 0 if start_ns is None else int(np.searchsorted(t, start_ns, "left"))
+        hi = len(t) if end_ns is None else int(np.searchsorted(t, end_ns, "left"))
+        t = t[lo:hi]
+        c_used = np.concatenate([[0], np.cumsum(self.update_used[lo:hi])])
+        c_rej = np.concatenate([[0], np.cumsum(self.update_rejected[lo:hi])])
         j = np.searchsorted(t, t - int(window_s * 1e9), "right")  # first update inside each window
         i = np.arange(1, len(t) + 1)
         rej = c_rej[i] - c_rej[j]
@@ -148,21 +154,35 @@ class VioStats:
         frac = np.where(n >= min_tracks, rej / np.maximum(n, 1), np.nan)
         return t, frac, n
 
-    def consistency_warnings(self, window_s: float, min_tracks: int, max_rejected: float) -> list[str]:
+    def consistency_warnings(
+        self,
+        window_s: float,
+        min_tracks: int,
+        max_rejected: float,
+        stage: str = "vio",
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        t0_ns: int | None = None,
+    ) -> list[str]:
         """A warning when the filter's own feature updates say it is inconsistent (no ground truth needed): in
-        some trailing window more than ``max_rejected`` of the tracks tested failed the chi2 gate (a consistent
-        filter rejects 1 - chi2_quantile of them, outliers aside)."""
-        if not self.update_t:
-            return []
-        t, frac, n = self.rejection_rate(window_s, min_tracks)
+        some trailing window of ``[start_ns, end_ns)`` (the stretch ``stage`` filtered) more than ``max_rejected``
+        of the tracks tested failed the chi2 gate (a consistent filter rejects 1 - chi2_quantile of them,
+        outliers aside). Times in s after ``t0_ns`` (default: the first frame)."""
+        t, frac, n = self.rejection_rate(window_s, min_tracks, start_ns, end_ns)
         bad = frac > max_rejected  # NaN compares False
         if not bad.any():
             return []
-        t0 = self.first_frame_ns if self.first_frame_ns is not None else int(t[0])
+        t0 = (
+            t0_ns
+            if t0_ns is not None
+            else self.first_frame_ns
+            if self.first_frame_ns is not None
+            else int(t[0])
+        )
         k = int(np.nanargmax(np.where(bad, frac, np.nan)))
         first, last = (t[bad][[0, -1]] - t0) * 1e-9
         return [
-            f"vio: inconsistent visual updates from {first:.1f} s to {last:.1f} s after the first frame: up to "
+            f"{stage}: inconsistent visual updates from {first:.1f} s to {last:.1f} s after the start: up to "
             f"{frac[k]:.0%} of the feature tracks of a {window_s:g} s window failed the chi2 test ({int(n[k])} "
             f"tested at {(t[k] - t0) * 1e-9:.1f} s; threshold vio.consistency_max_rejected = {max_rejected:g}); "
             "the MSCKF has likely diverged (its pose and covariance are not to be trusted there): check the "
@@ -546,9 +566,22 @@ class MsckfEstimator:
 
     @property
     def warnings(self) -> list[str]:
+        return self.stats.warnings()
+
+    def span_warnings(
+        self, stage: str, start_ns: int | None, end_ns: int | None, t0_ns: int | None
+    ) -> list[str]:
+        """The consistency warning of the visual updates over ``[start_ns, end_ns)``, the stretch ``stage``
+        filtered (the stats carry over through the checkpoints: each stage judges only its own updates)."""
         c = self.config
-        return self.stats.warnings() + self.stats.consistency_warnings(
-            c.consistency_window_s, c.consistency_min_tracks, c.consistency_max_rejected
+        return self.stats.consistency_warnings(
+            c.consistency_window_s,
+            c.consistency_min_tracks,
+            c.consistency_max_rejected,
+            stage,
+            start_ns,
+            end_ns,
+            t0_ns,
         )
 
     @property

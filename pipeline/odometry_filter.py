@@ -258,6 +258,11 @@ class OdometryEstimator:
     def warnings(self) -> list[str]:
         return self.stats.warnings()
 
+    def span_warnings(
+        self, stage: str, start_ns: int | None, end_ns: int | None, t0_ns: int | None
+    ) -> list[str]:
+        return []  # no update of its own to judge (the odometry is its only input)
+
     def history(self) -> TrajectoryRecord:
         return self._history
 

@@ -18,6 +18,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.core.errors import InputError
+from pipeline.core.series import sliding_mean
 
 from .anchor_search import SearchResult, search_anchor
 from .core.geometry import quat_slerp, quat_to_rot
@@ -78,6 +79,22 @@ class UwbConfig(BaseModel):
         "auto",
         description="range updates: gate (reject NIS > chi2_quantile), or a robust loss on the innovation (R "
         "inflated by the IRLS weight, scale robust_scale, no hard gate); auto: cauchy with ri-robust, else gate",
+    )
+    gate_window_s: float = Field(
+        20.0,
+        gt=0,
+        description="sliding window of the range gate warning: per anchor, its ranges of this many seconds at its "
+        "mean range rate in the stage (NLOS bursts of real data last up to ~10 s; a walking anchor or a diverging "
+        "pose stays)",
+    )
+    gate_min_ranges: int = Field(20, ge=2, description="ranges a gate warning window needs at least")
+    gate_max_rejected: float = Field(
+        0.6,
+        gt=0,
+        le=1,
+        description="refine / localize warn when more than this fraction of an anchor's ranges in a gate_window_s "
+        "window fail the chi2_quantile gate (rejected, or with a robust loss beyond it; consistent: "
+        "1 - chi2_quantile): its estimate, its ranges (NLOS) or the pose disagree there",
     )
     robust_loss: Literal["huber", "cauchy"] = "cauchy"
     robust_scale: float = Field(0.5, gt=0, description="robust loss scale [m] at the nominal sigma")
@@ -1069,6 +1086,72 @@ class UwbUpdater:
 
     def arrays(self) -> dict[Any, dict[str, np.ndarray]]:
         return {a: rec.arrays() for a, rec in self.records.items()}
+
+    def gate_rates(
+        self, window_s: float, min_ranges: int, quantile: float | None
+    ) -> dict[Any, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per anchor: its range stamps, which failed the chi2 gate at ``quantile`` (rejected by it, or, with a
+        robust loss and no gate, NIS beyond it), and for every run of k consecutive ranges (k: ``window_s`` at the
+        anchor's mean range rate in the records, at least ``min_ranges``; an anchor with fewer is not judged) the
+        fraction that failed; from the records, once at the stage's end. An anchor whose flagged height was
+        regained (`height_regain`) counts from the regain on: before it its height was held at an init value the
+        motion has since shown wrong (its ranges failed for that reason, which the refine stage reports)."""
+        gate = chi2_ppf(quantile, 1) if quantile is not None else np.inf
+        regained = getattr(self.regain, "regained", {})
+        out = {}
+        for a, rec in self.records.items():
+            t = np.asarray(rec.t_ns, np.int64)
+            i = int(np.searchsorted(t, regained[a].t_ns, "left")) if a in regained else 0
+            t = t[i:]
+            if len(t) < max(min_ranges, 2):
+                continue
+            k = max(min_ranges, round(window_s * (len(t) - 1) / max((t[-1] - t[0]) * 1e-9, 1e-9)))
+            if len(t) < k:
+                continue
+            failed = np.asarray(rec.rejected[i:], bool) | (
+                np.asarray(rec.nis[i:], float) > gate
+            )  # NaN: False
+            out[a] = (t, failed, sliding_mean(failed, k))
+        return out
+
+    def gate_warnings(
+        self,
+        stage: str,
+        window_s: float,
+        min_ranges: int,
+        max_rejected: float,
+        quantile: float | None,
+        t0_ns: int,
+    ) -> list[str]:
+        """One warning naming the anchors of which more than ``max_rejected`` of the ranges of some ``window_s``
+        window failed the chi2 gate, each with its largest fraction and the span (s after ``t0_ns``) from the first
+        to the last failed range of those windows; the likely cause from the pattern (some anchors: their ranges
+        or estimates; every anchor judged: the pose)."""
+        rates = self.gate_rates(window_s, min_ranges, quantile)
+        parts = []
+        for a, (t, failed, rate) in sorted(rates.items(), key=lambda kv: str(kv[0])):
+            bad = np.flatnonzero(rate > max_rejected)
+            if len(bad):
+                edge = np.zeros(len(t) + 1, int)  # the ranges of the windows over the threshold
+                np.add.at(edge, bad, 1)
+                np.add.at(edge, bad + len(t) - len(rate) + 1, -1)
+                hit = np.flatnonzero((np.cumsum(edge[:-1]) > 0) & failed)
+                first, last = (t[hit[[0, -1]]] - t0_ns) * 1e-9
+                parts.append(f"anchor {a} from {first:.1f} s to {last:.1f} s (up to {rate.max():.0%})")
+        if not parts:
+            return []
+        cause = (
+            "every anchor: the pose is likely off (a drifting or diverged pose source)"
+            if len(parts) == len(rates) > 1
+            else "only these anchors: their ranges are biased there (NLOS, multipath) or their estimates walked off"
+        )
+        return [
+            f"{stage}: more than {max_rejected:.0%} of the ranges of a {window_s:g} s window failed the chi2 gate "
+            f"(uwb.chi2_quantile; threshold uwb.gate_max_rejected = {max_rejected:g}), in s after the start: "
+            + ", ".join(parts)
+            + "; "
+            + cause
+        ]
 
     def log(self, log: RunLog | None) -> None:
         """Column-wise series per anchor: uwb/<id>/{residual,band,nis,nis_gate,rejected}, anchors/<id>/{beta,gamma};

@@ -505,8 +505,34 @@ def test_consistency_warning_on_an_overconfident_filter(tmp_path):
     reader = RecordingReader(path)
     good = MsckfEstimator.from_recording(reader, VioConfig(zupt=False))
     run_estimator(good, reader, None, None)
-    assert good.stats.update_t and not [w for w in good.warnings if "inconsistent" in w]
+    assert good.stats.update_t and not good.span_warnings("vio", None, None, None)
     bad = MsckfEstimator.from_recording(reader, VioConfig(zupt=False, pixel_sigma=0.2))
     run_estimator(bad, reader, None, None)
-    warns = [w for w in bad.warnings if "inconsistent visual updates" in w]
+    warns = [w for w in bad.span_warnings("vio", None, None, None) if "inconsistent visual updates" in w]
     assert len(warns) == 1 and "consistency_max_rejected" in warns[0], bad.warnings
+
+
+def test_consistency_warning_per_stage_stretch(tmp_path):
+    """The stats carry over through a checkpoint (pickle): each stage judges only the updates of its own stretch.
+    A filter consistent over the first half (the `vio` stage) turns overconfident in the second (0.2 px told,
+    1 px in the tracks: a stand-in for a divergence during refinement): the second stretch's warning names its
+    stage and starts inside it, the first stretch stays silent, and the trailing window does not reach back."""
+    path = tmp_path / "cv.mcap"
+    _static_recording(path, duration=4.0, v_const=0.3, depth=(1.5, 2.5))
+    reader = RecordingReader(path)
+    mid = 3_000_000_000  # the recording's 4 s start at 1 s
+    est = MsckfEstimator.from_recording(reader, VioConfig(zupt=False))
+    run_estimator(est, reader, None, mid)
+    est = pickle.loads(pickle.dumps(est))  # checkpoint_init.pkl
+    est.config = est.config.model_copy(update={"pixel_sigma": 0.2})
+    run_estimator(est, reader, mid, None)
+    t0, t = est.stats.first_frame_ns, np.asarray(est.stats.update_t)
+    assert est.span_warnings("vio", None, mid, t0) == []
+    warns = est.span_warnings("refine", mid, None, t0)
+    assert len(warns) == 1 and warns[0].startswith("refine: inconsistent visual updates from "), warns
+    first = float(warns[0].split(" from ")[1].split(" s")[0])
+    assert first >= (mid - t0) * 1e-9 - 0.05
+    _, frac, _ = est.stats.rejection_rate(2.0, 20, mid, None)
+    _, frac_all, _ = est.stats.rejection_rate(2.0, 20)
+    assert len(frac) == int((t >= mid).sum()) and np.nanmax(frac) > 0.5
+    assert np.nanmax(frac_all[: len(t) - len(frac)]) <= 0.5  # the first stretch alone: below the threshold

@@ -444,3 +444,51 @@ def test_link_offset_map_matches_refit():
         shifted = InitWindow(w.d - eps * (w.links() == lk), w.p_T, w.R, w.p, w.P_pose, w.t_ns, w.link)
         dx = (solve_from(shifted, th0, **kw).theta - base) / eps
         np.testing.assert_allclose(dx, J[link_var(7)][list(res.params), col], rtol=0.03, atol=1e-3)
+
+
+def test_gate_rates_and_warning_name_the_faulty_anchor():
+    """The windowed gate rate per anchor (a 4 s window at 10 ranges/s: 40 ranges) against a direct count over
+    each run of 40 ranges; a burst of rejections on anchor 7 is named with its span (s after t0) and the
+    one-anchor cause, anchor 3's consistent 5 % is not; with a robust loss (no gate, nothing rejected) the rate
+    counts the NIS beyond the quantile instead; every anchor bursting: the pose is named."""
+    from pipeline.uwb_filter import AnchorRecord
+
+    rng = np.random.default_rng(1)
+    gate = chi2.ppf(0.95, 1)
+    upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
+    t0 = 1_000_000_000
+    for a, n in ((3, 400), (7, 300)):
+        t = t0 + 500_000_000 + np.arange(n) * 100_000_000
+        nis = rng.chisquare(1, n)
+        if a == 7:
+            nis[150:200] = 50.0  # the anchor's ranges 1 m off for 5 s
+        upd.records[a] = AnchorRecord(t_ns=list(t), nis=list(nis), rejected=list(nis > gate))
+    k = 40
+    rates = upd.gate_rates(4.0, 20, 0.95)
+    for a, (t, failed, rate) in rates.items():
+        rec = upd.records[a]
+        direct = [np.mean(rec.rejected[i : i + k]) for i in range(len(rec.t_ns) - k + 1)]
+        np.testing.assert_allclose(rate, direct, atol=1e-12)
+        assert np.array_equal(t, rec.t_ns) and np.array_equal(failed, rec.rejected)
+    assert rates[3][2].max() < 0.25 and rates[7][2].max() == 1.0
+    warns = upd.gate_warnings("localize", 4.0, 20, 0.5, 0.95, t0)
+    assert len(warns) == 1 and warns[0].startswith("localize: more than 50% of the ranges of a 4 s window"), (
+        warns
+    )
+    assert "anchor 7 from" in warns[0] and "anchor 3" not in warns[0] and "(up to 100%)" in warns[0]
+    assert "only these anchors" in warns[0] and "pose" not in warns[0]
+    t7, rej7 = np.asarray(upd.records[7].t_ns), np.asarray(upd.records[7].rejected)
+    covered = np.zeros(len(t7), bool)  # the span: the first to the last failed range of the windows above 0.5
+    for i in np.flatnonzero(rates[7][2] > 0.5):
+        covered[i : i + k] = True
+    hit = np.flatnonzero(covered & rej7)
+    assert 150 - k < hit[0] <= 150 and 199 <= hit[-1] < 200 + k
+    assert f"anchor 7 from {(t7[hit[0]] - t0) * 1e-9:.1f} s to {(t7[hit[-1]] - t0) * 1e-9:.1f} s" in warns[0]
+    for rec in upd.records.values():  # a robust loss: nothing rejected, the NIS beyond the quantile counted
+        rec.rejected = [False] * len(rec.t_ns)
+    assert upd.gate_warnings("localize", 4.0, 20, 0.5, 0.95, t0) == warns
+    assert upd.gate_warnings("refine", 4.0, 20, 0.5, None, t0) == []  # no gate at all: nothing to judge
+    assert upd.gate_rates(31.0, 20, 0.95).keys() == {3}  # fewer ranges than a window: not judged
+    upd.records[3].nis[300:360] = [50.0] * 60
+    both = upd.gate_warnings("refine", 4.0, 20, 0.5, 0.95, t0)
+    assert "anchor 3 from" in both[0] and "anchor 7 from" in both[0] and "every anchor: the pose" in both[0]

@@ -6,7 +6,7 @@ import numpy as np
 
 from .. import rundir as rd
 from ..driver import run_estimator
-from .context import StageContext, StageResult
+from .context import StageContext, StageResult, filter_warnings
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -42,4 +42,8 @@ def run(ctx: StageContext) -> StageResult:
         traj = ctx.assemble_trajectory()
         ctx.log_trajectory(log, "estimate", traj)
     c = updater.counts
-    return StageResult("localize", f"frozen anchors: {c['accepted']} range updates, {c['rejected']} rejected")
+    return StageResult(
+        "localize",
+        f"frozen anchors: {c['accepted']} range updates, {c['rejected']} rejected",
+        filter_warnings(ctx, "localize", est, updater, win.refine_end_ns, win.end_ns),
+    )

@@ -8,7 +8,7 @@ import numpy as np
 from .. import rundir as rd
 from .. import runlog as rl
 from ..driver import run_estimator
-from .context import StageContext, StageResult
+from .context import StageContext, StageResult, filter_warnings
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -120,6 +120,7 @@ def run(ctx: StageContext) -> StageResult:
     c = updater.counts
     if c["rejected"]:
         warns.append(f"refine: {c['rejected']} ranges rejected by the chi2 gate")
+    warns += filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns)
     errs = ctx.anchor_errors({a: s["x"] for a, s in states.items()})
     return StageResult(
         "refine", f"{cfg.refine_method}: {c['accepted']} range updates, {c['rejected']} rejected{errs}", warns

@@ -43,7 +43,7 @@ def run(ctx: StageContext) -> StageResult:
     return StageResult(
         "vio",
         f"{ctx.pose_source()}: {len(hist['t_ns'])} poses over {(t_end - win.start_ns) * 1e-9:.1f} s",
-        list(est.warnings),
+        list(est.warnings) + est.span_warnings("vio", win.start_ns, t_end, win.start_ns),
     )
 
 
@@ -76,5 +76,5 @@ def _run_loose(ctx: StageContext) -> StageResult:
         "vio",
         f"msckf (loose): {len(full['t_ns'])} poses over {(win.end_ns - win.start_ns) * 1e-9:.1f} s; "
         f"UWB stages on its output, drift model {drift}",
-        list(msckf.warnings),
+        list(msckf.warnings) + msckf.span_warnings("vio", win.start_ns, win.end_ns, win.start_ns),
     )
