@@ -1114,6 +1114,38 @@ class UwbUpdater:
             out[a] = (t, failed, sliding_mean(failed, k))
         return out
 
+    def gate_excess_warning(self, stage: str, alpha: float = 1e-3) -> list[str]:
+        """A warning when the stage's gate rejected more ranges than a consistent filter would, over all ranges
+        or over one anchor's: k of n rejected at the gate (``chi2_quantile``, q) with the binomial tail
+        P(K >= k | n, 1 - q) below ``alpha`` (per anchor: ``alpha`` / anchors). A consistent filter rejects
+        ~1 - q of its ranges; counting any rejection cried wolf on every clean run. A burst inside the stage (one
+        anchor, a stretch of NLOS) is `gate_warnings`' job; this one sees an anchor whose estimate or covariance
+        is off over the whole stage."""
+        from scipy.special import bdtrc
+
+        q = self.chi2_quantile
+        if q is None:
+            return []
+
+        def tail(k: int, n: int) -> float:
+            return float(bdtrc(k - 1, n, 1.0 - q)) if k else 1.0
+
+        per = {a: (int(np.sum(r.rejected)), len(r.rejected)) for a, r in self.records.items() if r.rejected}
+        bad = {a: kn for a, kn in per.items() if tail(*kn) < alpha / len(per)}
+        k, n = self.counts["rejected"], self.counts["accepted"] + self.counts["rejected"]
+        if not bad and not (n and tail(k, n) < alpha):
+            return []
+        named = "".join(
+            f"; anchor {a}: {ka} of {na} ({ka / na:.0%}, tail {tail(ka, na):.1e})"
+            for a, (ka, na) in sorted(bad.items(), key=lambda kv: str(kv[0]))
+        )
+        return [
+            f"{stage}: {k} of {n} ranges ({k / n:.1%}; tail {tail(k, n):.1e}) rejected by the chi2 gate{named}: "
+            f"more than the {1 - q:.0%} a consistent filter rejects (binomial tail < {alpha:g}, per anchor < "
+            f"{alpha:g} / anchors): the ranges' noise (uwb.sigma_range), the anchors' or the poses' covariance is "
+            "too small, or the ranges carry NLOS"
+        ]
+
     def gate_warnings(
         self,
         stage: str,

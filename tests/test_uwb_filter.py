@@ -492,3 +492,39 @@ def test_gate_rates_and_warning_name_the_faulty_anchor():
     upd.records[3].nis[300:360] = [50.0] * 60
     both = upd.gate_warnings("refine", 4.0, 20, 0.5, 0.95, t0)
     assert "anchor 3 from" in both[0] and "anchor 7 from" in both[0] and "every anchor: the pose" in both[0]
+
+
+def test_gate_excess_warning_against_the_binomial_tail():
+    """A consistent filter rejects ~5 % at a 95 % gate: 50 of 1000 (the expected count) and 65 (tail 0.02) stay
+    silent; 90 of 1000 (tail 1e-7) warns with the counts and the tail of scipy.stats' binomial; per anchor the
+    bound is alpha / anchors: an anchor with 60 of 400 rejected (tail 5e-14) is named beside one with a
+    consistent 20 of 400 (the total, 80 of 800, tail 6e-9, warns too); no gate (robust
+    loss): silent."""
+    from scipy.stats import binom
+
+    from pipeline.uwb_filter import AnchorRecord
+
+    upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
+    for k, warns in ((0, False), (50, False), (65, False), (90, True)):
+        upd.counts.update(accepted=1000 - k, rejected=k)
+        got = upd.gate_excess_warning("refine")
+        assert bool(got) is warns, (k, got)
+        if warns:
+            tail = binom.sf(k - 1, 1000, 0.05)
+            assert got[0].startswith(f"refine: {k} of 1000 ranges (9.0%; tail {tail:.1e}) rejected"), got
+    assert binom.sf(64, 1000, 0.05) > 1e-3 > binom.sf(89, 1000, 0.05)
+
+    per = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
+    for a, k in ((3, 20), (7, 60)):
+        per.records[a] = AnchorRecord(rejected=[True] * k + [False] * (400 - k))
+    per.counts.update(accepted=720, rejected=80)
+    got = per.gate_excess_warning("localize")
+    assert len(got) == 1 and "anchor 7: 60 of 400 (15%" in got[0] and "anchor 3" not in got[0], got
+    assert f"tail {binom.sf(59, 400, 0.05):.1e}" in got[0]
+    per.records[7] = AnchorRecord(rejected=[True] * 20 + [False] * 380)
+    per.counts.update(accepted=760, rejected=40)
+    assert per.gate_excess_warning("localize") == []
+
+    robust = UwbUpdater("skf", ARMS, chi2_quantile=None)
+    robust.counts.update(accepted=500, rejected=500)
+    assert robust.gate_excess_warning("refine") == []

@@ -54,11 +54,16 @@ def filter_warnings(
     ctx: StageContext, stage: str, est: Estimator, updater, start_ns: int, end_ns: int
 ) -> list[str]:
     """What the filters of a UWB stage (refine, localize) say about their own consistency over the stretch the
-    stage ran, ``[start_ns, end_ns)``: the pose source's (the MSCKF's visual chi2 rejections) and the range
-    updates' windowed gate rate (`uwb_filter.UwbUpdater.gate_warnings`); times in s after the run's start."""
+    stage ran, ``[start_ns, end_ns)``: the pose source's (the MSCKF's visual chi2 rejections), the range
+    updates' overall gate rate against a consistent filter's (`uwb_filter.UwbUpdater.gate_excess_warning`) and their
+    windowed gate rate (`uwb_filter.UwbUpdater.gate_warnings`); times in s after the run's start."""
     cfg, t0 = ctx.config.uwb, ctx.windows().start_ns
-    return est.span_warnings(stage, start_ns, end_ns, t0) + updater.gate_warnings(
-        stage, cfg.gate_window_s, cfg.gate_min_ranges, cfg.gate_max_rejected, cfg.chi2_quantile, t0
+    return (
+        est.span_warnings(stage, start_ns, end_ns, t0)
+        + updater.gate_excess_warning(stage)
+        + updater.gate_warnings(
+            stage, cfg.gate_window_s, cfg.gate_min_ranges, cfg.gate_max_rejected, cfg.chi2_quantile, t0
+        )
     )
 
 

@@ -118,8 +118,6 @@ def run(ctx: StageContext) -> StageResult:
     )
     ctx.assemble_trajectory()
     c = updater.counts
-    if c["rejected"]:
-        warns.append(f"refine: {c['rejected']} ranges rejected by the chi2 gate")
     warns += filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns)
     errs = ctx.anchor_errors({a: s["x"] for a, s in states.items()})
     return StageResult(
