@@ -528,3 +528,26 @@ def test_gate_excess_warning_against_the_binomial_tail():
     robust = UwbUpdater("skf", ARMS, chi2_quantile=None)
     robust.counts.update(accepted=500, rejected=500)
     assert robust.gate_excess_warning("refine") == []
+
+
+def test_filter_warnings_go_to_the_stage_log():
+    """`filter_warnings` returns the pose source's and the range gate's warnings and logs each to the stage's
+    rerun log as a WARN text at the stage's end (what the viewer shows)."""
+    from types import SimpleNamespace
+
+    from pipeline.stages.context import filter_warnings
+    from pipeline.uwb_filter import UwbConfig
+
+    logged = []
+    log = SimpleNamespace(text=lambda msg, level="INFO", t_ns=None: logged.append((msg, level, t_ns)))
+    ctx = SimpleNamespace(
+        config=SimpleNamespace(uwb=UwbConfig()), windows=lambda: SimpleNamespace(start_ns=0)
+    )
+    est = SimpleNamespace(span_warnings=lambda stage, a, b, t0: [f"{stage}: inconsistent visual updates"])
+    upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
+    upd.counts.update(accepted=900, rejected=100)
+    warns = filter_warnings(ctx, "refine", est, upd, 5, 9_000, log)
+    assert len(warns) == 2 and warns[0] == "refine: inconsistent visual updates"
+    assert warns[1].startswith("refine: 100 of 1000 ranges"), warns
+    assert logged == [(w, "WARN", 9_000) for w in warns]
+    assert filter_warnings(ctx, "refine", est, upd, 5, 9_000) == warns  # no log: the same warnings

@@ -51,20 +51,25 @@ class StageResult:
 
 
 def filter_warnings(
-    ctx: StageContext, stage: str, est: Estimator, updater, start_ns: int, end_ns: int
+    ctx: StageContext, stage: str, est: Estimator, updater, start_ns: int, end_ns: int, log=None
 ) -> list[str]:
     """What the filters of a UWB stage (refine, localize) say about their own consistency over the stretch the
     stage ran, ``[start_ns, end_ns)``: the pose source's (the MSCKF's visual chi2 rejections), the range
     updates' overall gate rate against a consistent filter's (`uwb_filter.UwbUpdater.gate_excess_warning`) and their
-    windowed gate rate (`uwb_filter.UwbUpdater.gate_warnings`); times in s after the run's start."""
+    windowed gate rate (`uwb_filter.UwbUpdater.gate_warnings`); times in s after the run's start. Each is also
+    logged to the stage's rerun log (``log``) at ``end_ns``."""
     cfg, t0 = ctx.config.uwb, ctx.windows().start_ns
-    return (
+    warns = (
         est.span_warnings(stage, start_ns, end_ns, t0)
         + updater.gate_excess_warning(stage)
         + updater.gate_warnings(
             stage, cfg.gate_window_s, cfg.gate_min_ranges, cfg.gate_max_rejected, cfg.chi2_quantile, t0
         )
     )
+    if log is not None:
+        for w in warns:
+            log.text(w, "WARN", end_ns)
+    return warns
 
 
 class StageContext:

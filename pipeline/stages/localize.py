@@ -34,6 +34,7 @@ def run(ctx: StageContext) -> StageResult:
         log.stage("localize", win.refine_end_ns)
         run_estimator(est, ctx.features_reader(), win.refine_end_ns, win.end_ns, on_range=updater, log=log)
         updater.log(log)
+        warns = filter_warnings(ctx, "localize", est, updater, win.refine_end_ns, win.end_ns, log)
         hist = est.history().arrays()
         seg = hist["t_ns"] >= win.refine_end_ns
         part = {k: v[seg] for k, v in hist.items()}
@@ -45,5 +46,5 @@ def run(ctx: StageContext) -> StageResult:
     return StageResult(
         "localize",
         f"frozen anchors: {c['accepted']} range updates, {c['rejected']} rejected",
-        filter_warnings(ctx, "localize", est, updater, win.refine_end_ns, win.end_ns),
+        warns,
     )

@@ -53,6 +53,7 @@ def run(ctx: StageContext) -> StageResult:
             est, ctx.features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log
         )
         updater.log(log)
+        consistency = filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns, log)
         for a, arr in updater.arrays().items():
             if len(arr["t_ns"]) and arr["cov"].any():
                 log.ellipsoid_series(
@@ -118,7 +119,7 @@ def run(ctx: StageContext) -> StageResult:
     )
     ctx.assemble_trajectory()
     c = updater.counts
-    warns += filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns)
+    warns += consistency
     errs = ctx.anchor_errors({a: s["x"] for a, s in states.items()})
     return StageResult(
         "refine", f"{cfg.refine_method}: {c['accepted']} range updates, {c['rejected']} rejected{errs}", warns

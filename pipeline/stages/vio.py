@@ -36,14 +36,17 @@ def run(ctx: StageContext) -> StageResult:
         if vio_only_to_end:
             run_estimator(est, ctx.features_reader(), win.init_end_ns, win.end_ns, log=log)
         hist = est.history().arrays()  # the estimators log world/vio themselves
+        t_end = win.end_ns if vio_only_to_end else win.init_end_ns
+        warns = list(est.warnings) + est.span_warnings("vio", win.start_ns, t_end, win.start_ns)
+        for w in warns:
+            log.text(w, "WARN", t_end)
     ctx.dir.save_npz("vio.npz", **hist)
     rd.write_odometry(ctx.dir, "vio.mcap", hist)
     ctx.assemble_trajectory()
-    t_end = win.end_ns if vio_only_to_end else win.init_end_ns
     return StageResult(
         "vio",
         f"{ctx.pose_source()}: {len(hist['t_ns'])} poses over {(t_end - win.start_ns) * 1e-9:.1f} s",
-        list(est.warnings) + est.span_warnings("vio", win.start_ns, t_end, win.start_ns),
+        warns,
     )
 
 
@@ -59,6 +62,9 @@ def _run_loose(ctx: StageContext) -> StageResult:
         log.stage("vio", win.start_ns)
         ctx.log_groundtruth(log)
         run_estimator(msckf, ctx.features_reader(), win.start_ns, win.end_ns, log=log)
+        warns = list(msckf.warnings) + msckf.span_warnings("vio", win.start_ns, win.end_ns, win.start_ns)
+        for w in warns:
+            log.text(w, "WARN", win.end_ns)
     full = msckf.history().arrays()
     rd.write_odometry(ctx.dir, "vio.mcap", full)
     noise = fit_drift_noise(full)
@@ -76,5 +82,5 @@ def _run_loose(ctx: StageContext) -> StageResult:
         "vio",
         f"msckf (loose): {len(full['t_ns'])} poses over {(win.end_ns - win.start_ns) * 1e-9:.1f} s; "
         f"UWB stages on its output, drift model {drift}",
-        list(msckf.warnings) + msckf.span_warnings("vio", win.start_ns, win.end_ns, win.start_ns),
+        warns,
     )
