@@ -1097,11 +1097,10 @@ class UwbUpdater:
         regained (`height_regain`) counts from the regain on: before it its height was held at an init value the
         motion has since shown wrong (its ranges failed for that reason, which the refine stage reports)."""
         gate = chi2_ppf(quantile, 1) if quantile is not None else np.inf
-        regained = getattr(self.regain, "regained", {})
         out = {}
         for a, rec in self.records.items():
             t = np.asarray(rec.t_ns, np.int64)
-            i = int(np.searchsorted(t, regained[a].t_ns, "left")) if a in regained else 0
+            i = self._judged_from(a)
             t = t[i:]
             if len(t) < max(min_ranges, 2):
                 continue
@@ -1114,13 +1113,24 @@ class UwbUpdater:
             out[a] = (t, failed, sliding_mean(failed, k))
         return out
 
+    def _judged_from(self, anchor: Any) -> int:
+        """Index of the anchor's first record the gate warnings judge: after a regained height (`height_regain`),
+        whose ranges failed before it because the height was held at an init value the motion has since shown
+        wrong (the refine stage reports the regain)."""
+        regained = getattr(self.regain, "regained", {})
+        if anchor not in regained:
+            return 0
+        return int(
+            np.searchsorted(np.asarray(self.records[anchor].t_ns, np.int64), regained[anchor].t_ns, "left")
+        )
+
     def gate_excess_warning(self, stage: str, alpha: float = 1e-3) -> list[str]:
         """A warning when the stage's gate rejected more ranges than a consistent filter would, over all ranges
         or over one anchor's: k of n rejected at the gate (``chi2_quantile``, q) with the binomial tail
         P(K >= k | n, 1 - q) below ``alpha`` (per anchor: ``alpha`` / anchors). A consistent filter rejects
         ~1 - q of its ranges; counting any rejection cried wolf on every clean run. A burst inside the stage (one
         anchor, a stretch of NLOS) is `gate_warnings`' job; this one sees an anchor whose estimate or covariance
-        is off over the whole stage."""
+        is off over the whole stage. Counted from the records, as `gate_rates` (from a regained height on)."""
         from scipy.special import bdtrc
 
         q = self.chi2_quantile
@@ -1130,9 +1140,10 @@ class UwbUpdater:
         def tail(k: int, n: int) -> float:
             return float(bdtrc(k - 1, n, 1.0 - q)) if k else 1.0
 
-        per = {a: (int(np.sum(r.rejected)), len(r.rejected)) for a, r in self.records.items() if r.rejected}
+        judged = {a: r.rejected[self._judged_from(a) :] for a, r in self.records.items()}
+        per = {a: (int(np.sum(rej)), len(rej)) for a, rej in judged.items() if rej}
         bad = {a: kn for a, kn in per.items() if tail(*kn) < alpha / len(per)}
-        k, n = self.counts["rejected"], self.counts["accepted"] + self.counts["rejected"]
+        k, n = sum(kn[0] for kn in per.values()), sum(kn[1] for kn in per.values())
         if not bad and not (n and tail(k, n) < alpha):
             return []
         named = "".join(

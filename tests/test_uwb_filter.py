@@ -495,38 +495,50 @@ def test_gate_rates_and_warning_name_the_faulty_anchor():
 
 
 def test_gate_excess_warning_against_the_binomial_tail():
-    """A consistent filter rejects ~5 % at a 95 % gate: 50 of 1000 (the expected count) and 65 (tail 0.02) stay
+    """A consistent filter rejects ~5 % at a 95 % gate (counted from the records): 50 of 1000 (the expected
+    count) and 65 (tail 0.02) stay
     silent; 90 of 1000 (tail 1e-7) warns with the counts and the tail of scipy.stats' binomial; per anchor the
     bound is alpha / anchors: an anchor with 60 of 400 rejected (tail 5e-14) is named beside one with a
     consistent 20 of 400 (the total, 80 of 800, tail 6e-9, warns too); no gate (robust
     loss): silent."""
+    from types import SimpleNamespace
+
     from scipy.stats import binom
 
     from pipeline.uwb_filter import AnchorRecord
 
     upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
     for k, warns in ((0, False), (50, False), (65, False), (90, True)):
-        upd.counts.update(accepted=1000 - k, rejected=k)
+        # four anchors sharing the rejections (per anchor <= 23 of 250: tail >= 2e-3 > 1e-3 / 4, none named)
+        ks = [k // 4 + (i < k % 4) for i in range(4)]
+        upd.records = {
+            a: AnchorRecord(rejected=[True] * ka + [False] * (250 - ka)) for a, ka in enumerate(ks)
+        }
         got = upd.gate_excess_warning("refine")
         assert bool(got) is warns, (k, got)
         if warns:
             tail = binom.sf(k - 1, 1000, 0.05)
             assert got[0].startswith(f"refine: {k} of 1000 ranges (9.0%; tail {tail:.1e}) rejected"), got
+            assert "; anchor" not in got[0], got
     assert binom.sf(64, 1000, 0.05) > 1e-3 > binom.sf(89, 1000, 0.05)
+    assert binom.sf(22, 250, 0.05) > 1e-3 / 4
 
     per = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
     for a, k in ((3, 20), (7, 60)):
         per.records[a] = AnchorRecord(rejected=[True] * k + [False] * (400 - k))
-    per.counts.update(accepted=720, rejected=80)
     got = per.gate_excess_warning("localize")
     assert len(got) == 1 and "anchor 7: 60 of 400 (15%" in got[0] and "anchor 3" not in got[0], got
     assert f"tail {binom.sf(59, 400, 0.05):.1e}" in got[0]
     per.records[7] = AnchorRecord(rejected=[True] * 20 + [False] * 380)
-    per.counts.update(accepted=760, rejected=40)
+    assert per.gate_excess_warning("localize") == []
+    # an anchor whose height was regained is judged from the regain on, as by the windowed warning
+    per.records[7] = AnchorRecord(t_ns=list(range(400)), rejected=[True] * 60 + [False] * 340)
+    assert per.gate_excess_warning("localize") != []
+    per.regain = SimpleNamespace(regained={7: SimpleNamespace(t_ns=60)})
     assert per.gate_excess_warning("localize") == []
 
     robust = UwbUpdater("skf", ARMS, chi2_quantile=None)
-    robust.counts.update(accepted=500, rejected=500)
+    robust.records = {1: AnchorRecord(rejected=[True] * 500)}
     assert robust.gate_excess_warning("refine") == []
 
 
@@ -544,8 +556,10 @@ def test_filter_warnings_go_to_the_stage_log():
         config=SimpleNamespace(uwb=UwbConfig()), windows=lambda: SimpleNamespace(start_ns=0)
     )
     est = SimpleNamespace(span_warnings=lambda stage, a, b, t0: [f"{stage}: inconsistent visual updates"])
+    from pipeline.uwb_filter import AnchorRecord
+
     upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
-    upd.counts.update(accepted=900, rejected=100)
+    upd.records = {1: AnchorRecord(rejected=[True] * 100 + [False] * 900)}
     warns = filter_warnings(ctx, "refine", est, upd, 5, 9_000, log)
     assert len(warns) == 2 and warns[0] == "refine: inconsistent visual updates"
     assert warns[1].startswith("refine: 100 of 1000 ranges"), warns
