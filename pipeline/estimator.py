@@ -105,9 +105,7 @@ class Estimator(Protocol):
     @property
     def warnings(self) -> list[str]: ...
 
-    def span_warnings(
-        self, stage: str, start_ns: int | None, end_ns: int | None, t0_ns: int | None
-    ) -> list[str]:
+    def span_warnings(self, stage: str, start_ns: int | None, end_ns: int | None, t0_ns: int) -> list[str]:
         """What the estimator's own updates over ``[start_ns, end_ns)`` (the stretch ``stage`` ran; the
         estimator may carry earlier stages' records through a checkpoint) say about its consistency, times in s
         after ``t0_ns`` (the MSCKF: its visual updates' chi2 rejection rate; the odometry filter: nothing)."""

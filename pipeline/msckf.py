@@ -116,7 +116,6 @@ class VioStats:
     features_failed_triangulation: int = 0
     zupt_updates: int = 0
     zupt_time_s: float = 0.0
-    first_frame_ns: int | None = None
     # per feature update: stamp, tracks that passed / failed the chi2 gate (the consistency warning's input)
     update_t: list[int] = field(default_factory=list)
     update_used: list[int] = field(default_factory=list)
@@ -159,26 +158,20 @@ class VioStats:
         window_s: float,
         min_tracks: int,
         max_rejected: float,
-        stage: str = "vio",
-        start_ns: int | None = None,
-        end_ns: int | None = None,
-        t0_ns: int | None = None,
+        stage: str,
+        start_ns: int | None,
+        end_ns: int | None,
+        t0_ns: int,
     ) -> list[str]:
         """A warning when the filter's own feature updates say it is inconsistent (no ground truth needed): in
         some trailing window of ``[start_ns, end_ns)`` (the stretch ``stage`` filtered) more than ``max_rejected``
         of the tracks tested failed the chi2 gate (a consistent filter rejects 1 - chi2_quantile of them,
-        outliers aside). Times in s after ``t0_ns`` (default: the first frame)."""
+        outliers aside). Times in s after ``t0_ns`` (the run's start)."""
         t, frac, n = self.rejection_rate(window_s, min_tracks, start_ns, end_ns)
         bad = frac > max_rejected  # NaN compares False
         if not bad.any():
             return []
-        t0 = (
-            t0_ns
-            if t0_ns is not None
-            else self.first_frame_ns
-            if self.first_frame_ns is not None
-            else int(t[0])
-        )
+        t0 = t0_ns
         k = int(np.nanargmax(np.where(bad, frac, np.nan)))
         first, last = (t[bad][[0, -1]] - t0) * 1e-9
         return [
@@ -568,9 +561,7 @@ class MsckfEstimator:
     def warnings(self) -> list[str]:
         return self.stats.warnings()
 
-    def span_warnings(
-        self, stage: str, start_ns: int | None, end_ns: int | None, t0_ns: int | None
-    ) -> list[str]:
+    def span_warnings(self, stage: str, start_ns: int | None, end_ns: int | None, t0_ns: int) -> list[str]:
         """The consistency warning of the visual updates over ``[start_ns, end_ns)``, the stretch ``stage``
         filtered (the stats carry over through the checkpoints: each stage judges only its own updates)."""
         c = self.config
@@ -971,8 +962,6 @@ class MsckfEstimator:
             if t_ns < self._first_imu:
                 self.stats.frames_before_imu += 1
             return
-        if self.stats.first_frame_ns is None:
-            self.stats.first_frame_ns = int(t_ns)
         args = self._imu
         t_prev = self._zupt_ref[0]  # the previous frame: ranges since then moved the state time
         static = self.config.zupt and self._detect_static(t_ns, ids, uv, *args)

@@ -258,9 +258,7 @@ class OdometryEstimator:
     def warnings(self) -> list[str]:
         return self.stats.warnings()
 
-    def span_warnings(
-        self, stage: str, start_ns: int | None, end_ns: int | None, t0_ns: int | None
-    ) -> list[str]:
+    def span_warnings(self, stage: str, start_ns: int | None, end_ns: int | None, t0_ns: int) -> list[str]:
         return []  # no update of its own to judge (the odometry is its only input)
 
     def history(self) -> TrajectoryRecord:
