@@ -26,6 +26,7 @@ from .align import align as fit_alignment
 from .anchor_report import aligned_anchors, anchor_metrics, read_run_anchors, reference_anchors
 from .consistency import pose_nees, summarize_nees
 from .export import compare, load_ground_truth, load_run_trajectory, run_recording_path
+from .gravity import level_truth
 from .metrics import ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
 from .quality import range_quality
 from .tables import render
@@ -85,6 +86,10 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     except InputError as exc:
         gt = None
         metrics["warnings"].append(f"no trajectory metrics: {exc}")
+    if gt is not None and static_frame and str(reader.source.get("dataset", "")).lower() != "simulation":
+        # compared in position and yaw only: a ground truth whose frame is not level (motion capture) is first
+        # turned into the gravity-aligned frame the filter estimates in (a simulation's frame is level)
+        gt, ref, metrics["truth_levelled"] = level_truth(reader, gt, ref)
     al = None
     gauge = None  # a static-initialised run: its filter's gauge (yaw and position of the first pose)
     if gt is not None and len(traj):

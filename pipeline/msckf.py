@@ -16,6 +16,16 @@ to the bearings) and Gauss-Newton in world xyz, Jacobians in distorted pixel spa
 first estimates when FEJ is on, feature at its triangulated value), left-nullspace projection of the feature
 Jacobian (batched QR per track length), a chi-squared test per feature, stacking, QR compression when there are
 more rows than clone columns, and one ``ekf_update``.
+
+SLAM features (``max_slam_features`` > 0, OpenVINS): a selected track that is still seen in the current frame and
+reached the oldest clone becomes a landmark in the state (``Kind.LANDMARK``, world xyz) instead of an MSCKF
+feature, while there is room: its feature Jacobian's invertible part defines the landmark and its
+cross-covariances, the rest updates the state (`State.initialize`). It is then updated in every frame that sees it
+(residual at the current estimates, Jacobians at the first estimates of clone and landmark), and marginalised when
+its track ends or fails the chi-squared test. OpenVINS keeps SLAM features in anchored inverse depth, which
+linearises well at any depth; in world xyz the first estimate must be close, so a track becomes a landmark only
+when its pixels fix its depth to ``slam_max_depth_sigma`` of its distance (`landmark_sigma`): the tracks of a
+rotation in place or of a slow start (depth uncertain by its own size) stay MSCKF features.
 """
 
 from __future__ import annotations
@@ -36,7 +46,18 @@ from .core.geometry import I3, exp_so3, quat_slerp, quat_to_rot, skew
 from .core.topics import TOPIC_FEATURES, TOPIC_GT_IMU_BIAS, TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE
 from .estimator import RangeHandler, RangeMeasurement, Span, TrajectoryRecord
 from .imu import GRAVITY, ImuNoise, imu_intervals, propagate, propagate_static
-from .state import ImuState, Kind, Pose, State, add_probe, chi2_ppf, chi2_quantile, ekf_update, remove_probes
+from .state import (
+    ImuState,
+    Kind,
+    Pose,
+    State,
+    Vec,
+    add_probe,
+    chi2_ppf,
+    chi2_quantile,
+    ekf_update,
+    remove_probes,
+)
 
 if TYPE_CHECKING:
     from convert.recording import RecordingReader
@@ -95,6 +116,19 @@ class VioConfig(BaseModel):
         description="fraction of a window's tracks failing the chi2 gate above which the vio stage warns that "
         "the filter is inconsistent (consistent: 1 - chi2_quantile)",
     )
+    max_slam_features: int = Field(
+        0,
+        ge=0,
+        description="SLAM features (OpenVINS): a track still seen when it reaches the oldest clone becomes a "
+        "landmark in the state, updated in every frame that sees it until it is lost; they hold the drift down "
+        "while the same scene stays in view (0: MSCKF features only)",
+    )
+    slam_max_depth_sigma: float = Field(
+        0.1,
+        gt=0,
+        description="a track becomes a SLAM feature only when its pixels fix the landmark's depth to this "
+        "fraction of its distance (the landmark keeps the Jacobians of its first estimate)",
+    )
     zupt_disparity_baseline_s: float = Field(
         0.3,
         ge=0,
@@ -116,6 +150,9 @@ class VioStats:
     features_failed_triangulation: int = 0
     zupt_updates: int = 0
     zupt_time_s: float = 0.0
+    slam_initialized: int = 0  # tracks made SLAM features
+    slam_used: int = 0  # SLAM feature observations used / failing the chi2 test (the feature is then dropped)
+    slam_rejected: int = 0
     # per feature update: stamp, tracks that passed / failed the chi2 gate (the consistency warning's input)
     update_t: list[int] = field(default_factory=list)
     update_used: list[int] = field(default_factory=list)
@@ -370,6 +407,15 @@ def feature_jacobians(
     return uv, H_pose, H_f, p_c
 
 
+def landmark_sigma(H_f: np.ndarray) -> np.ndarray:
+    """The largest standard deviation of a landmark on its observations alone: ``H_f`` (k, 2m, 3) whitened
+    Jacobians of each track wrt its point; (H_f^T H_f)^-1 is the point's covariance with the poses known, its
+    weakest direction the depth (inf when the track does not fix the point)."""
+    ev = np.linalg.eigvalsh(np.swapaxes(H_f, 1, 2) @ H_f)[:, 0]
+    with np.errstate(divide="ignore"):
+        return 1.0 / np.sqrt(np.maximum(ev, 0.0))
+
+
 def nullspace_project(
     H_f: np.ndarray,
     H_pose: np.ndarray,
@@ -416,6 +462,28 @@ def compress(H: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # ---------------------------------------------------------------------------------------------------------------
 # estimator
 # ---------------------------------------------------------------------------------------------------------------
+@dataclass
+class _Tracks:
+    """Feature tracks linearised on the padded (feature, observation) layout (`MsckfEstimator._linearize`)."""
+
+    ids: np.ndarray  # (F,) track ids
+    counts: np.ndarray  # (F,) observations
+    rows: np.ndarray  # (F, M) database rows (slots past counts repeat the first)
+    C: np.ndarray  # (F, M) clone index of each slot
+    valid: np.ndarray  # (F, M) slot holds an observation
+    last_t: np.ndarray  # (F,) stamp of the last observation
+    pts: np.ndarray  # (F, 3) triangulated world points
+    good: np.ndarray  # (F,) triangulated, in front of every camera
+    r: np.ndarray  # (F, 2M) residuals / pixel_sigma (0 in empty slots)
+    H_f: np.ndarray  # (F, 2M, 3) wrt the feature
+    H_pose: np.ndarray  # (F, M, 2, 6) wrt the slot's clone
+    names: list[str]  # clone names, in clone-index order
+
+
+def _landmark_name(track_id: int) -> str:
+    return f"landmark/{track_id}"
+
+
 def _clone_name(t_ns: int) -> str:
     return f"clone/{t_ns}"
 
@@ -783,12 +851,13 @@ class MsckfEstimator:
         ok = np.isfinite(uv).all(axis=1)
         if not ok.all():
             ids, uv = ids[ok], uv[ok]
+        if len(ids) > 1 and not (ids[1:] > ids[:-1]).all():  # unsorted or duplicate ids: keep the first
+            _, first = np.unique(ids, return_index=True)
+            ids, uv = ids[first], uv[first]
+        ids, uv = self._slam_frame(t_ns, ids, uv)
         if len(ids) == 0:
             self.stats.frames_without_features += 1
         else:
-            if len(ids) > 1 and not (ids[1:] > ids[:-1]).all():  # unsorted or duplicate ids: keep the first
-                _, first = np.unique(ids, return_index=True)
-                ids, uv = ids[first], uv[first]
             self.db.add(t_ns, ids, uv, self.camera.undistort(uv))
         oldest = self.clones[0] if len(self.clones) > self.config.max_clones else None
         rows, drop = self.db.select(
@@ -802,7 +871,10 @@ class MsckfEstimator:
             keep &= self.db.t != oldest
         self.db.keep(keep)
 
-    def _update(self, rows: np.ndarray, t_ns: int, trace: dict | None) -> None:
+    def _linearize(self, rows: np.ndarray) -> _Tracks:
+        """Triangulate the tracks of the database ``rows`` at the current clone estimates and linearise their
+        observations (residuals at the current estimates, Jacobians at the first estimates when FEJ is on), in
+        pixels divided by ``pixel_sigma`` (unit noise)."""
         cfg = self.config
         db = self.db
         rows = rows[np.lexsort((db.t[rows], db.ids[rows]))]
@@ -821,7 +893,6 @@ class MsckfEstimator:
         orow = rows[O]
         clones = self.state.clones
         clone_t = np.array([t for t, _ in clones], np.int64)
-        nc = len(clone_t)
         C = np.searchsorted(clone_t, db.t[orow])  # (F, M) clone index
         names = [n for _, n in clones]
         cur = [self.state.value(n) for n in names]
@@ -850,25 +921,44 @@ class MsckfEstimator:
         vflat = valid.reshape(-1)
         depth_ok = ((p_c[:, 2] > cfg.min_depth) & (p_c[:, 2] < cfg.max_depth)) | ~vflat
         good = ok & np.isfinite(pts).all(axis=1) & depth_ok.reshape(nf, M).all(axis=1)
+        w = (vflat / cfg.pixel_sigma)[:, None]
+        return _Tracks(
+            ids=sid[starts],
+            counts=counts,
+            rows=orow,
+            C=C,
+            valid=valid,
+            last_t=db.t[rows[starts + counts - 1]],
+            pts=pts,
+            good=good,
+            r=((db.uv[orow].reshape(-1, 2) - uv_hat) * w).reshape(nf, 2 * M),
+            H_f=(H_f * w[:, :, None]).reshape(nf, 2 * M, 3),
+            H_pose=(H_pose * w[:, :, None]).reshape(nf, M, 2, 6),
+            names=names,
+        )
+
+    def _update(self, rows: np.ndarray, t_ns: int, trace: dict | None) -> None:
+        """MSCKF update with the selected tracks; tracks still seen now and long enough to have reached the
+        oldest clone become SLAM features while there is room (`_slam_initialize`) instead."""
+        cfg = self.config
+        tr = self._linearize(rows)
+        good = tr.good
         self.stats.features_failed_triangulation += int((~good).sum())
         if trace is not None:
             trace["t"].append(t_ns)
         if not good.any():
             self._trace(trace, 0, 0, 0.0, None)
             return
-        s = 1.0 / cfg.pixel_sigma
-        w = (vflat * s)[:, None]
-        r = ((db.uv[orow].reshape(-1, 2) - uv_hat) * w).reshape(nf, M, 2)[good].reshape(-1, 2 * M)
-        Hf = (H_f * w[:, :, None]).reshape(nf, M, 2, 3)[good].reshape(-1, 2 * M, 3)
-        k = len(r)
-        Hp = (H_pose * w[:, :, None]).reshape(nf, M, 2, 6)[good]
-        Ho, ro = nullspace_project(Hf, Hp, C[good], nc, r, valid[good])
-        Sidx = self.state.index(names)
+        nc = len(tr.names)
+        Ho, ro = nullspace_project(tr.H_f[good], tr.H_pose[good], tr.C[good], nc, tr.r[good], tr.valid[good])
+        Sidx = self.state.index(tr.names)
         Pcc = self.state.P[Sidx][:, Sidx]  # rows first: a row gather is a copy of rows
         HoP = (Ho.reshape(-1, 6 * nc) @ Pcc).reshape(Ho.shape)  # one GEMM instead of k small ones
-        S = HoP @ np.swapaxes(Ho, 1, 2) + np.eye(2 * M - 3)
+        S = HoP @ np.swapaxes(Ho, 1, 2) + np.eye(Ho.shape[1])
         nis = np.einsum("ki,ki->k", ro, np.linalg.solve(S, ro[..., None])[..., 0])
-        accept = nis < self._chi2[2 * counts[good] - 3]
+        counts = tr.counts[good]
+        accept = nis < self._chi2[2 * counts - 3]
+        k = len(ro)
         n_used = int(accept.sum())
         n_rej = k - n_used
         st = self.stats
@@ -877,12 +967,124 @@ class MsckfEstimator:
         st.update_t.append(t_ns)
         st.update_used.append(n_used)
         st.update_rejected.append(n_rej)
-        self._trace(trace, n_used, n_rej, float(nis[accept].sum()), pts[good][accept])
+        self._trace(trace, n_used, n_rej, float(nis[accept].sum()), tr.pts[good][accept])
         if not n_used:
             return
-        H, rr = compress_normal(Ho[accept].reshape(-1, 6 * nc), ro[accept].reshape(-1))
-        ekf_update(self.state, {n: H[:, 6 * j : 6 * j + 6] for j, n in enumerate(names)}, rr, 1.0)
-        self.stats.updates += 1
+        slam = np.zeros(k, bool)
+        room = cfg.max_slam_features - len(self.state.of_kind(Kind.LANDMARK))
+        if room > 0:
+            cand = np.flatnonzero(accept & (tr.last_t[good] == t_ns))
+            if len(cand):
+                cand = cand[self._depth_determined(tr.H_f[good][cand], tr.pts[good][cand], t_ns)]
+            slam[cand[np.argsort(-counts[cand], kind="stable")[:room]]] = True
+        msckf = accept & ~slam
+        if msckf.any():
+            H, rr = compress_normal(Ho[msckf].reshape(-1, 6 * nc), ro[msckf].reshape(-1))
+            ekf_update(self.state, {n: H[:, 6 * j : 6 * j + 6] for j, n in enumerate(tr.names)}, rr, 1.0)
+            self.stats.updates += 1
+        if slam.any():
+            self._slam_initialize(tr.rows[good][slam], tr.valid[good][slam])
+
+    # -- SLAM features -----------------------------------------------------------------------------------------
+    def _depth_determined(self, H_f: np.ndarray, pts: np.ndarray, t_ns: int) -> np.ndarray:
+        """Which tracks (their whitened feature Jacobians ``H_f`` (k, 2M, 3) and points) fix their landmark to
+        ``slam_max_depth_sigma`` of its distance from the camera, on their pixels alone: a landmark in the state
+        keeps the Jacobians of its first estimate, which must be close (a track from a rotation or a slow start
+        triangulates with its depth uncertain by its own size, and its next residual is tens of pixels)."""
+        x = self.state.value(_clone_name(t_ns))
+        depth = np.linalg.norm(pts - (x.p + x.R @ self.camera.p_imu_cam), axis=1)
+        return landmark_sigma(H_f) < self.config.slam_max_depth_sigma * depth
+
+    def _slam_initialize(self, orow: np.ndarray, valid: np.ndarray) -> None:
+        """Each track of the padded database rows ``orow`` (F, M) becomes a SLAM feature: relinearised at the
+        state after this frame's MSCKF update, its feature Jacobian's invertible part defines the landmark and
+        its cross-covariances, the rest updates the enlarged state (`State.initialize`, OpenVINS' delayed
+        initialisation). Its Jacobians are at the first estimates from then on, the landmark's its initial
+        value."""
+        tr = self._linearize(orow[valid])
+        for f in np.flatnonzero(tr.good):
+            obs = np.flatnonzero(tr.valid[f])
+            rows2 = np.concatenate([2 * obs, 2 * obs + 1])
+            rows2.sort()
+            H_old: dict[str, np.ndarray] = {}
+            for j in obs:
+                Hb = np.zeros((2 * len(obs), 6))
+                i = int(np.searchsorted(obs, j))
+                Hb[2 * i : 2 * i + 2] = tr.H_pose[f, j]
+                H_old[tr.names[tr.C[f, j]]] = Hb
+            self.state.initialize(
+                _landmark_name(int(tr.ids[f])),
+                Vec(tr.pts[f]),
+                H_old,
+                tr.H_f[f][rows2],
+                tr.r[f][rows2],
+                np.ones(len(rows2)),
+                kind=Kind.LANDMARK,
+                key=int(tr.ids[f]),
+            )
+            self.stats.slam_initialized += 1
+
+    def _slam_frame(self, t_ns: int, ids: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Update with the SLAM features seen in this frame (its clone is in the state), marginalise those not
+        seen (lost tracks) and those failing the chi-squared test; returns the other observations."""
+        landmarks = dict(self.state.of_kind(Kind.LANDMARK))
+        if not landmarks:
+            return ids, uv
+        seen = np.isin(ids, np.fromiter(landmarks, np.int64, len(landmarks)))
+        for key in set(landmarks) - set(ids[seen].tolist()):
+            self.state.remove(landmarks.pop(key))
+        if seen.any():
+            self._slam_update(t_ns, ids[seen], uv[seen], [landmarks[int(i)] for i in ids[seen]])
+        return ids[~seen], uv[~seen]
+
+    def _slam_update(self, t_ns: int, ids: np.ndarray, uv: np.ndarray, names: list[str]) -> None:
+        cfg = self.config
+        st = self.state
+        cam = self.camera
+        clone = _clone_name(t_ns)
+        K = len(ids)
+        x = st.value(clone)
+        pf = np.stack([st.value(n).x for n in names])
+        uv_hat, p_c = predict_pixels(cam, np.broadcast_to(x.R, (K, 3, 3)), np.broadcast_to(x.p, (K, 3)), pf)
+        if st.use_fej:
+            xf = st.fej(clone)
+            pff = np.stack([st.fej(n).x for n in names])
+            _, H_pose, H_f, _ = feature_jacobians(
+                cam, np.broadcast_to(xf.R, (K, 3, 3)), np.broadcast_to(xf.p, (K, 3)), pff, pixels=False
+            )
+        else:
+            _, H_pose, H_f, _ = feature_jacobians(
+                cam, np.broadcast_to(x.R, (K, 3, 3)), np.broadcast_to(x.p, (K, 3)), pf
+            )
+        s = 1.0 / cfg.pixel_sigma
+        r = (uv - uv_hat) * s
+        H_pose, H_f = H_pose * s, H_f * s
+        # per feature: S = [H_pose H_f] P[(clone, feature)] [H_pose H_f]^T + I, its NIS against chi2(2)
+        ic = st.index([clone])
+        il = np.stack([st.index([n]) for n in names])  # (K, 3)
+        P = st.P
+        H9 = np.concatenate([H_pose, H_f], axis=2)  # (K, 2, 9)
+        idx = np.concatenate([np.broadcast_to(ic, (K, 6)), il], axis=1)  # (K, 9)
+        Pk = P[idx[:, :, None], idx[:, None, :]]
+        S = H9 @ Pk @ np.swapaxes(H9, 1, 2) + np.eye(2)
+        nis = np.einsum("ki,ki->k", r, np.linalg.solve(S, r[..., None])[..., 0])
+        depth_ok = (p_c[:, 2] > cfg.min_depth) & (p_c[:, 2] < cfg.max_depth)
+        accept = depth_ok & (nis < self._chi2[2])
+        self.stats.slam_used += int(accept.sum())
+        self.stats.slam_rejected += int((~accept).sum())
+        for k in np.flatnonzero(
+            ~accept
+        ):  # a SLAM feature failing the test is dropped (its track goes on unused)
+            st.remove(names[k])
+        a = np.flatnonzero(accept)
+        if not len(a):
+            return
+        H: dict[str, np.ndarray] = {clone: H_pose[a].reshape(-1, 6)}
+        for i, k in enumerate(a):
+            Hb = np.zeros((2 * len(a), 3))
+            Hb[2 * i : 2 * i + 2] = H_f[k]
+            H[names[k]] = Hb
+        ekf_update(st, H, r[a].reshape(-1), 1.0)
 
     def _trace(
         self, trace: dict | None, used: int, rejected: int, nis: float, pts: np.ndarray | None
@@ -1070,6 +1272,7 @@ __all__ = [
     "compress",
     "feature_jacobians",
     "groundtruth_state",
+    "landmark_sigma",
     "nullspace_project",
     "triangulate",
 ]

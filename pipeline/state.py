@@ -124,6 +124,7 @@ class Kind(enum.Enum):
     PROBE = "probe"  # considered pose of the initialisation window (key: t_ns)
     ANCHOR = "anchor"  # UWB anchor [p_a, beta, gamma] (key: anchor id)
     LINK = "link"  # per-link range offsets of an anchor [delta_l, ...] relative to its gamma (key: anchor id)
+    LANDMARK = "landmark"  # MSCKF SLAM feature: world position of a long visual track (key: track id)
     OTHER = "other"
 
 

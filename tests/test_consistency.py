@@ -180,13 +180,15 @@ def test_odometry_covariance_growth_matches_the_hand_written_formula(odometry_ru
 # MSCKF: 20 seeds of the small visual-inertial simulator
 # ---------------------------------------------------------------------------------------------------------------
 MSCKF_SEEDS, MSCKF_SECONDS, FEJ_SEEDS, BURN_IN = 20, 15.0, 10, 50
+SLAM_FEATURES = 20
 
 
 @pytest.fixture(scope="module")
 def msckf_runs(tmp_path_factory):
-    """{fej: [(history, t_ns, p, R)]}: FEJ on MSCKF_SEEDS seeds, no FEJ on the first FEJ_SEEDS of them."""
+    """{fej: [(history, t_ns, p, R)]}: FEJ on MSCKF_SEEDS seeds, no FEJ on the first FEJ_SEEDS of them; "slam":
+    FEJ with SLAM features on the first FEJ_SEEDS."""
     d = tmp_path_factory.mktemp("msckf_mc")
-    out = {True: [], False: []}
+    out = {True: [], False: [], "slam": []}
     for seed in range(MSCKF_SEEDS):
         path = d / f"vi{seed}.mcap"
         truth = simulate_vi(path, duration=MSCKF_SECONDS, seed=seed)
@@ -197,11 +199,12 @@ def msckf_runs(tmp_path_factory):
         P0 = np.diag(np.repeat([c.sigma_theta0, c.sigma_p0, c.sigma_v0, c.sigma_bg0, c.sigma_ba0], 3) ** 2)
         x_true = groundtruth_state(rd, rd.topics()["/imu"].start_ns)
         x0 = x_true.boxplus(np.random.default_rng(1000 + seed).multivariate_normal(np.zeros(15), P0))
-        for fej in (True, False) if seed < FEJ_SEEDS else (True,):
+        for key in (True, False, "slam") if seed < FEJ_SEEDS else (True,):
             rd = RecordingReader(path)
-            est = MsckfEstimator.from_recording(rd, VioConfig(fej=fej), x0, P0)
+            cfg = VioConfig(max_slam_features=SLAM_FEATURES) if key == "slam" else VioConfig(fej=key)
+            est = MsckfEstimator.from_recording(rd, cfg, x0, P0)
             run_estimator(est, rd, None, None)
-            out[fej].append((est, truth))
+            out[key].append((est, truth))
     return out
 
 
@@ -222,6 +225,21 @@ def test_msckf_anees_inside_two_sided_bounds(msckf_runs):
     v = msckf_verdict(msckf_runs[True])
     print(f"MSCKF (FEJ) ANEES {v.anees:.2f} over {MSCKF_SEEDS} runs, bounds [{v.lo:.2f}, {v.hi:.2f}]")
     assert v.inside, v
+
+
+def test_slam_features_consistent_and_more_accurate(msckf_runs):
+    """SLAM features (landmarks in the state, FEJ at their first estimate) on the same data and initial errors:
+    the ANEES inside the two-sided bounds, and the position error pooled over the runs below the MSCKF's (the
+    landmarks hold the drift while the scene stays in view)."""
+    slam = msckf_verdict(msckf_runs["slam"])
+    errs = {}
+    for key, runs in (("msckf", msckf_runs[True][:FEJ_SEEDS]), ("slam", msckf_runs["slam"])):
+        sq = [errors_vs_truth(est, *truth)[2] ** 2 for est, truth in runs]
+        errs[key] = float(np.sqrt(np.concatenate(sq).sum(axis=1).mean()))
+    print(f"SLAM ANEES {slam.anees:.2f} [{slam.lo:.2f}, {slam.hi:.2f}], position RMSE {errs}")
+    assert slam.inside, slam
+    assert errs["slam"] < errs["msckf"]
+    assert all(est.stats.slam_initialized > 0 for est, _ in msckf_runs["slam"])
 
 
 def test_fej_not_worse_than_no_fej(msckf_runs):

@@ -1,0 +1,135 @@
+"""Gravity in the frame of a ground truth, fitted to an IMU: how far a motion-capture frame is from level.
+
+A motion-capture frame is set up with a wand or on the floor: its z axis is gravity's only to some tenths of a
+degree (EuRoC V1_01: 0.24°). Over windows k of ``window_s``, the IMU's specific force f = R^T (a - g) + b_a + n
+integrates to ``sum_k R f dt = dv_k - g T_k + (sum_k R dt) b_a``, with R the ground truth's orientation at the IMU
+stamps and dv_k its velocity change over the window (central differences of its positions). Gravity g (and a
+constant accelerometer bias b_a when the ground truth's is not given) follow by linear least squares: no double
+differentiation of the positions. A horizontal bias is told from a tilt only when the platform turns; without
+that the fit is undetermined.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import exp_so3, quat_slerp, quat_to_rot, rot_to_quat
+
+DOWN = np.array([0.0, 0.0, -1.0])
+
+
+def _at(t: np.ndarray, t_s: np.ndarray, p: np.ndarray, q: np.ndarray | None = None):
+    """Positions (linear) and quaternions (slerp) of the samples (t_s, p, q) at stamps t inside their span."""
+    i1 = np.clip(np.searchsorted(t_s, t, "right"), 1, len(t_s) - 1)
+    i0 = i1 - 1
+    s = (t - t_s[i0]).astype(float) / (t_s[i1] - t_s[i0]).astype(float)
+    pos = p[i0] + s[:, None] * (p[i1] - p[i0])
+    return pos if q is None else (pos, quat_slerp(q[i0], q[i1], s))
+
+
+@dataclass(frozen=True)
+class GravityFit:
+    gravity: np.ndarray  # (3,) gravity in the ground truth's frame [m/s^2]
+    bias: (
+        np.ndarray
+    )  # (3,) the constant accelerometer bias fitted with it (zero when the bias was given) [m/s^2]
+    tilt_sigma_deg: float  # standard deviation of the gravity direction (from the residuals)
+    windows: int
+    residual_rms: float  # per-window residual of the integrated specific force, divided by the window [m/s^2]
+
+    @property
+    def tilt_deg(self) -> float:
+        """Angle between the fitted gravity and the ground truth's -z."""
+        u = self.gravity / np.linalg.norm(self.gravity)
+        return float(np.degrees(np.arccos(np.clip(u @ DOWN, -1.0, 1.0))))
+
+    def level(self) -> Level:
+        """The rotation (about a horizontal axis) that takes the fitted gravity to -z."""
+        u = self.gravity / np.linalg.norm(self.gravity)
+        axis = np.cross(u, DOWN)
+        s = np.linalg.norm(axis)
+        if s < 1e-12:
+            return Level(np.eye(3))
+        return Level(exp_so3(axis / s * np.arctan2(s, u @ DOWN)))
+
+
+@dataclass(frozen=True)
+class Level:
+    """levelled_from_truth rotation: positions p -> R p, orientations R_wb -> R R_wb (no yaw)."""
+
+    R: np.ndarray
+
+    def positions(self, p: np.ndarray) -> np.ndarray:
+        return np.asarray(p, float) @ self.R.T
+
+    def quats(self, q_xyzw: np.ndarray) -> np.ndarray:
+        return rot_to_quat(self.R @ quat_to_rot(q_xyzw))
+
+
+def fit_gravity(
+    t_imu: np.ndarray,
+    acc: np.ndarray,
+    t_gt: np.ndarray,
+    p_gt: np.ndarray,
+    q_gt: np.ndarray,
+    acc_bias: np.ndarray | None = None,
+    window_s: float = 2.0,
+    velocity_baseline_s: float = 0.1,
+) -> GravityFit | None:
+    """Gravity (and a constant accelerometer bias) in the frame of the ground-truth poses (``p_gt``: the IMU's
+    position, ``q_gt``: its orientation, xyzw) from the accelerometer samples ``acc`` at ``t_imu`` (int64 ns).
+    ``acc_bias`` (the ground truth's accelerometer bias at ``t_imu``, e.g. EuRoC's): removed from ``acc`` and
+    gravity alone is fitted; without it a constant bias is fitted with gravity. None when the windows inside the ground truth's span are too few or the bias and the tilt cannot be told
+    apart (a platform that does not turn)."""
+    t_imu = np.asarray(t_imu, np.int64)
+    t_gt = np.asarray(t_gt, np.int64)
+    h = int(velocity_baseline_s * 1e9)
+    inside = (t_imu >= t_gt[0] + h) & (t_imu <= t_gt[-1] - h)
+    t, f = t_imu[inside], np.asarray(acc, float)[inside]
+    if acc_bias is not None:
+        f = f - np.asarray(acc_bias, float)[inside]
+    if len(t) < 3:
+        return None
+    R = quat_to_rot(_at(t, t_gt, np.asarray(p_gt, float), np.asarray(q_gt, float))[1])
+    dt = np.diff(t) * 1e-9
+    Rf = np.einsum("nij,nj->ni", R[:-1], f[:-1]) * dt[:, None]
+    # cumulative sums: a window's integral is the difference of two entries
+    cRf = np.vstack([np.zeros(3), np.cumsum(Rf, axis=0)])
+    cR = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(R[:-1] * dt[:, None, None], axis=0)])
+    cT = np.concatenate([[0.0], np.cumsum(dt)])
+    n_win = int(cT[-1] // window_s)
+    if n_win < 6:
+        return None
+    edges = np.searchsorted(cT, np.arange(n_win + 1) * window_s)
+    a, b = edges[:-1], edges[1:]
+    T = cT[b] - cT[a]
+    te = t[edges]
+    p_gt = np.asarray(p_gt, float)
+    v = (_at(te + h, t_gt, p_gt) - _at(te - h, t_gt, p_gt)) / (2 * h * 1e-9)
+    # S - dv = -T g + A b
+    y = (cRf[b] - cRf[a]) - (v[1:] - v[:-1])
+    A = np.zeros((n_win, 3, 6))
+    A[:, :, :3] = -T[:, None, None] * np.eye(3)
+    A[:, :, 3:] = cR[b] - cR[a]
+    nx = 3 if acc_bias is not None else 6
+    A2, y2 = A[:, :, :nx].reshape(-1, nx), y.reshape(-1)
+    sv = np.linalg.svd(A2, compute_uv=False)
+    if sv[-1] < 1e-3 * sv[0]:
+        return None
+    x, *_ = np.linalg.lstsq(A2, y2, rcond=None)
+    res = y2 - A2 @ x
+    s2 = float(res @ res) / max(len(y2) - nx, 1)
+    cov = s2 * np.linalg.inv(A2.T @ A2)
+    g = x[:3]
+    # the direction's variance: the gravity covariance across the direction, over |g|^2
+    P = np.eye(3) - np.outer(g, g) / (g @ g)
+    tilt_var = float(np.trace(P @ cov[:3, :3] @ P)) / float(g @ g)
+    return GravityFit(
+        gravity=g,
+        bias=x[3:] if nx == 6 else np.zeros(3),
+        tilt_sigma_deg=float(np.degrees(np.sqrt(tilt_var / 2))),
+        windows=n_win,
+        residual_rms=float(np.sqrt(np.mean((res.reshape(n_win, 3) / T[:, None]) ** 2))),
+    )
