@@ -977,11 +977,9 @@ class MsckfEstimator:
             if len(cand):
                 cand = cand[self._depth_determined(tr.H_f[good][cand], tr.pts[good][cand], t_ns)]
             slam[cand[np.argsort(-counts[cand], kind="stable")[:room]]] = True
-        msckf = accept & ~slam
-        if msckf.any():
-            H, rr = compress_normal(Ho[msckf].reshape(-1, 6 * nc), ro[msckf].reshape(-1))
-            ekf_update(self.state, {n: H[:, 6 * j : 6 * j + 6] for j, n in enumerate(tr.names)}, rr, 1.0)
-            self.stats.updates += 1
+        H, rr = compress_normal(Ho[accept].reshape(-1, 6 * nc), ro[accept].reshape(-1))
+        ekf_update(self.state, {n: H[:, 6 * j : 6 * j + 6] for j, n in enumerate(tr.names)}, rr, 1.0)
+        self.stats.updates += 1
         if slam.any():
             self._slam_initialize(tr.rows[good][slam], tr.valid[good][slam])
 
@@ -996,11 +994,13 @@ class MsckfEstimator:
         return landmark_sigma(H_f) < self.config.slam_max_depth_sigma * depth
 
     def _slam_initialize(self, orow: np.ndarray, valid: np.ndarray) -> None:
-        """Each track of the padded database rows ``orow`` (F, M) becomes a SLAM feature: relinearised at the
-        state after this frame's MSCKF update, its feature Jacobian's invertible part defines the landmark and
-        its cross-covariances, the rest updates the enlarged state (`State.initialize`, OpenVINS' delayed
-        initialisation). Its Jacobians are at the first estimates from then on, the landmark's its initial
-        value."""
+        """Each track of the padded database rows ``orow`` (F, M) becomes a SLAM feature (OpenVINS' delayed
+        initialisation, `State.initialize`): its feature Jacobian's invertible part defines the landmark and its
+        cross-covariances. The rest of its rows, the left nullspace of the feature Jacobian, is what the MSCKF
+        update used just before: with the update first and the landmark defined from the updated state
+        (relinearised there) the joint posterior is the one of the landmark first and the rest after (its rows
+        carry no information on the old state), at one update per frame instead of one per landmark. Its
+        Jacobians are at the first estimates from then on, the landmark's its initial value."""
         tr = self._linearize(orow[valid])
         for f in np.flatnonzero(tr.good):
             obs = np.flatnonzero(tr.valid[f])
@@ -1019,6 +1019,7 @@ class MsckfEstimator:
                 tr.H_f[f][rows2],
                 tr.r[f][rows2],
                 np.ones(len(rows2)),
+                update_rest=False,
                 kind=Kind.LANDMARK,
                 key=int(tr.ids[f]),
             )
@@ -1242,7 +1243,7 @@ class MsckfEstimator:
 
     def log_span(self, log: RunLog, span: Span) -> None:
         """The MSCKF's own series of the span (the driver logs the trajectory): features used / rejected, NIS,
-        ZUPTs, the last triangulated points and the clone window."""
+        ZUPTs, the last triangulated points, the clone window and the SLAM features in the state."""
         from . import runlog as rl
 
         trace = self._frame_trace
@@ -1261,6 +1262,10 @@ class MsckfEstimator:
         if self.clones:
             clones = np.stack([self.state.value(_clone_name(c)).p for c in self.clones])
             log.points3d(f"{rl.VIO}/clones", clones, None, 0.05, None, self.t_ns)
+        landmarks = self.state.of_kind(Kind.LANDMARK)
+        if landmarks:
+            pts = np.stack([self.state.value(n).x for _, n in landmarks])
+            log.points3d(f"{rl.VIO}/slam_features", pts, None, 0.05, None, self.t_ns)
         self._frame_trace = None
 
 

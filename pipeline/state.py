@@ -368,15 +368,19 @@ class State:
         if m < d:
             raise ValueError(f"initialize({name}): {m} measurements cannot determine {d} states")
         R = np.asarray(R, float)
+        # Whiten so that the QR rotation keeps the noise white (a diagonal R: a row scaling).
         if R.ndim == 1:
-            R = np.diag(R)
-        # Whiten so that the QR rotation keeps the noise white.
-        L = np.linalg.cholesky(R)
-        Linv = np.linalg.inv(L)
-        Hn = Linv @ H_new
-        rw = Linv @ r
-        Ho = {k: Linv @ v for k, v in H_old.items()}
-        Qm, _ = qr(Hn, mode="full")
+            w = 1.0 / np.sqrt(R)
+            Hn = w[:, None] * H_new
+            rw = w * r
+            Ho = {k: w[:, None] * v for k, v in H_old.items()}
+        else:
+            Linv = np.linalg.inv(np.linalg.cholesky(R))
+            Hn = Linv @ H_new
+            rw = Linv @ r
+            Ho = {k: Linv @ v for k, v in H_old.items()}
+        # without the rest's update only the invertible part's rotation is needed (economic QR)
+        Qm, _ = qr(Hn, mode="full" if update_rest else "economic")
         Hn = Qm.T @ Hn
         rw = Qm.T @ rw
         Ho = {k: Qm.T @ v for k, v in Ho.items()}

@@ -295,7 +295,7 @@ def test_msckf_logs_to_rerun(vi_recording, tmp_path):
 
     path, (t_ns, _, _) = vi_recording
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig())
+    est = MsckfEstimator.from_recording(reader, VioConfig(max_slam_features=10))
     with RunLog(tmp_path / "vio.rrd") as log:
         run_estimator(est, reader, None, int(t_ns[0] + 3e9), log=log)
     summary = read_rrd_summary(tmp_path / "vio.rrd")
@@ -303,6 +303,7 @@ def test_msckf_logs_to_rerun(vi_recording, tmp_path):
     assert summary.rows.get("world/vio/pose", 0) == n
     assert summary.rows.get("filter/vio/features", 0) > 0
     assert "world/features" in summary.rows
+    assert summary.rows.get("world/vio/slam_features", 0) > 0
 
 
 def test_compress_normal_keeps_information():
