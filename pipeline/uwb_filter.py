@@ -1140,6 +1140,9 @@ class UwbUpdater:
         def tail(k: int, n: int) -> float:
             return float(bdtrc(k - 1, n, 1.0 - q)) if k else 1.0
 
+        def shown(p: float) -> str:  # a tail below the smallest double prints as such, not as 0
+            return f"{p:.1e}" if p > 0.0 else "< 1e-308"
+
         judged = {a: r.rejected[self._judged_from(a) :] for a, r in self.records.items()}
         per = {a: (int(np.sum(rej)), len(rej)) for a, rej in judged.items() if rej}
         bad = {a: kn for a, kn in per.items() if tail(*kn) < alpha / len(per)}
@@ -1147,11 +1150,11 @@ class UwbUpdater:
         if not bad and not (n and tail(k, n) < alpha):
             return []
         named = "".join(
-            f"; anchor {a}: {ka} of {na} ({ka / na:.0%}, tail {tail(ka, na):.1e})"
+            f"; anchor {a}: {ka} of {na} ({ka / na:.0%}, tail {shown(tail(ka, na))})"
             for a, (ka, na) in sorted(bad.items(), key=lambda kv: str(kv[0]))
         )
         return [
-            f"{stage}: {k} of {n} ranges ({k / n:.1%}; tail {tail(k, n):.1e}) rejected by the chi2 gate{named}: "
+            f"{stage}: {k} of {n} ranges ({k / n:.1%}; tail {shown(tail(k, n))}) rejected by the chi2 gate{named}: "
             f"more than the {1 - q:.0%} a consistent filter rejects (binomial tail < {alpha:g}, per anchor < "
             f"{alpha:g} / anchors): the ranges' noise (uwb.sigma_range), the anchors' or the poses' covariance is "
             "too small, or the ranges carry NLOS"

@@ -537,6 +537,11 @@ def test_gate_excess_warning_against_the_binomial_tail():
     per.regain = SimpleNamespace(regained={7: SimpleNamespace(t_ns=60)})
     assert per.gate_excess_warning("localize") == []
 
+    # every range of a long stretch rejected: the tail underflows and prints as such, not as 0
+    per.records = {5: AnchorRecord(rejected=[True] * 2000)}
+    got = per.gate_excess_warning("localize")
+    assert "tail < 1e-308" in got[0] and "e+00" not in got[0], got
+
     robust = UwbUpdater("skf", ARMS, chi2_quantile=None)
     robust.records = {1: AnchorRecord(rejected=[True] * 500)}
     assert robust.gate_excess_warning("refine") == []
