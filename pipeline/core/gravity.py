@@ -18,6 +18,7 @@ import numpy as np
 from .geometry import exp_so3, quat_slerp, quat_to_rot, rot_to_quat
 
 DOWN = np.array([0.0, 0.0, -1.0])
+_CHUNK = 65536  # IMU samples per pass
 
 
 def _at(t: np.ndarray, t_s: np.ndarray, p: np.ndarray, q: np.ndarray | None = None):
@@ -81,8 +82,9 @@ def fit_gravity(
     """Gravity (and a constant accelerometer bias) in the frame of the ground-truth poses (``p_gt``: the IMU's
     position, ``q_gt``: its orientation, xyzw) from the accelerometer samples ``acc`` at ``t_imu`` (int64 ns).
     ``acc_bias`` (the ground truth's accelerometer bias at ``t_imu``, e.g. EuRoC's): removed from ``acc`` and
-    gravity alone is fitted; without it a constant bias is fitted with gravity. None when the windows inside the ground truth's span are too few or the bias and the tilt cannot be told
-    apart (a platform that does not turn)."""
+    gravity alone is fitted; without it a constant bias is fitted with gravity. None when the windows inside the
+    ground truth's span are too few or the bias and the tilt cannot be told apart (a platform that does not
+    turn)."""
     t_imu = np.asarray(t_imu, np.int64)
     t_gt = np.asarray(t_gt, np.int64)
     h = int(velocity_baseline_s * 1e9)
@@ -92,27 +94,36 @@ def fit_gravity(
         f = f - np.asarray(acc_bias, float)[inside]
     if len(t) < 3:
         return None
-    R = quat_to_rot(_at(t, t_gt, np.asarray(p_gt, float), np.asarray(q_gt, float))[1])
     dt = np.diff(t) * 1e-9
-    Rf = np.einsum("nij,nj->ni", R[:-1], f[:-1]) * dt[:, None]
-    # cumulative sums: a window's integral is the difference of two entries
-    cRf = np.vstack([np.zeros(3), np.cumsum(Rf, axis=0)])
-    cR = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(R[:-1] * dt[:, None, None], axis=0)])
     cT = np.concatenate([[0.0], np.cumsum(dt)])
     n_win = int(cT[-1] // window_s)
     if n_win < 6:
         return None
     edges = np.searchsorted(cT, np.arange(n_win + 1) * window_s)
-    a, b = edges[:-1], edges[1:]
-    T = cT[b] - cT[a]
+    T = cT[edges[1:]] - cT[edges[:-1]]
+    # per window: S = sum R f dt and A = sum R dt over its samples, streamed in chunks (no (n, 3, 3) array for a
+    # long recording)
+    win = np.searchsorted(edges, np.arange(len(dt)), "right") - 1
+    S, Asum = np.zeros((n_win, 3)), np.zeros((n_win, 9))
+    p_gt, q_gt = np.asarray(p_gt, float), np.asarray(q_gt, float)
+    n_used = int(np.searchsorted(win, n_win))  # the samples after the last whole window are left out
+    for c0 in range(0, n_used, _CHUNK):
+        sl = slice(c0, min(c0 + _CHUNK, n_used))
+        R = quat_to_rot(_at(t[sl], t_gt, p_gt, q_gt)[1]) * dt[sl, None, None]
+        Rf = np.einsum("nij,nj->ni", R, f[sl])
+        w = win[sl]
+        for k in range(3):
+            S[:, k] += np.bincount(w, Rf[:, k], n_win)
+        R9 = R.reshape(-1, 9)
+        for k in range(9):
+            Asum[:, k] += np.bincount(w, R9[:, k], n_win)
     te = t[edges]
-    p_gt = np.asarray(p_gt, float)
     v = (_at(te + h, t_gt, p_gt) - _at(te - h, t_gt, p_gt)) / (2 * h * 1e-9)
     # S - dv = -T g + A b
-    y = (cRf[b] - cRf[a]) - (v[1:] - v[:-1])
+    y = S - (v[1:] - v[:-1])
     A = np.zeros((n_win, 3, 6))
     A[:, :, :3] = -T[:, None, None] * np.eye(3)
-    A[:, :, 3:] = cR[b] - cR[a]
+    A[:, :, 3:] = Asum.reshape(n_win, 3, 3)
     nx = 3 if acc_bias is not None else 6
     A2, y2 = A[:, :, :nx].reshape(-1, nx), y.reshape(-1)
     sv = np.linalg.svd(A2, compute_uv=False)
