@@ -124,12 +124,7 @@ def groundtruth_level(
     fit = fit_gravity(imu.t_ns, imu.acc, t_gt, p_gt, q_gt, imu.ba if has_bias else None)
     if fit is None:
         return np.array([0.0, 0.0, -gravity]), {"determined": False}
-    return fit.gravity, {
-        "determined": True,
-        "tilt_deg": fit.tilt_deg,
-        "tilt_sigma_deg": fit.tilt_sigma_deg,
-        "gravity_m_s2": [float(v) for v in fit.gravity],
-    }
+    return fit.gravity, {"determined": True, **fit.summary()}
 
 
 def hybrid_simulate(source: str | Path, cfg: SimConfig, knot_dt: float = HYBRID_KNOT_DT) -> SimData:

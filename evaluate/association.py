@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import quat_slerp, quat_to_rot
+from pipeline.core.series import bracket
 
 # A gap in the ground truth longer than this many median sampling intervals is not interpolated across.
 AUTO_GAP_FACTOR = 10
@@ -69,32 +70,6 @@ def auto_max_gap_ns(t_gt: np.ndarray) -> int:
     """Default gap limit: ``AUTO_GAP_FACTOR`` times the median ground-truth sampling interval."""
     dt = np.diff(np.asarray(t_gt, np.int64))
     return int(AUTO_GAP_FACTOR * np.median(dt)) if len(dt) else 0
-
-
-def bracket(t_gt: np.ndarray, t_query: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Indices ``i0, i1 = i0 + 1`` of the ground-truth samples around each query stamp and the fraction ``s``.
-
-    Requires ``len(t_gt) >= 2`` and queries inside ``[t_gt[0], t_gt[-1]]``.
-    """
-    i1 = np.clip(np.searchsorted(t_gt, t_query, side="left"), 1, len(t_gt) - 1)
-    i0 = i1 - 1
-    # integer differences first: float64 seconds since the epoch would lose the nanoseconds
-    s = (t_query - t_gt[i0]).astype(float) / (t_gt[i1] - t_gt[i0]).astype(float)
-    return i0, i1, s
-
-
-def interpolate_positions(t_gt: np.ndarray, p_gt: np.ndarray, t_query: np.ndarray) -> np.ndarray:
-    """Linear interpolation of (N, 3) positions at stamps inside the ground-truth span."""
-    i0, i1, s = bracket(np.asarray(t_gt, np.int64), np.asarray(t_query, np.int64))
-    p_gt = np.asarray(p_gt, float)
-    return p_gt[i0] + s[:, None] * (p_gt[i1] - p_gt[i0])
-
-
-def interpolate_quats(t_gt: np.ndarray, q_gt: np.ndarray, t_query: np.ndarray) -> np.ndarray:
-    """Slerp of (N, 4) xyzw quaternions at stamps inside the ground-truth span."""
-    i0, i1, s = bracket(np.asarray(t_gt, np.int64), np.asarray(t_query, np.int64))
-    q_gt = np.asarray(q_gt, float)
-    return quat_slerp(q_gt[i0], q_gt[i1], s)
 
 
 def associate(

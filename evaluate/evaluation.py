@@ -19,6 +19,7 @@ from convert.recording import RecordingReader
 from pipeline.core.atomic import write_text_atomic
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import quat_to_rot
+from pipeline.real_imu import imu_is_real
 from pipeline.rundir import read_json
 
 from .align import Alignment
@@ -86,9 +87,9 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     except InputError as exc:
         gt = None
         metrics["warnings"].append(f"no trajectory metrics: {exc}")
-    if gt is not None and static_frame and str(reader.source.get("dataset", "")).lower() != "simulation":
+    if gt is not None and static_frame and imu_is_real(reader.source):
         # compared in position and yaw only: a ground truth whose frame is not level (motion capture) is first
-        # turned into the gravity-aligned frame the filter estimates in (a simulation's frame is level)
+        # turned into the gravity-aligned frame the filter estimates in (the simulator's world is level)
         gt, ref, metrics["truth_levelled"] = level_truth(reader, gt, ref)
     al = None
     gauge = None  # a static-initialised run: its filter's gauge (yaw and position of the first pose)

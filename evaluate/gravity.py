@@ -58,14 +58,7 @@ def level_truth(
             ref,
             {"levelled": False, "why": "gravity not determined (no IMU, or a platform that never turns)"},
         )
-    info = {
-        "levelled": False,
-        "tilt_deg": fit.tilt_deg,
-        "tilt_sigma_deg": fit.tilt_sigma_deg,
-        "gravity_m_s2": [float(v) for v in fit.gravity],
-        "windows": fit.windows,
-        "residual_m_s2": fit.residual_rms,
-    }
+    info = {"levelled": False, **fit.summary()}
     if fit.tilt_deg <= 3 * fit.tilt_sigma_deg:
         info["why"] = "tilt within 3 sigma of zero"
         return gt, ref, info

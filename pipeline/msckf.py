@@ -407,6 +407,23 @@ def feature_jacobians(
     return uv, H_pose, H_f, p_c
 
 
+def observe(
+    cam: Camera,
+    R_wi: np.ndarray,
+    p_wi: np.ndarray,
+    pf: np.ndarray,
+    at: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`feature_jacobians` with FEJ: the pixel prediction and camera-frame points at the current estimates
+    (``R_wi, p_wi, pf``), the Jacobians at the linearisation point ``at`` = (R_wi, p_wi, pf) of the first
+    estimates, or at the current estimates when ``at`` is None."""
+    if at is None:
+        return feature_jacobians(cam, R_wi, p_wi, pf)
+    uv, p_c = predict_pixels(cam, R_wi, p_wi, pf)
+    _, H_pose, H_f, _ = feature_jacobians(cam, *at, pixels=False)
+    return uv, H_pose, H_f, p_c
+
+
 def landmark_sigma(H_f: np.ndarray) -> np.ndarray:
     """The largest standard deviation of a landmark on its observations alone: ``H_f`` (k, 2m, 3) whitened
     Jacobians of each track wrt its point; (H_f^T H_f)^-1 is the point's covariance with the poses known, its
@@ -910,14 +927,11 @@ class MsckfEstimator:
         )
         Cf = C.reshape(-1)
         pf_rep = np.repeat(pts, M, axis=0)
-        if self.state.use_fej:  # residual at the current clone estimates, Jacobians at the first estimates
-            uv_hat, p_c = predict_pixels(cam, Rc[Cf], pc[Cf], pf_rep)
+        at = None
+        if self.state.use_fej:  # the clones' first estimates; a feature has none (triangulated anew)
             fej = [self.state.fej(n) for n in names]
-            Rf = np.stack([c.R for c in fej])
-            pff = np.stack([c.p for c in fej])
-            _, H_pose, H_f, _ = feature_jacobians(cam, Rf[Cf], pff[Cf], pf_rep, pixels=False)
-        else:
-            uv_hat, H_pose, H_f, p_c = feature_jacobians(cam, Rc[Cf], pc[Cf], pf_rep)
+            at = (np.stack([c.R for c in fej])[Cf], np.stack([c.p for c in fej])[Cf], pf_rep)
+        uv_hat, H_pose, H_f, p_c = observe(cam, Rc[Cf], pc[Cf], pf_rep, at)
         vflat = valid.reshape(-1)
         depth_ok = ((p_c[:, 2] > cfg.min_depth) & (p_c[:, 2] < cfg.max_depth)) | ~vflat
         good = ok & np.isfinite(pts).all(axis=1) & depth_ok.reshape(nf, M).all(axis=1)
@@ -1003,22 +1017,19 @@ class MsckfEstimator:
         Jacobians are at the first estimates from then on, the landmark's its initial value."""
         tr = self._linearize(orow[valid])
         for f in np.flatnonzero(tr.good):
-            obs = np.flatnonzero(tr.valid[f])
-            rows2 = np.concatenate([2 * obs, 2 * obs + 1])
-            rows2.sort()
+            m = int(tr.counts[f])  # observations in slots 0..m-1 (the padded layout), one clone each
             H_old: dict[str, np.ndarray] = {}
-            for j in obs:
-                Hb = np.zeros((2 * len(obs), 6))
-                i = int(np.searchsorted(obs, j))
-                Hb[2 * i : 2 * i + 2] = tr.H_pose[f, j]
+            for j in range(m):
+                Hb = np.zeros((2 * m, 6))
+                Hb[2 * j : 2 * j + 2] = tr.H_pose[f, j]
                 H_old[tr.names[tr.C[f, j]]] = Hb
             self.state.initialize(
                 _landmark_name(int(tr.ids[f])),
                 Vec(tr.pts[f]),
                 H_old,
-                tr.H_f[f][rows2],
-                tr.r[f][rows2],
-                np.ones(len(rows2)),
+                tr.H_f[f, : 2 * m],
+                tr.r[f, : 2 * m],
+                np.ones(2 * m),
                 update_rest=False,
                 kind=Kind.LANDMARK,
                 key=int(tr.ids[f]),
@@ -1046,17 +1057,17 @@ class MsckfEstimator:
         K = len(ids)
         x = st.value(clone)
         pf = np.stack([st.value(n).x for n in names])
-        uv_hat, p_c = predict_pixels(cam, np.broadcast_to(x.R, (K, 3, 3)), np.broadcast_to(x.p, (K, 3)), pf)
-        if st.use_fej:
+        at = None
+        if st.use_fej:  # the clone's and the landmarks' first estimates
             xf = st.fej(clone)
-            pff = np.stack([st.fej(n).x for n in names])
-            _, H_pose, H_f, _ = feature_jacobians(
-                cam, np.broadcast_to(xf.R, (K, 3, 3)), np.broadcast_to(xf.p, (K, 3)), pff, pixels=False
+            at = (
+                np.broadcast_to(xf.R, (K, 3, 3)),
+                np.broadcast_to(xf.p, (K, 3)),
+                np.stack([st.fej(n).x for n in names]),
             )
-        else:
-            _, H_pose, H_f, _ = feature_jacobians(
-                cam, np.broadcast_to(x.R, (K, 3, 3)), np.broadcast_to(x.p, (K, 3)), pf
-            )
+        uv_hat, H_pose, H_f, p_c = observe(
+            cam, np.broadcast_to(x.R, (K, 3, 3)), np.broadcast_to(x.p, (K, 3)), pf, at
+        )
         s = 1.0 / cfg.pixel_sigma
         r = (uv - uv_hat) * s
         H_pose, H_f = H_pose * s, H_f * s
@@ -1073,9 +1084,8 @@ class MsckfEstimator:
         accept = depth_ok & (nis < self._chi2[2])
         self.stats.slam_used += int(accept.sum())
         self.stats.slam_rejected += int((~accept).sum())
-        for k in np.flatnonzero(
-            ~accept
-        ):  # a SLAM feature failing the test is dropped (its track goes on unused)
+        # a SLAM feature failing the test is dropped (its track goes on unused)
+        for k in np.flatnonzero(~accept):
             st.remove(names[k])
         a = np.flatnonzero(accept)
         if not len(a):
@@ -1279,5 +1289,6 @@ __all__ = [
     "groundtruth_state",
     "landmark_sigma",
     "nullspace_project",
+    "observe",
     "triangulate",
 ]

@@ -15,27 +15,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import exp_so3, quat_slerp, quat_to_rot, rot_to_quat
+from .geometry import exp_so3, quat_to_rot, rot_to_quat
+from .series import interpolate_positions, interpolate_quats
 
 DOWN = np.array([0.0, 0.0, -1.0])
 _CHUNK = 65536  # IMU samples per pass
 
 
-def _at(t: np.ndarray, t_s: np.ndarray, p: np.ndarray, q: np.ndarray | None = None):
-    """Positions (linear) and quaternions (slerp) of the samples (t_s, p, q) at stamps t inside their span."""
-    i1 = np.clip(np.searchsorted(t_s, t, "right"), 1, len(t_s) - 1)
-    i0 = i1 - 1
-    s = (t - t_s[i0]).astype(float) / (t_s[i1] - t_s[i0]).astype(float)
-    pos = p[i0] + s[:, None] * (p[i1] - p[i0])
-    return pos if q is None else (pos, quat_slerp(q[i0], q[i1], s))
-
-
 @dataclass(frozen=True)
 class GravityFit:
     gravity: np.ndarray  # (3,) gravity in the ground truth's frame [m/s^2]
-    bias: (
-        np.ndarray
-    )  # (3,) the constant accelerometer bias fitted with it (zero when the bias was given) [m/s^2]
+    # the constant accelerometer bias fitted with it (zero when the bias was given) [m/s^2]
+    bias: np.ndarray
     tilt_sigma_deg: float  # standard deviation of the gravity direction (from the residuals)
     windows: int
     residual_rms: float  # per-window residual of the integrated specific force, divided by the window [m/s^2]
@@ -45,6 +36,16 @@ class GravityFit:
         """Angle between the fitted gravity and the ground truth's -z."""
         u = self.gravity / np.linalg.norm(self.gravity)
         return float(np.degrees(np.arccos(np.clip(u @ DOWN, -1.0, 1.0))))
+
+    def summary(self) -> dict:
+        """What the run directory and the recording's metadata say of the fit."""
+        return {
+            "tilt_deg": self.tilt_deg,
+            "tilt_sigma_deg": self.tilt_sigma_deg,
+            "gravity_m_s2": [float(v) for v in self.gravity],
+            "windows": self.windows,
+            "residual_m_s2": self.residual_rms,
+        }
 
     def level(self) -> Level:
         """The rotation (about a horizontal axis) that takes the fitted gravity to -z."""
@@ -109,7 +110,7 @@ def fit_gravity(
     n_used = int(np.searchsorted(win, n_win))  # the samples after the last whole window are left out
     for c0 in range(0, n_used, _CHUNK):
         sl = slice(c0, min(c0 + _CHUNK, n_used))
-        R = quat_to_rot(_at(t[sl], t_gt, p_gt, q_gt)[1]) * dt[sl, None, None]
+        R = quat_to_rot(interpolate_quats(t_gt, q_gt, t[sl])) * dt[sl, None, None]
         Rf = np.einsum("nij,nj->ni", R, f[sl])
         w = win[sl]
         for k in range(3):
@@ -118,7 +119,9 @@ def fit_gravity(
         for k in range(9):
             Asum[:, k] += np.bincount(w, R9[:, k], n_win)
     te = t[edges]
-    v = (_at(te + h, t_gt, p_gt) - _at(te - h, t_gt, p_gt)) / (2 * h * 1e-9)
+    v = (interpolate_positions(t_gt, p_gt, te + h) - interpolate_positions(t_gt, p_gt, te - h)) / (
+        2 * h * 1e-9
+    )
     # S - dv = -T g + A b
     y = S - (v[1:] - v[:-1])
     A = np.zeros((n_win, 3, 6))
