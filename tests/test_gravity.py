@@ -69,6 +69,18 @@ def test_fit_gravity_streams_in_chunks(level_flight, monkeypatch):
     np.testing.assert_allclose(many.bias, one.bias, rtol=1e-9, atol=1e-12)
 
 
+def test_fit_gravity_skips_non_finite_samples(level_flight):
+    """NaN accelerometer samples (a damaged recording) are left out: the tilt is found as without them, no NaN."""
+    imu, t_gt, p, q, g = level_flight
+    R_t = exp_so3(np.radians([0.2, 0.0, 0.0]))
+    p_t, q_t = _tilted(p, q, R_t)
+    acc = imu.acc.copy()
+    acc[::97] = np.nan
+    fit = fit_gravity(imu.t_ns, acc, t_gt, p_t, q_t, imu.ba)
+    assert fit is not None and np.isfinite(fit.gravity).all()
+    assert fit.tilt_deg == pytest.approx(0.2, abs=0.01)
+
+
 def test_fit_gravity_level_frame_is_level(level_flight):
     imu, t_gt, p, q, g = level_flight
     fit = fit_gravity(imu.t_ns, imu.acc, t_gt, p, q, imu.ba)

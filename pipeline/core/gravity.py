@@ -93,6 +93,8 @@ def fit_gravity(
     t, f = t_imu[inside], np.asarray(acc, float)[inside]
     if acc_bias is not None:
         f = f - np.asarray(acc_bias, float)[inside]
+    finite = np.isfinite(f).all(axis=1)  # a damaged sample is left out (its interval joins the next one's)
+    t, f = t[finite], f[finite]
     if len(t) < 3:
         return None
     dt = np.diff(t) * 1e-9
