@@ -16,8 +16,8 @@ import typer
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from pipeline.core.errors import InputError  # noqa: E402
-from pipeline.core.names import INIT_METHODS, REFINE_METHODS  # noqa: E402
+from uwbcal.pipeline.core.errors import InputError  # noqa: E402
+from uwbcal.pipeline.core.names import INIT_METHODS, REFINE_METHODS  # noqa: E402
 
 app = typer.Typer(
     add_completion=False,
@@ -48,8 +48,8 @@ def _guard(fn):
 
         import click
 
-        from pipeline.core.atomic import discard_all
-        from pipeline.core.errors import Terminated, os_error_message
+        from uwbcal.pipeline.core.atomic import discard_all
+        from uwbcal.pipeline.core.errors import Terminated, os_error_message
 
         def _term(signum, frame):
             raise Terminated()
@@ -109,7 +109,7 @@ def _guard(fn):
 
 def _output_file(path: Path) -> None:
     """Refuse an output file path that cannot be one (a directory, /dev/null) before any work is done."""
-    from pipeline.core.atomic import check_output_file
+    from uwbcal.pipeline.core.atomic import check_output_file
 
     check_output_file(path)
 
@@ -146,7 +146,7 @@ Output = Annotated[Path, typer.Option("-o", "--output", help="Output path.")]
 @_guard
 def demo(output: Annotated[Path, typer.Option("-o", "--output")] = Path("recordings/demo")) -> None:
     """Simulate the built-in trajectory, run every stage, evaluate and print a summary."""
-    from pipeline.demo import run_demo
+    from uwbcal.evaluate.demo import run_demo
 
     typer.echo(run_demo(output))
 
@@ -204,7 +204,7 @@ def simulate(
     ] = None,
 ) -> None:
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
-    from convert.simulator import SimConfig, simulate_to_file
+    from uwbcal.convert.simulator import SimConfig, simulate_to_file
 
     _output_file(output)
 
@@ -222,7 +222,7 @@ def simulate(
     if odometry_noise_scale != 1.0:
         given["odometry_noise_scale"] = odometry_noise_scale
     if imu_from is not None:
-        from convert.hybrid import hybrid_to_file
+        from uwbcal.convert.hybrid import hybrid_to_file
 
         if scenario is not None or trajectory is not None or odometry_rate is not None:
             raise InputError(
@@ -232,7 +232,7 @@ def simulate(
         typer.echo(hybrid_to_file(imu_from, SimConfig(seed=seed, **given), output))
         return
     if scenario is not None:
-        from convert.scenarios import scenario_to_file
+        from uwbcal.convert.scenarios import scenario_to_file
 
         if anchors is not None:
             raise InputError(f"--anchors {anchors}: scenario {scenario} fixes its anchors; drop --anchors")
@@ -251,7 +251,7 @@ def convert_euroc(
     ] = None,
 ) -> None:
     """Convert EuRoC (ASL folder or ROS1 bag)."""
-    from convert.euroc import convert_euroc as run
+    from uwbcal.convert.euroc import convert_euroc as run
 
     _output_file(output)
 
@@ -275,7 +275,7 @@ def convert_ntu_viral(
     ] = None,
 ) -> None:
     """Convert NTU-VIRAL (ROS1 bag or CSV sequence folder)."""
-    from convert.ntu_viral import convert_ntu_viral as run
+    from uwbcal.convert.ntu_viral import convert_ntu_viral as run
 
     _output_file(output)
 
@@ -305,7 +305,7 @@ def convert_tabular(
     ] = "bounded",
 ) -> None:
     """Convert any odometry (TUM) plus UWB ranges (CSV)."""
-    from convert.tabular import convert_tabular as run
+    from uwbcal.convert.tabular import convert_tabular as run
 
     _output_file(output)
 
@@ -333,7 +333,7 @@ def convert_bag(
     ] = None,
 ) -> None:
     """Convert any ROS 1 / ROS 2 bag (topics found by message type unless given)."""
-    from convert.bag import convert_bag as run
+    from uwbcal.convert.bag import convert_bag as run
 
     typer.echo(
         run(
@@ -357,8 +357,8 @@ def info(
     recording: Annotated[Path, typer.Argument(help="A .mcap recording, or a ROS bag (what would be mapped)")],
 ) -> None:
     """Topics, counts, rates, duration, calibration and problems found (of a bag: the topic map)."""
-    from convert.bag import bag_info, is_bag
-    from convert.info import recording_info
+    from uwbcal.convert.bag import bag_info, is_bag
+    from uwbcal.convert.info import recording_info
 
     if is_bag(recording):
         typer.echo(bag_info(recording))
@@ -378,8 +378,8 @@ def run(
     no_log: Annotated[bool, typer.Option("--no-log", help="Do not write run.rrd.")] = False,
 ) -> None:
     """Run the pipeline stages on a recording into a run directory."""
-    from evaluate.evaluation import evaluate_stage
-    from pipeline.run import run_cli
+    from uwbcal.evaluate.evaluation import evaluate_stage
+    from uwbcal.pipeline.run.stages.pipeline import run_cli
 
     typer.echo(
         run_cli(
@@ -403,7 +403,7 @@ def evaluate(
     fmt: Annotated[TableFormat, typer.Option("--format", help="Table format.")] = TableFormat.md,
 ) -> None:
     """Compute metrics.json and print the results table."""
-    from evaluate.evaluation import evaluate_run_cli
+    from uwbcal.evaluate.evaluation import evaluate_run_cli
 
     typer.echo(evaluate_run_cli(run_dir, align=align and align.value, fmt=fmt.value))
 
@@ -416,7 +416,7 @@ def export(
     fmt: Annotated[str, typer.Option("--format", help="tum, anchors-yaml or anchors-json.")] = "tum",
 ) -> None:
     """Export estimate.tum (+ groundtruth.tum at its stamps), or the anchors with covariance (yaml / json)."""
-    from evaluate.export import export_run
+    from uwbcal.evaluate.export import export_run
 
     typer.echo(export_run(run_dir, output, fmt=fmt))
 
@@ -439,7 +439,7 @@ def experiment(
     ] = None,
 ) -> None:
     """Run a Monte Carlo experiment (tables, plots, per-run metrics)."""
-    from evaluate.experiments import run_experiment
+    from uwbcal.evaluate.experiments import run_experiment
 
     params = dict(_key_value(p) for p in param or [])
     typer.echo(
@@ -464,7 +464,7 @@ def diff(
     rtol: Annotated[float, typer.Option(help="Relative tolerance.")] = 0.05,
 ) -> None:
     """Compare metrics; exit 1 when CURRENT regresses beyond tolerance."""
-    from evaluate.diff import diff_paths
+    from uwbcal.evaluate.diff import diff_paths
 
     report = diff_paths(baseline, current, rtol=rtol)
     typer.echo(report.render())
@@ -479,7 +479,7 @@ def view(
     web: Annotated[bool, typer.Option("--web", help="Serve the web viewer on localhost.")] = False,
 ) -> None:
     """Open run.rrd in the rerun viewer (several runs side by side)."""
-    from pipeline.runlog import view_runs
+    from uwbcal.pipeline.viz.runlog import view_runs
 
     view_runs(run_dirs, web=web)
 
@@ -496,7 +496,7 @@ def bench(
     ] = None,
 ) -> None:
     """Run the benchmarks (wall time, real-time factor, peak memory, ratio to baseline)."""
-    from benchmarks.runner import run_benchmarks
+    from uwbcal.benchmarks.runner import run_benchmarks
 
     typer.echo(run_benchmarks(output, cases=cases, quick=quick, against=against))
 

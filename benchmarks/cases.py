@@ -1,10 +1,9 @@
-"""Benchmark cases. Run one as ``python -m benchmarks.cases NAME [--quick]``: it prints one JSON line with its
+"""Benchmark cases. Run one as ``python -m uwbcal.benchmarks.cases NAME [--quick]``: it prints one JSON line with its
 own wall time, peak memory and the data seconds it processed. Add a case by registering a function here."""
 
 from __future__ import annotations
 
 import json
-import os
 import resource
 import sys
 import tempfile
@@ -12,6 +11,14 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+from uwbcal.benchmarks import convert_bag
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.convert.simulator import SimConfig, simulate_to_file
+from uwbcal.evaluate.evaluation import evaluate_stage
+from uwbcal.evaluate.experiments.table1 import experiment as _table1
+from uwbcal.pipeline.run.config import load_config
+from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
 
 @dataclass(frozen=True)
@@ -48,12 +55,10 @@ def _calibration_x2(work: Path, quick: bool) -> tuple[float | None, dict]:
 
 
 def _simulate_mh01(work: Path, quick: bool) -> tuple[float | None, dict]:
-    from convert.simulator import SimConfig, simulate_to_file
 
     duration = 30.0 if quick else None
     cfg = SimConfig(trajectory="MH_01_easy", duration=duration, seed=0)
     simulate_to_file(cfg, work / "mh01.mcap")
-    from convert.recording import RecordingReader
 
     topics = RecordingReader(work / "mh01.mcap").topics()
     info = topics["/imu"]
@@ -62,9 +67,8 @@ def _simulate_mh01(work: Path, quick: bool) -> tuple[float | None, dict]:
 
 def _convert_bag(work: Path, quick: bool) -> tuple[float | None, dict]:
     """Ours vs rosbags-convert on the same synthesised EuRoC-like bag (1 GB; 0.05 GB with --quick)."""
-    from .convert_bag import run
 
-    res = run(0.05 if quick else 1.0, work)
+    res = convert_bag.run(0.05 if quick else 1.0, work)
     return None, {
         "bag_gb": round(res["bag_bytes"] / 1e9, 3),
         "ours_s": res["uwbcal"]["wall_s"],
@@ -78,7 +82,6 @@ def _convert_bag(work: Path, quick: bool) -> tuple[float | None, dict]:
 
 
 def _simulate(work: Path, name: str, **kw) -> Path:
-    from convert.simulator import SimConfig, simulate_to_file
 
     rec = work / f"{name}.mcap"
     simulate_to_file(SimConfig(**kw), rec)
@@ -96,9 +99,6 @@ def _cpu_s() -> float:
 
 def _pipeline(rec: Path, out: Path, log: bool, stages: list[str] | None = None) -> float:
     """Run the pipeline on a recording; returns the timed seconds (simulation excluded)."""
-    from evaluate.evaluation import evaluate_stage
-    from pipeline.config import load_config
-    from pipeline.run import Pipeline
 
     over: dict = {"run": {"recording": str(rec), "log": log}}
     if stages:
@@ -123,7 +123,6 @@ def _vio_mh01(work: Path, quick: bool) -> tuple[float | None, dict]:
 
 
 def _span(rec: Path) -> float:
-    from convert.recording import RecordingReader
 
     a, b = RecordingReader(rec).time_span()
     return (b - a) * 1e-9
@@ -141,7 +140,6 @@ def _full_run(log: bool):
 
 def _table1_jobs(jobs: int):
     def case(work: Path, quick: bool) -> tuple[float | None, dict]:
-        from evaluate.experiments import _table1
 
         t0, c0 = time.perf_counter(), _cpu_s()
         _table1(work, 2, jobs, None, 0, trajectory=None, duration=30.0 if quick else 60.0)
@@ -184,7 +182,6 @@ CASES: dict[str, Case] = {
 
 
 def _main(argv: list[str]) -> int:
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     name = argv[0]
     quick = "--quick" in argv
     with tempfile.TemporaryDirectory(prefix=f"uwbcal-bench-{name}-") as tmp:

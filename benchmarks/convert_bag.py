@@ -1,6 +1,6 @@
 """Benchmark: convert a synthetic EuRoC-like ROS1 bag (752x480 mono8 stereo at 20 Hz, IMU at 200 Hz, Vicon) with
 ``uwbcal convert euroc`` and with ``rosbags-convert`` (ROS1 -> ROS2) in the same run; report wall time and peak
-memory of both. ``python -m benchmarks.convert_bag [--size-gb 1.0] [--keep DIR] [-o JSON]``.
+memory of both. ``python -m uwbcal.benchmarks.convert_bag [--size-gb 1.0] [--keep DIR] [-o JSON]``.
 
 `write_euroc_bag` is also used by the tests (small sizes) to build bags value by value.
 """
@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from uwbcal.pipeline.core.atomic import write_text_atomic
 
 T0_NS = 1_403_715_273_262_142_976
 W, H = 752, 480
@@ -215,7 +217,7 @@ def run(size_gb: float, work: Path) -> dict:
         [
             sys.executable,
             "-c",
-            "import sys; from convert.euroc import convert_euroc; "
+            "import sys; from uwbcal.convert.euroc import convert_euroc; "
             "print(convert_euroc(sys.argv[1], sys.argv[2]))",
             str(bag),
             str(work / "ours.mcap"),
@@ -270,8 +272,6 @@ def main(argv: list[str] | None = None) -> int:
     text = json.dumps(res, indent=2)
     print(text)
     if a.output:
-        from pipeline.core.atomic import write_text_atomic
-
         write_text_atomic(a.output, text + "\n")
     return 0 if res["uwbcal"]["exit"] == 0 else 1
 

@@ -13,13 +13,15 @@ import os
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from pipeline.core.atomic import write_text_atomic
-
-from .cases import CASES
+from uwbcal.benchmarks.cases import CASES
+from uwbcal.convert.datasets import data_root
+from uwbcal.pipeline.core.atomic import write_text_atomic
+from uwbcal.pipeline.core.errors import InputError
 
 
 @dataclass
@@ -38,18 +40,34 @@ class BenchResult:
     process_cpu_s: float | None = None  # the whole case process incl. its children (setup too)
 
 
+def _child_command(name: str, quick: bool, tree: Path | None, tmp: Path) -> tuple[list[str], dict]:
+    """The command (and environment) that runs one case, from this install or from another checkout ``tree``.
+
+    A checkout of the one-package layout (a root ``__init__.py``) is imported as ``uwbcal`` through a symlink
+    in ``tmp``; an older flat checkout by its top-level ``benchmarks`` package."""
+    flags = ["--quick"] if quick else []
+    env = dict(os.environ)
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")  # many small matrices: BLAS threads only cost
+    if tree is None:
+        return [sys.executable, "-m", "uwbcal.benchmarks.cases", name, *flags], env
+    env.setdefault("UWBCAL_DATA", str(data_root()))  # the other tree's ../shared/data may not exist
+    if (tree / "__init__.py").is_file():
+        (tmp / "uwbcal").symlink_to(tree, target_is_directory=True)
+        path, module = tmp, "uwbcal.benchmarks.cases"
+    else:
+        path, module = tree, "benchmarks.cases"
+    env["PYTHONPATH"] = os.pathsep.join([str(path)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    return [sys.executable, "-m", module, name, *flags], env
+
+
 def _run_in_child(name: str, quick: bool, tree: Path | None = None) -> BenchResult:
     """Run one case in a child process; ``tree``: import uwbcal from that checkout instead of this one."""
-    cmd = [sys.executable, "-m", "benchmarks.cases", name] + (["--quick"] if quick else [])
-    env = None
-    if tree is not None:
-        from convert.datasets import data_root
+    with tempfile.TemporaryDirectory(prefix="uwbcal-bench-") as tmp:
+        cmd, env = _child_command(name, quick, tree, Path(tmp))
+        return _measure_child(name, cmd, env, tree)
 
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(
-            [str(tree)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
-        )
-        env.setdefault("UWBCAL_DATA", str(data_root()))  # the other tree's ../shared/data may not exist
+
+def _measure_child(name: str, cmd: list[str], env: dict | None, tree: Path | None) -> BenchResult:
     c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tree, env=env)
@@ -92,7 +110,6 @@ def _cases_of(tree: Path) -> set[str]:
 
 
 def _check_tree(tree: Path) -> Path:
-    from pipeline.core.errors import InputError
 
     tree = Path(tree).resolve()
     if not (tree / "benchmarks" / "cases.py").is_file():
@@ -103,7 +120,6 @@ def _check_tree(tree: Path) -> Path:
 def run_benchmarks(
     output: Path | None, cases: str | None = None, quick: bool = False, against: Path | None = None
 ) -> str:
-    from pipeline.core.errors import InputError
 
     names = [c.strip() for c in cases.split(",")] if cases else list(CASES)
     unknown = [n for n in names if n not in CASES]

@@ -1,6 +1,6 @@
 """Wall time of `uwbcal simulate` on the whole of EuRoC MH_01_easy (182 s; target < 15 s).
 
-    uv run python -m benchmarks.simulate_mh01 [--seed 0] [--repeat 3]
+    uv run python -m uwbcal.benchmarks.simulate_mh01 [--seed 0] [--repeat 3]
 
 Prints the time of generation (arrays) and of writing the recording, and the features per frame.
 """
@@ -13,15 +13,15 @@ import tempfile
 import time
 from pathlib import Path
 
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.convert.simulator import SimConfig, simulate, simulate_to_file, write_recording
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
-
-    from convert.recording import RecordingReader
-    from convert.simulator import SimConfig, simulate, simulate_to_file, write_recording
 
     cfg = SimConfig(trajectory="MH_01_easy", seed=args.seed)
     runs = []

@@ -1,104 +1,36 @@
 """MSCKF on simulated EuRoC MH_01_easy: accuracy (posyaw-aligned RMSE), speed (real-time factor, ms per camera
 update) and consistency (ANEES over Monte Carlo runs, FEJ vs no FEJ).
 
-    uv run python -m benchmarks.vio_mh01 --seeds 10                    # accuracy + speed, full 182 s
-    uv run python -m benchmarks.vio_mh01 --nees-runs 25 --duration 40  # consistency, FEJ and no FEJ
+    uv run python -m uwbcal.benchmarks.vio_mh01 --seeds 10                    # accuracy + speed, full 182 s
+    uv run python -m uwbcal.benchmarks.vio_mh01 --nees-runs 25 --duration 40  # consistency, FEJ and no FEJ
 
-Uses `convert.simulator` (the project's simulator) when present, otherwise a small local simulator driven by the
-EuRoC ground truth (spline-smoothed, landmarks on the walls of a box around the trajectory).
 """
 
 from __future__ import annotations
 
-import os
+import argparse
+import json
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # many small matrices: threads only cost
+import numpy as np
+from scipy.stats import chi2
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from concurrent.futures import ProcessPoolExecutor  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
-from scipy.stats import chi2  # noqa: E402
-
-
-def _local_simulate(path: Path, seed: int, duration: float | None) -> None:
-    from scipy.interpolate import CubicSpline
-
-    from convert.datasets import data_root
-    from convert.euroc import EUROC_CAMERAS, EUROC_IMU
-    from convert.recording import META_CALIBRATION, META_TRUTH, RecordingWriter
-    from pipeline.camera import Camera
-    from pipeline.core.geometry import log_so3, quat_to_rot, rot_to_quat
-    from pipeline.imu import GRAVITY
-
-    gt = np.loadtxt(data_root() / "euroc" / "groundtruth" / "MH_01_easy.txt")
-    tg = gt[:, 0] - gt[0, 0]
-    q = gt[:, 4:8].copy()
-    q[np.cumsum(np.r_[0, (np.sum(q[1:] * q[:-1], 1) < 0)]) % 2 == 1] *= -1
-    # smooth the GT a little (it is measured) so that the simulated IMU is plausible
-    k = np.ones(9) / 9
-
-    def sm(a: np.ndarray) -> np.ndarray:
-        return np.stack(
-            [np.convolve(np.pad(a[:, j], 4, mode="edge"), k, "valid") for j in range(a.shape[1])], 1
-        )
-
-    ps, qs = CubicSpline(tg, sm(gt[:, 1:4])), CubicSpline(tg, sm(q))
-    rng = np.random.default_rng(seed)
-    dt = 0.005
-    T = min(duration or tg[-1], tg[-1] - 0.1)
-    t = np.arange(0.05, T, dt)
-    t_ns = (t * 1e9).round().astype(np.int64) + 1_000_000_000
-    R = quat_to_rot(qs(t))
-    h = 1e-4
-    wB = log_so3(np.swapaxes(quat_to_rot(qs(t - h)), 1, 2) @ quat_to_rot(qs(t + h))) / (2 * h)
-    aB = np.einsum("kji,kj->ki", R, ps(t, 2) - GRAVITY)
-    cal = dict(EUROC_IMU)
-    n = len(t)
-    bg0, ba0 = rng.normal(0, 2e-3, 3), rng.normal(0, 2e-2, 3)
-    bg = bg0 + np.cumsum(rng.normal(0, cal["gyroscope_random_walk"] * np.sqrt(dt), (n, 3)), 0)
-    ba = ba0 + np.cumsum(rng.normal(0, cal["accelerometer_random_walk"] * np.sqrt(dt), (n, 3)), 0)
-    gyro = wB + bg + rng.normal(0, cal["gyroscope_noise_density"] / np.sqrt(dt), (n, 3))
-    acc = aB + ba + rng.normal(0, cal["accelerometer_noise_density"] / np.sqrt(dt), (n, 3))
-    p = ps(t)
-    lo, hi = p.min(0) - [6, 6, 1.5], p.max(0) + [6, 6, 4]
-    nl = 3000
-    L = rng.uniform(lo, hi, (nl, 3))
-    face = rng.integers(0, 6, nl)
-    L[np.arange(nl), face % 3] = np.where(face < 3, lo[face % 3], hi[face % 3])
-    cam = Camera.from_calibration({"cameras": EUROC_CAMERAS})
-    with RecordingWriter(path) as w:
-        w.set_metadata(META_CALIBRATION, {"imu": cal, "cameras": {"cam0": EUROC_CAMERAS["cam0"]}})
-        w.set_metadata(
-            META_TRUTH, {"imu": {"gyro_bias": bg0.tolist(), "accel_bias": ba0.tolist()}, "seed": seed}
-        )
-        w.write_imu_batch(t_ns, gyro, acc)
-        w.write_pose_batch(t_ns, p, rot_to_quat(R))
-        for i in range(0, n, 10):
-            Rc, pc = R[i] @ cam.R_imu_cam, p[i] + R[i] @ cam.p_imu_cam
-            P = (L - pc) @ Rc
-            vis = np.flatnonzero(P[:, 2] > 0.3)
-            uv = cam.project(P[vis])
-            inside = (uv[:, 0] > 5) & (uv[:, 0] < 747) & (uv[:, 1] > 5) & (uv[:, 1] < 475)
-            ids, uv = vis[inside][:200], uv[inside][:200]
-            w.write_features(int(t_ns[i]) + 1, ids, uv + rng.normal(0, 1.0, uv.shape))
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.convert.simulator import SimConfig, simulate_to_file
+from uwbcal.pipeline.core.geometry import log_so3, quat_slerp, quat_to_rot
+from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.vio.msckf import MsckfEstimator, VioConfig
 
 
 def simulate(path: Path, seed: int, duration: float | None) -> str:
-    try:
-        from convert.simulator import SimConfig, simulate_to_file
-    except ImportError:
-        _local_simulate(path, seed, duration)
-        return "local"
     kw = {"trajectory": "MH_01_easy", "seed": seed}
     if duration:
         kw["duration"] = duration
     simulate_to_file(SimConfig(**kw), path)
-    return "convert.simulator"
+    return "uwbcal.convert.simulator"
 
 
 def posyaw_align(p_est: np.ndarray, p_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -114,10 +46,6 @@ def posyaw_align(p_est: np.ndarray, p_gt: np.ndarray) -> tuple[np.ndarray, np.nd
 
 def run_one(args: tuple[int, bool, float | None, str]) -> dict:
     seed, fej, duration, workdir = args
-    from convert.recording import RecordingReader
-    from pipeline.core.geometry import log_so3, quat_slerp, quat_to_rot
-    from pipeline.driver import run_estimator
-    from pipeline.msckf import MsckfEstimator, VioConfig
 
     path = Path(workdir) / f"mh01_{seed}_{duration}.mcap"
     sim = "cached"

@@ -21,9 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-
-from .sources import read_csv_strings, sha256_file, to_float, to_int
+from uwbcal.convert.sources import read_csv_strings, sha256_file, to_float, to_int
+from uwbcal.pipeline.core.errors import InputError
 
 TRUTH_KINDS = ("surveyed", "published", "simulated")
 POSE_FRAMES = ("odometry", "world")  # anchor truth expressed in the recording's own pose frame

@@ -28,11 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-from pipeline.core.progress import progress
-
-from . import uwb_msgs
-from .recording import (
+from uwbcal.convert import uwb_msgs
+from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
     TOPIC_CAM0,
@@ -47,7 +44,7 @@ from .recording import (
     RecordingWriter,
     written_by_uwbcal,
 )
-from .sources import (
+from uwbcal.convert.sources import (
     MAX_RANGE_M,
     Drops,
     Hasher,
@@ -61,6 +58,8 @@ from .sources import (
     uwb_calibration,
     write_ranges,
 )
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.progress import progress
 
 IMU_TYPES = ("sensor_msgs/msg/Imu",)
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")

@@ -16,11 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-from pipeline.core.progress import progress
-
-from . import msgs, ros1_wire
-from .recording import (
+from uwbcal.convert import msgs, ros1_wire
+from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
     TOPIC_CAM0,
@@ -31,7 +28,7 @@ from .recording import (
     TOPIC_IMU,
     RecordingWriter,
 )
-from .sources import (
+from uwbcal.convert.sources import (
     BagRoute,
     Drop,
     Drops,
@@ -49,6 +46,9 @@ from .sources import (
     to_float,
     to_int,
 )
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import quat_to_rot, rot_to_quat
+from uwbcal.pipeline.core.progress import progress
 
 CAM_TOPICS = {"cam0": TOPIC_CAM0, "cam1": TOPIC_CAM1}
 DISTORTION_MODELS = {"radial-tangential": "radtan", "radtan": "radtan", "equidistant": "equidistant"}
@@ -231,7 +231,6 @@ def read_groundtruth_biases(path: Path) -> ImuTable | None:
 
 def groundtruth_in_imu_frame(gt: PoseTable, T_B_imu: np.ndarray) -> PoseTable:
     """Body-frame poses T_W_B -> IMU-frame poses T_W_imu = T_W_B T_B_imu (the recording's poses are the IMU's)."""
-    from pipeline.core.geometry import quat_to_rot, rot_to_quat
 
     R = quat_to_rot(gt.q_xyzw)
     p = gt.p + R @ T_B_imu[:3, 3]

@@ -24,11 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-from pipeline.core.gravity import fit_gravity
-from pipeline.core.series import sliding_mean
-
-from .recording import (
+from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
     META_TRUTH,
@@ -39,24 +35,30 @@ from .recording import (
     TOPIC_RANGE,
     RecordingReader,
 )
-from .simulator import (
+from uwbcal.convert.simulator import (
     GroundTruthSim,
     ImuSim,
     SimConfig,
     SimData,
     camera_model,
+    rel_seconds,
     simulate_world,
     uwb_calibration,
     world_truth,
+    write_recording,
 )
-from .trajectory import SplineTrajectory
+from uwbcal.convert.sources import sha256_file
+from uwbcal.convert.trajectory import SplineTrajectory
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import quat_to_rot
+from uwbcal.pipeline.core.gravity import fit_gravity
+from uwbcal.pipeline.core.series import sliding_mean
 
 HYBRID_KNOT_DT = 0.05  # spline knots [s]: 20 Hz resolves a MAV's motion; equal to EuRoC V1_01's GT interval
 
 
 def _gt_imu_frame(reader: RecordingReader) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t_ns, p, q_xyzw) of the IMU frame from /groundtruth/pose and the calibration's ground-truth lever arm."""
-    from pipeline.core.geometry import quat_to_rot
 
     gt = reader.read_poses(TOPIC_GT_POSE)
     lever = np.asarray(reader.calibration.get("groundtruth", {}).get("lever_arm", [0.0, 0.0, 0.0]), float)
@@ -95,7 +97,6 @@ def imu_agreement(
     bias removed) and the one the trajectory's motion predicts, median and 90th percentile [deg], and the rms
     norm of the gyro's residual [rad/s]. ``gravity``: its magnitude (along -z of the trajectory's frame) or the
     vector in that frame (`pipeline.core.gravity.fit_gravity`: a motion-capture frame is not level)."""
-    from .simulator import rel_seconds
 
     g_w = np.array([0.0, 0.0, -gravity]) if np.ndim(gravity) == 0 else np.asarray(gravity, float)
     s = traj.evaluate(rel_seconds(traj, imu.t_ns))
@@ -130,7 +131,6 @@ def groundtruth_level(
 def hybrid_simulate(source: str | Path, cfg: SimConfig, knot_dt: float = HYBRID_KNOT_DT) -> SimData:
     """The hybrid recording's streams as arrays: real IMU and ground truth of ``source``, simulated tracks and
     ranges along its ground truth (``cfg``: the simulator's settings; its IMU and trajectory settings unused)."""
-    from .sources import sha256_file
 
     source = Path(source)
     reader = RecordingReader(source)
@@ -247,7 +247,6 @@ def hybrid_simulate(source: str | Path, cfg: SimConfig, knot_dt: float = HYBRID_
 
 def hybrid_to_file(source: str | Path, cfg: SimConfig, output: str | Path) -> str:
     """Write the hybrid recording; returns a short human-readable summary."""
-    from .simulator import write_recording
 
     data = hybrid_simulate(source, cfg)
     counts = write_recording(data, output)

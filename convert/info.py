@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .msgs import FEATURE_TRACKS, IMAGE, IMU, ODOMETRY, POINT_STAMPED, POSE_STAMPED, UWB_RANGE
-from .recording import RecordingReader, TopicInfo, schema_mismatches
+from uwbcal.convert.msgs import FEATURE_TRACKS, IMAGE, IMU, ODOMETRY, POINT_STAMPED, POSE_STAMPED, UWB_RANGE
+from uwbcal.convert.recording import RecordingReader, TopicInfo, schema_mismatches
 
 ABSURD = 1e6  # no position [m], rate, acceleration or range in a recording is this large
 GAP_FACTOR = 5.0  # a gap is a step longer than this many median periods

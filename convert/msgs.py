@@ -16,7 +16,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from pipeline.core.errors import InputError
+from uwbcal.pipeline.core.errors import InputError
 
 UWB_RANGE = "uwbcal_msgs/msg/UwbRange"
 FEATURE_TRACKS = "uwbcal_msgs/msg/FeatureTracks"

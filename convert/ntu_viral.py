@@ -16,13 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-from pipeline.core.progress import progress
-
-from . import msgs
-from .anchor_truth import find_published_anchors, read_anchor_truth, truth_note, truth_record
-from .euroc import StampCheck, header_time, passthrough
-from .recording import (
+from uwbcal.convert import msgs
+from uwbcal.convert.anchor_truth import find_published_anchors, read_anchor_truth, truth_note, truth_record
+from uwbcal.convert.euroc import StampCheck, header_time, passthrough
+from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
     META_TRUTH,
@@ -34,7 +31,7 @@ from .recording import (
     TOPIC_RANGE,
     RecordingWriter,
 )
-from .sources import (
+from uwbcal.convert.sources import (
     MAX_RANGE_M,
     BagRoute,
     Drop,
@@ -57,6 +54,8 @@ from .sources import (
     uwb_calibration,
     write_ranges,
 )
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.progress import progress
 
 UWB_RANGE_ROS1 = "uwb_driver/msg/UwbRange"
 # ntu-aris/uwb_driver msg/UwbRange.msg (ROS1 md5 1065ab177c929b8c39cb8fde961d3e9e)

@@ -29,9 +29,11 @@ from mcap.records import Channel as McapChannel
 from mcap.records import Metadata as McapMetadata
 from mcap.records import Schema as McapSchema
 
-from pipeline.core.atomic import discard, finish, prepare_output_file, temp_path
-from pipeline.core.errors import InputError
-from pipeline.core.topics import (  # noqa: F401  (re-exported: the recording format names its topics)
+from uwbcal.convert import msgs
+from uwbcal.convert.mcap_chunks import PipelinedWriter
+from uwbcal.pipeline.core.atomic import discard, finish, prepare_output_file, temp_path
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.topics import (  # noqa: F401  (re-exported: the recording format names its topics)
     TOPIC_CAM0,
     TOPIC_CAM1,
     TOPIC_FEATURES,
@@ -43,9 +45,6 @@ from pipeline.core.topics import (  # noqa: F401  (re-exported: the recording fo
     TOPIC_RANGE,
     TOPIC_VIO,
 )
-
-from . import msgs
-from .mcap_chunks import PipelinedWriter
 
 META_CALIBRATION = "uwbcal.calibration"
 META_SOURCE = "uwbcal.source"

@@ -34,9 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-
-from .simulator import SimConfig, SimData, simulate, simulate_to_file, stream
+from uwbcal.convert.simulator import SimConfig, SimData, simulate, simulate_to_file, stream
+from uwbcal.pipeline.core.errors import InputError
 
 ODOMETRY_RATE = 20.0
 

@@ -24,11 +24,22 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import rot_to_quat
-
-from .euroc import EUROC_CAMERAS
-from .trajectory import SplineTrajectory, load_trajectory
+from uwbcal.convert.euroc import EUROC_CAMERAS
+from uwbcal.convert.recording import (
+    META_CALIBRATION,
+    META_SOURCE,
+    META_TRUTH,
+    TOPIC_GT_IMU_BIAS,
+    TOPIC_GT_POSE,
+    TOPIC_ODOM,
+    RecordingWriter,
+)
+from uwbcal.convert.sources import converter_name, sha256_file
+from uwbcal.convert.trajectory import SplineTrajectory, load_trajectory
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import compose, exp_so3, relative, rot_to_quat
+from uwbcal.pipeline.core.noise import NOISE_KEYS, OdometryFilterConfig, increment_noise
+from uwbcal.pipeline.core.progress import progress
 
 NS = 1_000_000_000
 PROBE_DENSITY = 4.0  # landmarks / m^2 for probing how many are visible
@@ -444,7 +455,6 @@ def default_anchors(lo: np.ndarray, hi: np.ndarray, n: int) -> np.ndarray:
 def odometry_noise(scale: float = 1.0) -> dict[str, float]:
     """The odometry filter's default drift sigmas (`NOISE_KEYS`) times ``scale``: what the simulated odometry
     follows and declares in its calibration (``odometry.noise``)."""
-    from pipeline.core.noise import NOISE_KEYS, OdometryFilterConfig
 
     c = OdometryFilterConfig()
     return {k: float(getattr(c, k)) * scale for k in NOISE_KEYS}
@@ -456,8 +466,6 @@ def simulate_odometry(
     """Odometry that drifts as the odometry filter's drift model assumes: the first pose is off by a draw of its
     initial covariance, every increment T_k-1^-1 T_k by a draw of `increment_noise` (dR = dR_hat Exp(n_theta),
     dp = dp_hat + n_p), composed like dead reckoning."""
-    from pipeline.core.geometry import compose, exp_so3, relative
-    from pipeline.core.noise import OdometryFilterConfig, increment_noise
 
     c = OdometryFilterConfig().model_copy(update=odometry_noise(scale))  # unvalidated: scale 0 is the truth
     s = traj.evaluate(rel_seconds(traj, t_ns))
@@ -487,7 +495,6 @@ def simulate_bounded_odometry(
     """Poses with a bounded error, as the odometry filter's bounded model assumes: world-frame attitude and
     position errors e_k = phi e_(k-1) + sqrt(1 - phi^2) sigma z_k (phi = exp(-dt / tau), stationary from the
     first pose), R_hat = Exp(-e_theta) R, p_hat = p - e_p (so the filter's [dtheta_body, dp] = [R^T e_theta, e_p])."""
-    from pipeline.core.geometry import exp_so3
 
     s = traj.evaluate(rel_seconds(traj, t_ns))
     n = len(t_ns)
@@ -736,8 +743,6 @@ def world_truth(data: SimData, duration: float) -> dict:
 
 
 def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
-    from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH
-    from .sources import converter_name, sha256_file
 
     cfg, traj = data.config, data.trajectory
     calibration = {
@@ -789,7 +794,6 @@ def _metadata(data: SimData, cam: dict, duration: float) -> dict[str, dict]:
 # file output
 # ---------------------------------------------------------------------------------------------------------------
 def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str, int]:
-    from .recording import TOPIC_GT_IMU_BIAS, TOPIC_GT_POSE, TOPIC_ODOM, RecordingWriter
 
     with RecordingWriter(output) as w:
         w.write_imu_batch(data.imu.t_ns, data.imu.gyro, data.imu.acc)
@@ -820,7 +824,6 @@ def write_recording(data: SimData, output: str | Path, advance=None) -> dict[str
 
 def simulate_to_file(cfg: SimConfig, output: str | Path) -> str:
     """Simulate and write the recording; returns a short human-readable summary."""
-    from pipeline.core.progress import progress
 
     with progress("simulating camera", None) as advance:
         data = simulate(cfg, advance=advance)

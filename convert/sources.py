@@ -19,11 +19,10 @@ import numpy as np
 import yaml
 from rosbags.serde import SerdeError
 
-from pipeline.core.errors import InputError
-from pipeline.core.progress import progress
-
-from . import ros1_wire
-from .recording import RangeData
+from uwbcal.convert import ros1_wire
+from uwbcal.convert.recording import RangeData
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.progress import progress
 
 if TYPE_CHECKING:
     import polars as pl

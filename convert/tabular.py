@@ -12,13 +12,18 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-from pipeline.core.progress import progress
-
-from .anchor_truth import read_anchor_truth, truth_note, truth_record
-from .attitude_check import planar_attitude_note
-from .recording import META_CALIBRATION, META_SOURCE, META_TRUTH, TOPIC_ODOM, TOPIC_RANGE, RecordingWriter
-from .sources import (
+from uwbcal.convert.anchor_truth import read_anchor_truth, truth_note, truth_record
+from uwbcal.convert.attitude_check import planar_attitude_note
+from uwbcal.convert.ntu_viral import find_antennas, uwb_section
+from uwbcal.convert.recording import (
+    META_CALIBRATION,
+    META_SOURCE,
+    META_TRUTH,
+    TOPIC_ODOM,
+    TOPIC_RANGE,
+    RecordingWriter,
+)
+from uwbcal.convert.sources import (
     MAX_RANGE_M,
     Drops,
     Hasher,
@@ -34,6 +39,8 @@ from .sources import (
     summary,
     write_ranges,
 )
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.progress import progress
 
 MAX_POSITION_M = 1e5  # a pose farther than 100 km from the origin is a unit error or garbage
 
@@ -62,7 +69,6 @@ def convert_tabular(
     """
     if pose_error not in ("bounded", "drift"):
         raise InputError(f"--pose-error {pose_error!r}: expected bounded or drift")
-    from .ntu_viral import find_antennas, uwb_section
 
     poses, ranges = Path(poses), Path(ranges)
     drops = Drops()

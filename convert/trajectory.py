@@ -24,10 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import exp_so3, log_so3, quat_slerp, quat_to_rot, rot_to_quat
-
-from .datasets import data_root
+from uwbcal.convert.datasets import data_root
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import exp_so3, log_so3, quat_slerp, quat_to_rot, rot_to_quat
 
 DEFAULT_NAME = "default"
 DEFAULT_KNOT_DT = 0.1

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.core.errors import InputError
+from uwbcal.pipeline.core.errors import InputError
 
 METHODS = ("none", "posyaw", "se3", "sim3")
 

@@ -29,14 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
-from convert.anchor_truth import POSE_FRAMES
-from convert.datasets import data_root
-from convert.recording import RecordingReader
-from pipeline.core.errors import InputError
-from pipeline.rundir import corrupt, read_json
-
-from .consistency import anchor_nees, chi2_bounds
-from .metrics import anchor_errors, inter_anchor_distance_errors
+from uwbcal.convert.anchor_truth import POSE_FRAMES
+from uwbcal.convert.datasets import data_root
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.evaluate.consistency import anchor_nees, chi2_bounds
+from uwbcal.evaluate.metrics import anchor_errors, inter_anchor_distance_errors
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run.rundir import corrupt, read_json
 
 
 @dataclass

@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from pipeline.core.atomic import write_text_atomic
-from pipeline.core.errors import InputError
+from uwbcal.pipeline.core.atomic import write_text_atomic
+from uwbcal.pipeline.core.errors import InputError
 
 STATES = "anchor_states.json"
 MODEL = "d = beta * |p_anchor - p_tag| + gamma (+ noise)"

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import quat_slerp, quat_to_rot
-from pipeline.core.series import bracket
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import quat_slerp, quat_to_rot
+from uwbcal.pipeline.core.series import bracket
 
 # A gap in the ground truth longer than this many median sampling intervals is not interpolated across.
 AUTO_GAP_FACTOR = 10

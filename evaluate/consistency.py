@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core.geometry import log_so3
-from pipeline.state import chi2_quantile
+from uwbcal.pipeline.core.geometry import log_so3
+from uwbcal.pipeline.core.state import chi2_quantile
 
 
 def nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:

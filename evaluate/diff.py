@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.core.errors import InputError
+from uwbcal.pipeline.core.errors import InputError
 
 ATOL = 1e-9
 ERROR_WORDS = ("rmse", "error", "err", "deviation")

@@ -15,25 +15,25 @@ from typing import TYPE_CHECKING
 import numpy as np
 import polars as pl
 
-from convert.recording import RecordingReader
-from pipeline.core.atomic import write_text_atomic
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import quat_to_rot
-from pipeline.real_imu import imu_is_real
-from pipeline.rundir import read_json
-
-from .align import Alignment
-from .align import align as fit_alignment
-from .anchor_report import aligned_anchors, anchor_metrics, read_run_anchors, reference_anchors
-from .consistency import pose_nees, summarize_nees
-from .export import compare, load_ground_truth, load_run_trajectory, run_recording_path
-from .gravity import level_truth
-from .metrics import ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
-from .quality import range_quality
-from .tables import render
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.evaluate.align import Alignment
+from uwbcal.evaluate.align import align as fit_alignment
+from uwbcal.evaluate.anchor_report import aligned_anchors, anchor_metrics, read_run_anchors, reference_anchors
+from uwbcal.evaluate.consistency import chi2_bounds, pose_nees, summarize_nees
+from uwbcal.evaluate.export import compare, load_ground_truth, load_run_trajectory, run_recording_path
+from uwbcal.evaluate.gravity import level_truth
+from uwbcal.evaluate.metrics import ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
+from uwbcal.evaluate.quality import range_quality
+from uwbcal.evaluate.tables import render
+from uwbcal.pipeline.core.atomic import write_text_atomic
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import quat_to_rot
+from uwbcal.pipeline.run.real_imu import imu_is_real
+from uwbcal.pipeline.run.rundir import read_json
+from uwbcal.pipeline.viz import runlog as rl
 
 if TYPE_CHECKING:
-    from pipeline.runlog import RunLog
+    from uwbcal.pipeline.viz.runlog import RunLog
 
 SEGMENT_NAMES = ("init", "refine", "localize")
 
@@ -170,7 +170,9 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
                         f"anchor {aid} not determined: {anchors[aid].get('reason', '')}"
                     )
         states_path = run_dir / "anchor_states.json"
-        if states_path.is_file():  # heights flagged at init that refinement regained (pipeline/height_regain)
+        if (
+            states_path.is_file()
+        ):  # heights flagged at init that refinement regained (pipeline/uwb/height_regain)
             for aid, s in read_json(states_path).items():
                 if aid in anchors and isinstance(s, dict) and s.get("height_regained"):
                     v = dict(anchors[aid].get("verdict") or {})
@@ -285,9 +287,6 @@ def evaluate_run_cli(
 def evaluate_stage(run_dir: Path, align: str | None, open_log: Callable[[], RunLog]) -> str:
     """The pipeline's `evaluate` stage (handed to `Pipeline(..., evaluator=)`): metrics.json and results.md, and
     the pose NEES over time with its chi-square bounds in the stage's rerun log."""
-    from pipeline import runlog as rl
-
-    from .consistency import chi2_bounds
 
     series: dict = {}
     text = evaluate_run_cli(run_dir, align=align, series=series)

@@ -16,10 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.atomic import write_text_atomic
-from pipeline.core.errors import InputError
-
-from .association import Association, associate, lever_point
+from uwbcal.convert.recording import TOPIC_GT_POSE, TOPIC_GT_POSITION, RecordingReader
+from uwbcal.evaluate.anchors_export import export_anchors
+from uwbcal.evaluate.association import Association, associate, lever_point
+from uwbcal.pipeline.core.atomic import write_text_atomic
+from uwbcal.pipeline.core.errors import InputError
 
 TRAJECTORY = "trajectory.npz"
 VIO_TRAJECTORY = "vio.npz"
@@ -111,7 +112,6 @@ def run_recording_path(run_dir: str | Path) -> Path:
 def load_ground_truth(recording: str | Path) -> GroundTruth:
     """Ground truth of a recording: ``/groundtruth/pose`` if present, else ``/groundtruth/position``, with the
     lever arm from ``calibration["groundtruth"]["lever_arm"]`` (zero when absent)."""
-    from convert.recording import TOPIC_GT_POSE, TOPIC_GT_POSITION, RecordingReader
 
     reader = RecordingReader(recording)
     topics = reader.topics()
@@ -213,8 +213,6 @@ def export_run(run_dir: str | Path, output: str | Path, fmt: str = "tum") -> str
             "give a directory path"
         )
     if fmt != "tum":
-        from .anchors_export import export_anchors
-
         return export_anchors(run_dir, output, fmt)
     tr = load_run_trajectory(run_dir)
     try:

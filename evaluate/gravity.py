@@ -15,21 +15,20 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.core.geometry import quat_to_rot
-from pipeline.core.gravity import GravityFit, fit_gravity
+from uwbcal.convert.recording import TOPIC_GT_IMU_BIAS, TOPIC_IMU
+from uwbcal.pipeline.core.geometry import quat_to_rot
+from uwbcal.pipeline.core.gravity import GravityFit, fit_gravity
 
 if TYPE_CHECKING:
-    from convert.recording import RecordingReader
-
-    from .anchor_report import AnchorReference
-    from .export import GroundTruth
+    from uwbcal.convert.recording import RecordingReader
+    from uwbcal.evaluate.anchor_report import AnchorReference
+    from uwbcal.evaluate.export import GroundTruth
 
 
 def recording_gravity(reader: RecordingReader, gt: GroundTruth) -> GravityFit | None:
     """`fit_gravity` on a recording: its ``/imu`` against the ground-truth poses ``gt`` (moved from the
     ground-truth point to the IMU by the lever arm), with ``/groundtruth/imu_bias`` when the recording has it.
     None without an IMU or ground-truth orientations."""
-    from convert.recording import TOPIC_GT_IMU_BIAS, TOPIC_IMU
 
     topics = reader.topics()
     if gt.q_xyzw is None or TOPIC_IMU not in topics or len(gt.t_ns) < 4:

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.core.geometry import log_so3
-from pipeline.core.names import SEGMENT_IDS
+from uwbcal.pipeline.core.geometry import log_so3
+from uwbcal.pipeline.core.names import SEGMENT_IDS
 
 
 def position_errors(p_est: np.ndarray, p_gt: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from pipeline.core.atomic import atomic_path
+from uwbcal.pipeline.core.atomic import atomic_path
 
 DPI = 120
 # one colour per initialiser / refinement across all plots

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from convert.recording import TOPIC_RANGE
-from pipeline.core.geometry import quat_to_rot
-from pipeline.uwb_filter import range_lever_arms
+from uwbcal.convert.recording import TOPIC_RANGE
+from uwbcal.pipeline.core.geometry import quat_to_rot
+from uwbcal.pipeline.uwb.updater import range_lever_arms
 
 MIN_RANGES = 10  # fewer ranges of an anchor: no verdict
 BIAS_SIGMAS = 3.0  # |median residual| > max(3 sigma_range, BIAS_FLOOR_M): biased

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import polars as pl
 
-from pipeline.core.atomic import write_text_atomic
-from pipeline.core.errors import InputError
+from uwbcal.pipeline.core.atomic import write_text_atomic
+from uwbcal.pipeline.core.errors import InputError
 
 FORMATS = {"md": ".md", "csv": ".csv", "latex": ".tex"}
 

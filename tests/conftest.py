@@ -3,7 +3,7 @@ from pathlib import Path
 
 import pytest
 
-from convert.datasets import data_root
+from uwbcal.convert.datasets import data_root
 
 _FALSY = {"", "0", "false", "no", "off"}
 
@@ -36,7 +36,7 @@ def data_dir() -> Path:
 @pytest.fixture(scope="session")
 def euroc_micro(data_dir, tmp_path_factory) -> tuple[Path, str]:
     """EuRoC V1_01_micro (with the V1_01_easy.csv ground truth) converted once per session: (mcap, summary)."""
-    from convert.euroc import convert_euroc
+    from uwbcal.convert.euroc import convert_euroc
 
     out = tmp_path_factory.mktemp("euroc_micro") / "v101.mcap"
     text = convert_euroc(
@@ -48,7 +48,7 @@ def euroc_micro(data_dir, tmp_path_factory) -> tuple[Path, str]:
 @pytest.fixture(scope="session")
 def eee_01(data_dir, tmp_path_factory) -> tuple[Path, str]:
     """NTU-VIRAL eee_01 (CSV sequence folder) converted once per session: (mcap, summary)."""
-    from convert.ntu_viral import convert_ntu_viral
+    from uwbcal.convert.ntu_viral import convert_ntu_viral
 
     out = tmp_path_factory.mktemp("eee_01") / "eee_01.mcap"
     return out, convert_ntu_viral(data_dir / "ntu_viral" / "eee_01", out)
@@ -57,7 +57,7 @@ def eee_01(data_dir, tmp_path_factory) -> tuple[Path, str]:
 @pytest.fixture(scope="session")
 def sim_recording(tmp_path_factory) -> Path:
     """A 45 s simulation (camera, IMU, 4 anchors, ground truth), written once per session."""
-    from convert.simulator import SimConfig, simulate_to_file
+    from uwbcal.convert.simulator import SimConfig, simulate_to_file
 
     rec = tmp_path_factory.mktemp("sim") / "sim.mcap"
     simulate_to_file(SimConfig(duration=45.0, seed=3), rec)
@@ -70,7 +70,7 @@ def sim_run(sim_recording, tmp_path_factory) -> Path:
     re-runs stages into it works on a copy (`shutil.copytree`)."""
     from typer.testing import CliRunner
 
-    from cli import app
+    from uwbcal.cli import app
 
     out = tmp_path_factory.mktemp("run") / "run"
     res = CliRunner().invoke(
@@ -85,7 +85,7 @@ def demo_run(tmp_path_factory) -> tuple[Path, str]:
     """`uwbcal demo` (the built-in 120 s trajectory, every stage), once per session: (run dir, its output)."""
     from typer.testing import CliRunner
 
-    from cli import app
+    from uwbcal.cli import app
 
     out = tmp_path_factory.mktemp("demo") / "demo"
     res = CliRunner().invoke(app, ["demo", "-o", str(out)])

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convert.recording import (
+from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
     META_TRUTH,

@@ -2,11 +2,11 @@
 
 import numpy as np
 
-from convert.euroc import EUROC_CAMERAS, EUROC_IMU
-from convert.recording import META_CALIBRATION, META_TRUTH, RecordingWriter
-from pipeline.camera import Camera
-from pipeline.core.geometry import exp_so3, log_so3, quat_to_rot, rot_to_quat
-from pipeline.imu import GRAVITY
+from uwbcal.convert.euroc import EUROC_CAMERAS, EUROC_IMU
+from uwbcal.convert.recording import META_CALIBRATION, META_TRUTH, RecordingWriter
+from uwbcal.pipeline.core.geometry import exp_so3, log_so3, quat_to_rot, rot_to_quat
+from uwbcal.pipeline.vio.camera import Camera
+from uwbcal.pipeline.vio.imu import GRAVITY
 
 # One absolute start stamp for every synthetic recording: EuRoC-like (whole seconds, > 2**53 ns, so a float64
 # round trip of a stamp would lose nanoseconds and a test would see it).

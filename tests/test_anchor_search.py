@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.anchor_search import closed_form_candidates, plane_frame, search_anchor
-from pipeline.link_bias import bias_evidence, link_offset_contrast, per_link_supported
-from pipeline.schedule import candidate_ends, choose_schedule, join_time
-from pipeline.uwb_filter import (
+from uwbcal.pipeline.uwb.initializer import InitWindow, _fuse_z_prior
+from uwbcal.pipeline.uwb.link_bias import bias_evidence, link_offset_contrast, per_link_supported
+from uwbcal.pipeline.uwb.schedule import candidate_ends, choose_schedule, join_time
+from uwbcal.pipeline.uwb.search import closed_form_candidates, plane_frame, search_anchor
+from uwbcal.pipeline.uwb.updater import (
     UwbConfig,
     add_initialised_anchors,
     initialize_anchors,
     search_window,
 )
-from pipeline.uwb_init import InitWindow, _fuse_z_prior
 
 
 def _ground_track(n: int, rng, extent=8.0, z=0.3, z_wobble=0.01):
@@ -218,7 +218,7 @@ def test_too_few_or_too_short_never_enters_the_filter():
     assert not sr.ok and "2.0 s" in sr.reason
     res = initialize_anchors({7: w}, cfg, None, method="ri-robust")
     assert res[7].status == "not determined" and not res[7].ok and np.all(np.isnan(res[7].x))
-    from pipeline.state import State
+    from uwbcal.pipeline.core.state import State
 
     warns = add_initialised_anchors(State(), res, cfg, None)
     assert any("anchor 7 not initialised" in m for m in warns)

@@ -11,15 +11,15 @@ import pytest
 from scipy.stats import chi2
 from typer.testing import CliRunner
 
-from cli import app
-from convert.anchor_truth import read_anchor_truth
-from convert.ntu_viral import convert_ntu_viral
-from convert.recording import RecordingReader
-from convert.tabular import convert_tabular
-from evaluate.anchor_report import AnchorReference, anchor_metrics, read_run_anchors
-from evaluate.evaluation import render_metrics
-from evaluate.metrics import anchor_errors, inter_anchor_distance_errors
-from pipeline.core.errors import InputError
+from uwbcal.cli import app
+from uwbcal.convert.anchor_truth import read_anchor_truth
+from uwbcal.convert.ntu_viral import convert_ntu_viral
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.convert.tabular import convert_tabular
+from uwbcal.evaluate.anchor_report import AnchorReference, anchor_metrics, read_run_anchors
+from uwbcal.evaluate.evaluation import render_metrics
+from uwbcal.evaluate.metrics import anchor_errors, inter_anchor_distance_errors
+from uwbcal.pipeline.core.errors import InputError
 
 from support import T0
 
@@ -222,8 +222,8 @@ def test_report_undetermined_nees_and_render(tmp_path):
 def test_nees_in_the_filters_gauge_errors_after_the_fitted_alignment(tmp_path):
     """A static-initialised run: errors (and sigmas) after the trajectory's fitted alignment, the NEES of the
     states the evaluator passes in the filter's gauge (here the fitted frame shifted by 0.1 m in y): by hand."""
-    from evaluate.align import Alignment
-    from evaluate.anchor_report import aligned_anchors
+    from uwbcal.evaluate.align import Alignment
+    from uwbcal.evaluate.anchor_report import aligned_anchors
 
     run = read_run_anchors(_run_dir(tmp_path / "run"), "ri")
     ref = AnchorReference({k: {"position": v} for k, v in TRUTH.items()}, "simulated", "simulated", True)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from convert.attitude_check import planar_attitude_note
-from convert.tabular import convert_tabular
+from uwbcal.convert.attitude_check import planar_attitude_note
+from uwbcal.convert.tabular import convert_tabular
 
 LEVERS = np.array([[-0.07, -0.14, 0.0], [0.2, 0.15, 0.0]])
 

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from convert.euroc import EUROC_CAMERAS
-from pipeline.camera import Camera
+from uwbcal.convert.euroc import EUROC_CAMERAS
+from uwbcal.pipeline.vio.camera import Camera
 
 CAM = Camera.from_calibration({"cameras": EUROC_CAMERAS})
 

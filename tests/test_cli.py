@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 from typer.testing import CliRunner
 
-from cli import app
-from convert.recording import RecordingReader
+from uwbcal.cli import app
+from uwbcal.convert.recording import RecordingReader
 
 runner = CliRunner()
 COMMANDS = (
@@ -74,7 +74,7 @@ def test_simulate(tmp_path):
 
 
 def test_convert_euroc(tmp_path):
-    from benchmarks.convert_bag import write_euroc_bag
+    from uwbcal.benchmarks.convert_bag import write_euroc_bag
 
     bag = tmp_path / "e.bag"
     content = write_euroc_bag(bag, duration_s=0.2, width=8, height=6, gt=None, record=True)
@@ -182,10 +182,11 @@ def test_diff(tmp_path):
 
 def test_view(sim_run, tmp_path, monkeypatch):
     """No viewer is spawned: the command it would run is captured."""
-    import pipeline.runlog
+
+    from uwbcal.pipeline.viz import runlog
 
     calls = []
-    monkeypatch.setattr(pipeline.runlog.subprocess, "run", lambda cmd, **kw: calls.append(cmd))
+    monkeypatch.setattr(runlog.subprocess, "run", lambda cmd, **kw: calls.append(cmd))
     monkeypatch.setenv("DISPLAY", ":99")
     _ok(["view", sim_run])
     assert len(calls) == 1 and str(sim_run / "run.rrd") in calls[0]

@@ -11,10 +11,10 @@ import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from typer.testing import CliRunner
 
-from cli import app
-from convert import uwb_msgs
-from convert.bag import bag_info, convert_bag, detect_topics
-from convert.recording import RecordingReader
+from uwbcal.cli import app
+from uwbcal.convert import uwb_msgs
+from uwbcal.convert.bag import bag_info, convert_bag, detect_topics
+from uwbcal.convert.recording import RecordingReader
 
 FORMATS = ("ros1", "db3", "mcap")
 T0 = 1_700_000_000_000_000_000

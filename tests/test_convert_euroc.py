@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from benchmarks.convert_bag import synthetic_image, write_euroc_bag
-from convert.euroc import EUROC_T_B_VICON, convert_euroc, read_groundtruth
-from convert.recording import RecordingReader
-from pipeline.core.errors import InputError
+from uwbcal.benchmarks.convert_bag import synthetic_image, write_euroc_bag
+from uwbcal.convert.euroc import EUROC_T_B_VICON, convert_euroc, read_groundtruth
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.pipeline.core.errors import InputError
 
 
 def _micro(data_dir: Path) -> Path:
@@ -180,7 +180,7 @@ def test_bad_value_names_row(data_dir, tmp_path):
 # synthetic ROS1 bags
 # ---------------------------------------------------------------------------------------------------------------
 def _rot(q):
-    from convert.euroc import _quat_to_rot
+    from uwbcal.convert.euroc import _quat_to_rot
 
     return _quat_to_rot(np.asarray(q, float))
 

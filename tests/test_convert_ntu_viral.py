@@ -9,17 +9,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.convert_bag import synthetic_image
-from convert.ntu_viral import (
+from uwbcal.benchmarks.convert_bag import synthetic_image
+from uwbcal.convert.ntu_viral import (
     PRISM_LEVER_ARM,
     UWB_RANGE_MSG,
     UWB_RANGE_ROS1,
     convert_ntu_viral,
     ros1_typestore,
 )
-from convert.recording import RecordingReader
-from convert.sources import read_ranges_csv
-from pipeline.core.errors import InputError
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.convert.sources import read_ranges_csv
+from uwbcal.pipeline.core.errors import InputError
 
 
 def _seq(data_dir: Path) -> Path:

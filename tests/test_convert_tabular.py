@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from convert.recording import RangeData, RecordingReader
-from convert.sources import Drops, clean_ranges, order_and_dedup, parse_antennas, read_tum
-from convert.tabular import convert_tabular
-from pipeline.core.errors import InputError
+from uwbcal.convert.recording import RangeData, RecordingReader
+from uwbcal.convert.sources import Drops, clean_ranges, order_and_dedup, parse_antennas, read_tum
+from uwbcal.convert.tabular import convert_tabular
+from uwbcal.pipeline.core.errors import InputError
 
 from support import T0
 

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from evaluate import align as al
-from evaluate import consistency as cs
-from evaluate import metrics as mt
-from evaluate.association import associate, lever_point
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import exp_so3, quat_to_rot, rot_to_quat
-from pipeline.core.series import interpolate_positions
+from uwbcal.evaluate import align as al
+from uwbcal.evaluate import consistency as cs
+from uwbcal.evaluate import metrics as mt
+from uwbcal.evaluate.association import associate, lever_point
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import exp_so3, quat_to_rot, rot_to_quat
+from uwbcal.pipeline.core.series import interpolate_positions
 
 
 def _rand_rot(rng, n=None):

@@ -9,12 +9,12 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from evaluate import diff as df_
-from evaluate import tables as tb
-from evaluate.export import GroundTruth, export_run, export_tum, format_stamps, load_run_trajectory
-from evaluate.metrics import prmse
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import exp_so3, quat_to_rot, rot_to_quat
+from uwbcal.evaluate import diff as df_
+from uwbcal.evaluate import tables as tb
+from uwbcal.evaluate.export import GroundTruth, export_run, export_tum, format_stamps, load_run_trajectory
+from uwbcal.evaluate.metrics import prmse
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import exp_so3, quat_to_rot, rot_to_quat
 
 
 # -- tables --------------------------------------------------------------------------------------------------------
@@ -72,7 +72,7 @@ def _write(path, data):
 
 
 def test_diff_cli_exit_codes(tmp_path):
-    from cli import app
+    from uwbcal.cli import app
 
     base = _write(tmp_path / "base" / "metrics.json", METRICS)
     same = _write(tmp_path / "same" / "metrics.json", {**METRICS, "wall_s": 99.0})
@@ -142,7 +142,7 @@ def test_diff_flags_anees_that_moved_inside_the_chi2_bounds(tmp_path):
 
     from typer.testing import CliRunner
 
-    from cli import app
+    from uwbcal.cli import app
 
     ref = Path(__file__).parents[1] / "recordings/reference/anchor-nees/summary.json"
     base = df_.load_metrics(ref)
@@ -192,7 +192,7 @@ def _gt_motion(t_ns):
 
 
 def _synthetic_run(tmp_path, position_only: bool, lever):
-    from convert.recording import RecordingWriter
+    from uwbcal.convert.recording import RecordingWriter
 
     t0 = 1_600_000_000_000_000_000
     t_gt = t0 + np.arange(0, 20_000_000_001, 10_000_000, dtype=np.int64)  # 100 Hz, 20 s
@@ -284,9 +284,9 @@ def test_export_real_ntu_viral_prism_matches_evo_se3(eee_01, tmp_path):
     from evo.core import metrics, sync
     from evo.tools import file_interface
 
-    from convert.recording import RecordingReader
-    from evaluate.align import align
-    from evaluate.export import compare, load_ground_truth
+    from uwbcal.convert.recording import RecordingReader
+    from uwbcal.evaluate.align import align
+    from uwbcal.evaluate.export import compare, load_ground_truth
 
     rec = eee_01[0]  # the session's one conversion (conftest)
     od = RecordingReader(rec).read_odometry()

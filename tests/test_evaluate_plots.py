@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluate import plots as pl_
+from uwbcal.evaluate import plots as pl_
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

@@ -6,7 +6,7 @@ import numpy as np
 import polars as pl
 from typer.testing import CliRunner
 
-from cli import app
+from uwbcal.cli import app
 
 runner = CliRunner()
 
@@ -37,7 +37,7 @@ def test_ri_vs_lsi_reproducible_and_parallel_equal(tmp_path):
 
 def test_table1_cells_on_a_short_simulation(tmp_path):
     """Every (sigma_I, sigma_U, method) cell runs from one VIO checkpoint per seed; numbers sit beside the paper's."""
-    from evaluate.experiments import _table1
+    from uwbcal.evaluate.experiments.table1 import experiment as _table1
 
     table, extra = _table1(tmp_path, 1, 1, None, 0, trajectory=None, duration=20.0)
     assert table.height == 8
@@ -63,7 +63,7 @@ def test_table1_cells_on_a_short_simulation(tmp_path):
 
 
 def test_experiment_params_are_checked_and_typed(tmp_path):
-    from evaluate.experiments import _experiment_params
+    from uwbcal.evaluate.experiments import _experiment_params
 
     got = _experiment_params("table1", {"prior": "tuned", "duration": "20", "prior_sigma": "0.2"})
     assert got == {
@@ -101,7 +101,7 @@ def test_experiment_params_are_checked_and_typed(tmp_path):
 
 def test_table1_prior_modes_differ_only_in_the_filter_belief(tmp_path):
     """'tuned' and 'fixed' share the seed's anchor perturbation; at sigma_I = prior_sigma they are the same run."""
-    from evaluate.experiments import _table1
+    from uwbcal.evaluate.experiments.table1 import experiment as _table1
 
     kw = {"trajectory": None, "duration": 15.0}
     _, fixed = _table1(tmp_path / "f", 1, 1, None, 0, prior="fixed", prior_sigma=0.1, **kw)
@@ -126,7 +126,7 @@ def test_anchor_nees_is_consistent_with_correctly_modelled_pose_noise(tmp_path):
     the odometry filter models exactly (the same sigmas), the anchor NEES (p_a, beta, gamma) at initialisation
     and after EKF / SKF refinement lies inside the two-sided 95 % chi-square bounds of its ANEES.
     (`uwbcal experiment anchor-nees` runs 25 seeds and the MSCKF pose source too; see the README.)"""
-    from evaluate.experiments import _anchor_nees
+    from uwbcal.evaluate.experiments.anchor_nees import experiment as _anchor_nees
 
     table, extra = _anchor_nees(tmp_path, 6, 2, None, 0, pose_sources="groundtruth,odometry")
     rows = {(r["pose_source"], r["method"]): r for r in table.iter_rows(named=True)}
@@ -143,8 +143,8 @@ def test_anchor_nees_is_consistent_with_correctly_modelled_pose_noise(tmp_path):
 def test_experiment_overrides_are_parsed():
     import pytest
 
-    from evaluate.experiments import parse_overrides
-    from pipeline.core.errors import InputError
+    from uwbcal.evaluate.experiments.common import parse_overrides
+    from uwbcal.pipeline.core.errors import InputError
 
     assert parse_overrides("vio.max_clones=30; uwb.chi2_quantile=null;uwb.refine_method=ekf") == {
         "vio": {"max_clones": 30},

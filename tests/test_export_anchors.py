@@ -10,9 +10,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from cli import app
-from evaluate.anchors_export import load_anchors, parameter_names
-from evaluate.export import load_run_trajectory
+from uwbcal.cli import app
+from uwbcal.evaluate.anchors_export import load_anchors, parameter_names
+from uwbcal.evaluate.export import load_run_trajectory
 
 ANCHORS = np.array([[4.0, 3.0, 0.5], [-4.0, 3.0, 2.5], [-4.0, -3.0, 1.0], [4.0, -3.0, 2.0]])
 T0_S = 1_000_000_000

@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cli import app
-from convert.msgs import POSE_STAMPED
-from convert.recording import TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE, RecordingReader, RecordingWriter
-from convert.simulator import SimConfig, simulate_to_file
-from pipeline import rundir
+from uwbcal.cli import app
+from uwbcal.convert.msgs import POSE_STAMPED
+from uwbcal.convert.recording import TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE, RecordingReader, RecordingWriter
+from uwbcal.convert.simulator import SimConfig, simulate_to_file
+from uwbcal.pipeline.run import rundir
 
 runner = CliRunner()
 ROOT = Path(__file__).resolve().parents[1]

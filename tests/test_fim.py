@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from pipeline.core.uwb_model import jacobians, range_variance
-from pipeline.fim import assess_observability, fisher_information
+from uwbcal.pipeline.uwb.fim import assess_observability, fisher_information
+from uwbcal.pipeline.uwb.model import jacobians, range_variance
 
 
 def _planar(n=300, z=1.0):

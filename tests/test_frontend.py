@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from convert.recording import META_CALIBRATION, RecordingReader, RecordingWriter
-from pipeline.camera import Camera
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import exp_so3
-from pipeline.frontend import (
+from uwbcal.convert.recording import META_CALIBRATION, RecordingReader, RecordingWriter
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import exp_so3
+from uwbcal.pipeline.vio.camera import Camera
+from uwbcal.pipeline.vio.frontend import (
     FrontendConfig,
     KltFrontend,
     bucket_select,
@@ -109,8 +109,8 @@ def _write_images(path, frames, calib=PINHOLE, extra=None):
 
 
 def test_run_frontend_writes_tracks_and_counts_corrupt_images(tmp_path):
-    from convert import msgs
-    from convert.recording import _types
+    from uwbcal.convert import msgs
+    from uwbcal.convert.recording import _types
 
     frames = _shifted_frames(11)
     drop = frames.pop(4)  # written as a corrupt image (header stamp damaged too)
@@ -134,17 +134,13 @@ def test_run_frontend_writes_tracks_and_counts_corrupt_images(tmp_path):
     rd = _write_images(tmp_path / "rec.mcap", frames, extra=corrupt)
     calls = []
 
-    class Log:  # records what the front-end logs
-        def image(self, entity, t, img):
-            calls.append((entity, t, img.shape))
-
-        def tracks(self, entity, t, uv, ids):
-            calls.append((entity, t, len(ids)))
+    def on_frame(t, img, uv, ids):  # records what the front-end shows its observer
+        calls.append((t, img.shape, len(ids), uv.shape))
 
     stats = run_frontend(
-        rd, tmp_path / "features.mcap", FrontendConfig(max_features=80, log_every=4), log=Log()
+        rd, tmp_path / "features.mcap", FrontendConfig(max_features=80, log_every=4), on_frame
     )
-    assert [c[0] for c in calls] == ["cam0/image", "cam0/tracks"] * 3
+    assert len(calls) == 3 and all(n > 0 and uv == (n, 2) for _, _, n, uv in calls)
     assert stats.frames == 9 and stats.frames_corrupt == 1 and stats.frames_missing == 1
     assert "corrupt" in str(stats)
     out = RecordingReader(tmp_path / "features.mcap")

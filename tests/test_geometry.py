@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.core.geometry import (
+from uwbcal.pipeline.core.geometry import (
     compose,
     compose_jacobians,
     exp_so3,
@@ -19,7 +19,7 @@ from pipeline.core.geometry import (
     se3_interpolate,
     se3_log,
 )
-from pipeline.state import Pose
+from uwbcal.pipeline.core.state import Pose
 
 
 def _rot_err(Ra, Rb):
@@ -94,7 +94,7 @@ def test_exp_so3_each_is_the_one_vector_path_bit_for_bit():
 
 
 def test_norms_are_numpys_norms_bit_for_bit():
-    from pipeline.core.geometry import norms
+    from uwbcal.pipeline.core.geometry import norms
 
     x = np.random.default_rng(0).normal(size=(200, 3)) * np.logspace(-8, 3, 200)[:, None]
     assert np.array_equal(norms(x), np.linalg.norm(x, axis=-1))

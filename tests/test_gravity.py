@@ -8,10 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from convert.simulator import SimConfig, rel_seconds, simulate_imu
-from convert.trajectory import default_trajectory
-from pipeline.core.geometry import exp_so3, log_so3, quat_to_rot, rot_to_quat
-from pipeline.core.gravity import fit_gravity
+from uwbcal.convert.simulator import SimConfig, rel_seconds, simulate_imu
+from uwbcal.convert.trajectory import default_trajectory
+from uwbcal.pipeline.core.geometry import exp_so3, log_so3, quat_to_rot, rot_to_quat
+from uwbcal.pipeline.core.gravity import fit_gravity
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +59,7 @@ def test_fit_gravity_finds_the_tilt_of_the_frame(level_flight, bias_given):
 def test_fit_gravity_streams_in_chunks(level_flight, monkeypatch):
     """The window sums are accumulated chunk by chunk: chunks of 997 samples (windows cut across them) give the
     fit of one pass."""
-    import pipeline.core.gravity as grav
+    import uwbcal.pipeline.core.gravity as grav
 
     imu, t_gt, p, q, g = level_flight
     one = fit_gravity(imu.t_ns, imu.acc, t_gt, p, q)

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.anchor_search import NORMAL_SNR, normal_corruption, plane_frame, search_anchor
-from pipeline.estimator import RangeMeasurement
-from pipeline.height_regain import HeightRegain
-from pipeline.state import Kind, Pose, State
-from pipeline.uwb_filter import (
+from uwbcal.pipeline.core.state import Kind, Pose, State
+from uwbcal.pipeline.uwb.height_regain import HeightRegain
+from uwbcal.pipeline.uwb.initializer import InitWindow
+from uwbcal.pipeline.uwb.search import NORMAL_SNR, normal_corruption, plane_frame, search_anchor
+from uwbcal.pipeline.uwb.updater import (
     UwbConfig,
     UwbUpdater,
     add_initialised_anchors,
@@ -17,7 +17,7 @@ from pipeline.uwb_filter import (
     initialize_anchors,
     search_window,
 )
-from pipeline.uwb_init import InitWindow
+from uwbcal.pipeline.vio.estimator import RangeMeasurement
 
 CALIB = {
     "uwb": {

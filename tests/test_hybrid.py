@@ -1,6 +1,6 @@
 """Real-IMU hybrid recordings (`uwbcal simulate --imu-from`): the real EuRoC V1_01 IMU and ground truth with
 feature tracks and UWB ranges simulated along the real trajectory; the MSCKF and the full pipeline on it, started
-as a user starts them (static initialiser, the real-IMU defaults of pipeline/real_imu.py)."""
+as a user starts them (static initialiser, the real-IMU defaults of pipeline/run/real_imu.py)."""
 
 from __future__ import annotations
 
@@ -9,18 +9,18 @@ import json
 import numpy as np
 import pytest
 
-from convert.recording import RecordingReader
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import quat_to_rot
-from pipeline.msckf import VioConfig
-from pipeline.real_imu import REAL_IMU_DEFAULTS, apply_real_imu_defaults, imu_is_real
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import quat_to_rot
+from uwbcal.pipeline.run.real_imu import REAL_IMU_DEFAULTS, apply_real_imu_defaults, imu_is_real
+from uwbcal.pipeline.vio.msckf import VioConfig
 
 DURATION = 40.0  # s of the 145 s flight: keeps the CI test short
 
 
 @pytest.fixture(scope="module")
 def euroc_rec(data_dir, tmp_path_factory):
-    from convert.euroc import convert_folder
+    from uwbcal.convert.euroc import convert_folder
 
     d = tmp_path_factory.mktemp("hybrid")
     rec = d / "v101.mcap"
@@ -32,8 +32,8 @@ def euroc_rec(data_dir, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def hybrid(euroc_rec):
-    from convert.hybrid import hybrid_to_file
-    from convert.simulator import SimConfig
+    from uwbcal.convert.hybrid import hybrid_to_file
+    from uwbcal.convert.simulator import SimConfig
 
     out = euroc_rec.parent / "hybrid.mcap"
     hybrid_to_file(euroc_rec, SimConfig(duration=DURATION, seed=1), out)
@@ -105,9 +105,9 @@ def test_hybrid_ranges_follow_the_real_groundtruth(hybrid):
 
 
 def test_hybrid_refuses_a_recording_without_groundtruth(tmp_path):
-    from convert.hybrid import hybrid_simulate
-    from convert.recording import RecordingWriter
-    from convert.simulator import SimConfig
+    from uwbcal.convert.hybrid import hybrid_simulate
+    from uwbcal.convert.recording import RecordingWriter
+    from uwbcal.convert.simulator import SimConfig
 
     rec = tmp_path / "imu_only.mcap"
     with RecordingWriter(rec) as w:
@@ -125,9 +125,9 @@ def test_pipeline_on_hybrid_from_static_init(hybrid, tmp_path):
 
     The ground truth is compared after levelling (its Vicon frame is 0.24° off gravity, which the filter
     estimates in; `evaluate.gravity`). Pose NEES against its chi2 bounds; the anchors' position ANEES too."""
-    from evaluate.evaluation import evaluate_run, evaluate_stage
-    from pipeline.config import load_config
-    from pipeline.run import Pipeline
+    from uwbcal.evaluate.evaluation import evaluate_run, evaluate_stage
+    from uwbcal.pipeline.run.config import load_config
+    from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
     cfg = load_config(
         None,
@@ -181,9 +181,9 @@ def test_pipeline_on_hybrid_from_static_init(hybrid, tmp_path):
 def test_euroc_groundtruth_expressed_in_the_imu_frame():
     """Body-frame poses T_W_B -> T_W_imu = T_W_B T_B_imu (closed form), as the converter does when imu0's T_BS is
     not the identity."""
-    from convert.euroc import groundtruth_in_imu_frame
-    from convert.sources import PoseTable
-    from pipeline.core.geometry import exp_so3, rot_to_quat
+    from uwbcal.convert.euroc import groundtruth_in_imu_frame
+    from uwbcal.convert.sources import PoseTable
+    from uwbcal.pipeline.core.geometry import exp_so3, rot_to_quat
 
     R = exp_so3(np.array([[0.3, -0.2, 1.1], [0.0, 0.5, 0.0]]))
     p = np.array([[1.0, 2.0, 3.0], [-1.0, 0.0, 0.5]])
@@ -199,10 +199,10 @@ def test_euroc_groundtruth_expressed_in_the_imu_frame():
 def test_imu_agreement_measures_a_tilt_between_imu_and_trajectory():
     """An IMU simulated along the trajectory agrees with it to its noise; the same IMU turned 0.5° about an axis
     across gravity (a ground-truth attitude error the camera would follow) shows 0.5° between the specific forces."""
-    from convert.hybrid import imu_agreement
-    from convert.simulator import ImuSim, SimConfig, simulate_imu
-    from convert.trajectory import default_trajectory
-    from pipeline.core.geometry import exp_so3
+    from uwbcal.convert.hybrid import imu_agreement
+    from uwbcal.convert.simulator import ImuSim, SimConfig, simulate_imu
+    from uwbcal.convert.trajectory import default_trajectory
+    from uwbcal.pipeline.core.geometry import exp_so3
 
     traj = default_trajectory(30.0)
     cfg = SimConfig()

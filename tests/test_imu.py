@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from pipeline.core.geometry import exp_so3, skew
-from pipeline.imu import GRAVITY, ImuNoise, error_between, imu_intervals, propagate
-from pipeline.state import ImuState
+from uwbcal.pipeline.core.geometry import exp_so3, skew
+from uwbcal.pipeline.core.state import ImuState
+from uwbcal.pipeline.vio.imu import GRAVITY, ImuNoise, error_between, imu_intervals, propagate
 
 NOISE = ImuNoise(1.7e-4, 2e-3, 1.9e-5, 3e-3, 200.0)
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cli import app
-from convert.info import recording_info, stamp_problems
-from convert.recording import META_CALIBRATION, META_SOURCE, RecordingWriter
+from uwbcal.cli import app
+from uwbcal.convert.info import recording_info, stamp_problems
+from uwbcal.convert.recording import META_CALIBRATION, META_SOURCE, RecordingWriter
 
 from support import T0
 

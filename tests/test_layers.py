@@ -1,32 +1,40 @@
-"""The import layers (docs/architecture.md), bottom up; a module may import its own layer and those below:
+"""The import layers (docs/architecture.md): folders are the layers, bottom up; a module imports its own folder
+and the folders below it, never one above, and no two modules or folders import each other in a circle:
 
-    foundation (pipeline/core)  ->  convert (recording format, converters, simulator)
-    ->  estimation (pipeline: state, filters, initialisers, run log)  ->  stages (pipeline/stages, run, rundir)
-    ->  evaluate  ->  cli (cli.py, the demo, benchmarks)
+    pipeline/core -> convert -> pipeline/vio -> pipeline/uwb -> pipeline/viz -> pipeline/run
+    -> pipeline/run/stages -> evaluate -> evaluate/experiments -> benchmarks, cli.py
 
-Every import is checked, also those inside functions and under TYPE_CHECKING: a lazy import upward is still a
-dependency upward.
+Every import is counted, also those inside functions and under TYPE_CHECKING: a lazy import upward is still a
+dependency upward. The distribution installs one name, `uwbcal` (the repository root): its package list in
+pyproject.toml holds every folder of modules.
 """
 
 from __future__ import annotations
 
 import ast
+import tomllib
+from collections import defaultdict
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("pipeline", "convert", "evaluate", "benchmarks")
-# (layer, module prefixes); the longest matching prefix decides a module's layer
-LAYERS = (
-    ("foundation", ("pipeline.core",)),
-    ("convert", ("convert",)),
-    ("estimation", ("pipeline",)),
-    ("stages", ("pipeline.stages", "pipeline.run", "pipeline.rundir", "pipeline.provenance")),
-    ("evaluate", ("evaluate",)),
-    ("cli", ("cli", "pipeline.demo", "benchmarks")),
+FOLDERS = ("pipeline", "convert", "evaluate", "benchmarks")
+LAYERS = (  # (layer, module prefixes); the longest matching prefix decides a module's layer
+    ("core", ("uwbcal.pipeline.core",)),
+    ("convert", ("uwbcal.convert",)),
+    ("vio", ("uwbcal.pipeline.vio",)),
+    ("uwb", ("uwbcal.pipeline.uwb",)),
+    ("viz", ("uwbcal.pipeline.viz",)),
+    ("run", ("uwbcal.pipeline.run",)),
+    ("stages", ("uwbcal.pipeline.run.stages",)),
+    ("evaluate", ("uwbcal.evaluate",)),
+    ("experiments", ("uwbcal.evaluate.experiments",)),
+    ("cli", ("uwbcal.cli", "uwbcal.benchmarks")),
 )
 RANK = {name: i for i, (name, _) in enumerate(LAYERS)}
+# first-party imports inside functions, outside cli.py (the CLI imports its commands lazily for a fast start)
+MAX_FUNCTION_LEVEL_IMPORTS = 10
 
 
 def layer_of(module: str) -> str | None:
@@ -38,82 +46,192 @@ def layer_of(module: str) -> str | None:
     return best
 
 
-def project_modules() -> dict[str, Path]:
-    mods = {"cli": ROOT / "cli.py"}
-    for pkg in PACKAGES:
-        for path in sorted((ROOT / pkg).rglob("*.py")):
-            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+def project_modules(root: Path = ROOT) -> dict[str, Path]:
+    mods = {"uwbcal": root / "__init__.py", "uwbcal.cli": root / "cli.py"}
+    for folder in FOLDERS:
+        for path in sorted((root / folder).rglob("*.py")):
+            parts = ["uwbcal", *path.relative_to(root).with_suffix("").parts]
             if parts[-1] == "__init__":
                 parts = parts[:-1]
             mods[".".join(parts)] = path
     return mods
 
 
-def imports_of(module: str, path: Path) -> list[tuple[int, str]]:
-    """(line, imported module) for every import of the file, relative ones resolved."""
+def folder_of(module: str, path: Path) -> str:
+    return module if path.name == "__init__.py" else module.rpartition(".")[0]
+
+
+def imports_of(module: str, path: Path) -> list[tuple[int, str, bool]]:
+    """(line, imported name, inside a function) for every import of the file, relative ones resolved."""
     is_pkg = path.name == "__init__.py"
-    out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            out += [(node.lineno, a.name) for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = module.split(".")
-                base = base if is_pkg else base[:-1]
-                base = base[: len(base) - (node.level - 1)]
-                target = ".".join(base + ([node.module] if node.module else []))
-            else:
-                target = node.module or ""
-            # `from pkg import module` imports the module
-            out += [(node.lineno, f"{target}.{a.name}") for a in node.names]
+    out: list[tuple[int, str, bool]] = []
+
+    def visit(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            inner = in_function or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef)
+            if isinstance(child, ast.Import):
+                out.extend((child.lineno, a.name, in_function) for a in child.names)
+            elif isinstance(child, ast.ImportFrom):
+                if child.level:
+                    base = module.split(".")
+                    base = base if is_pkg else base[:-1]
+                    base = base[: len(base) - (child.level - 1)]
+                    target = ".".join(base + ([child.module] if child.module else []))
+                else:
+                    target = child.module or ""
+                # `from pkg import module` imports the module; `from module import name` the module
+                out.extend((child.lineno, f"{target}.{a.name}", in_function) for a in child.names)
+            visit(child, inner)
+
+    visit(ast.parse(path.read_text(), str(path)), False)
     return out
 
 
-def upward_imports() -> list[str]:
-    mods = project_modules()
-    bad = []
+def resolve(target: str, mods: dict[str, Path]) -> str | None:
+    """The longest prefix of an imported name that is a project module (drops imported attributes)."""
+    parts = target.split(".")
+    while parts and ".".join(parts) not in mods:
+        parts.pop()
+    return ".".join(parts) if parts else None
+
+
+def dependency_graph(mods: dict[str, Path]) -> dict[str, dict[str, int]]:
+    """module -> {imported project module: first line}."""
+    graph: dict[str, dict[str, int]] = {}
     for module, path in mods.items():
-        own = layer_of(module)
-        assert own is not None, f"{module}: in no layer; add it to LAYERS"
-        for line, target in imports_of(module, path):
-            # the longest prefix of the target that is a project module (drops imported names)
-            parts = target.split(".")
-            while parts and ".".join(parts) not in mods:
-                parts.pop()
-            if not parts:
-                continue
-            dep = layer_of(".".join(parts))
-            if dep is not None and RANK[dep] > RANK[own]:
-                rel = path.relative_to(ROOT)
-                bad.append(f"{rel}:{line}: {module} ({own}) imports {'.'.join(parts)} ({dep})")
-    return bad
+        deps: dict[str, int] = {}
+        for line, target, _ in imports_of(module, path):
+            dep = resolve(target, mods)
+            if dep is not None and dep != module and not module.startswith(dep + "."):
+                deps.setdefault(dep, line)  # a package's own parents run first anyway
+        graph[module] = deps
+    return graph
+
+
+def cycles(graph: dict[str, set[str] | dict[str, int]]) -> list[list[str]]:
+    """The strongly connected components with more than one node (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            strong(v)
+    return found
+
+
+MODS = project_modules()
+GRAPH = dependency_graph(MODS)
+
+
+def test_every_module_has_a_layer():
+    assert [m for m in MODS if m not in ("uwbcal", "uwbcal.pipeline") and layer_of(m) is None] == []
 
 
 def test_no_module_imports_a_layer_above_it():
-    bad = upward_imports()
+    bad = []
+    for module, deps in GRAPH.items():
+        own = layer_of(module)
+        for dep, line in deps.items():
+            target = layer_of(dep)
+            if own is None or (target is not None and RANK[target] > RANK[own]):
+                rel = MODS[module].relative_to(ROOT)
+                bad.append(f"{rel}:{line}: {module} ({own}) imports {dep} ({target})")
     assert not bad, "upward imports:\n" + "\n".join(bad)
+
+
+def test_no_import_cycle_between_modules():
+    assert cycles(GRAPH) == []
+
+
+def test_no_import_cycle_between_folders():
+    folders: dict[str, set[str]] = defaultdict(set)
+    for module, deps in GRAPH.items():
+        here = folder_of(module, MODS[module])
+        for dep in deps:
+            there = folder_of(dep, MODS[dep])
+            if there != here and not here.startswith(
+                there + "."
+            ):  # a folder's parent package is not a dependency
+                folders[here].add(there)
+    assert cycles(folders) == []
+
+
+def function_level_imports() -> list[str]:
+    """``file:line`` of every import statement of a project module inside a function, outside cli.py."""
+    return sorted(
+        {
+            f"{MODS[m].relative_to(ROOT)}:{line}"
+            for m in MODS
+            if m != "uwbcal.cli"
+            for line, target, inside in imports_of(m, MODS[m])
+            if inside and resolve(target, MODS) is not None
+        }
+    )
+
+
+def test_few_function_level_imports_of_the_project():
+    lazy = function_level_imports()
+    assert len(lazy) <= MAX_FUNCTION_LEVEL_IMPORTS, "\n".join(lazy)
+
+
+def test_the_package_list_holds_every_folder_of_modules():
+    setup = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert setup["package-dir"] == {"uwbcal": "."}
+    folders = {folder_of(m, p) for m, p in MODS.items()} | {"uwbcal"}
+    assert sorted(setup["packages"]) == sorted(folders)
+    missing_init = [f for f in folders if not (ROOT / Path(*f.split(".")[1:]) / "__init__.py").is_file()]
+    assert missing_init == []
 
 
 @pytest.mark.parametrize(
     ("module", "layer"),
     [
-        ("pipeline.core.geometry", "foundation"),
-        ("convert.simulator", "convert"),
-        ("pipeline.msckf", "estimation"),
-        ("pipeline.stages.vio", "stages"),
-        ("pipeline.run", "stages"),
-        ("evaluate.experiments", "evaluate"),
-        ("cli", "cli"),
+        ("uwbcal.pipeline.core.geometry", "core"),
+        ("uwbcal.convert.simulator", "convert"),
+        ("uwbcal.pipeline.vio.msckf", "vio"),
+        ("uwbcal.pipeline.uwb.updater", "uwb"),
+        ("uwbcal.pipeline.viz.runlog", "viz"),
+        ("uwbcal.pipeline.run.config", "run"),
+        ("uwbcal.pipeline.run.stages.vio", "stages"),
+        ("uwbcal.evaluate.experiments", "experiments"),
+        ("uwbcal.cli", "cli"),
     ],
 )
 def test_layer_assignment(module, layer):
     assert layer_of(module) == layer
 
 
-def test_the_check_sees_an_upward_import(tmp_path, monkeypatch):
-    """The test can fail: a foundation module importing the estimation layer is reported."""
+def test_the_checks_can_fail(tmp_path):
+    """An upward import, a lazy import and a cycle are all seen."""
     fake = tmp_path / "geometry.py"
-    fake.write_text("from ..msckf import MsckfEstimator\n")
-    found = imports_of("pipeline.core.geometry", fake)
-    assert found == [(1, "pipeline.msckf.MsckfEstimator")]
-    assert RANK[layer_of("pipeline.msckf")] > RANK[layer_of("pipeline.core.geometry")]
+    fake.write_text("def f():\n    from ..vio.msckf import MsckfEstimator\n")
+    assert imports_of("uwbcal.pipeline.core.geometry", fake) == [
+        (2, "uwbcal.pipeline.vio.msckf.MsckfEstimator", True)
+    ]
+    assert RANK[layer_of("uwbcal.pipeline.vio.msckf")] > RANK[layer_of("uwbcal.pipeline.core.geometry")]
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []

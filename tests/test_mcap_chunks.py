@@ -10,7 +10,7 @@ import zstandard
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from convert.mcap_chunks import ZSTD_LEVEL, PipelinedWriter
+from uwbcal.convert.mcap_chunks import ZSTD_LEVEL, PipelinedWriter
 
 
 class _Level:

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from evaluate.montecarlo import run_jobs, run_seeds
+from uwbcal.evaluate.experiments.montecarlo import run_jobs, run_seeds
 
 
 def _job(p):

@@ -8,13 +8,14 @@ import pickle
 import numpy as np
 import pytest
 
-from convert.euroc import EUROC_CAMERAS, EUROC_IMU
-from convert.recording import META_CALIBRATION, META_TRUTH, RecordingReader, RecordingWriter
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import exp_so3, rot_to_quat
-from pipeline.driver import run_estimator
-from pipeline.imu import GRAVITY
-from pipeline.msckf import (
+from uwbcal.convert.euroc import EUROC_CAMERAS, EUROC_IMU
+from uwbcal.convert.recording import META_CALIBRATION, META_TRUTH, RecordingReader, RecordingWriter
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import exp_so3, rot_to_quat
+from uwbcal.pipeline.core.state import Kind
+from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.vio.imu import GRAVITY
+from uwbcal.pipeline.vio.msckf import (
     FeatureDatabase,
     MsckfEstimator,
     VioConfig,
@@ -25,7 +26,6 @@ from pipeline.msckf import (
     nullspace_project,
     triangulate,
 )
-from pipeline.state import Kind
 
 from support import CAM, body_rotation, errors_vs_truth, simulate_vi
 
@@ -291,7 +291,7 @@ def test_msckf_imu_gap_and_no_features(tmp_path):
 
 
 def test_msckf_logs_to_rerun(vi_recording, tmp_path):
-    from pipeline.runlog import RunLog, read_rrd_summary
+    from uwbcal.pipeline.viz.runlog import RunLog, read_rrd_summary
 
     path, (t_ns, _, _) = vi_recording
     reader = RecordingReader(path)
@@ -307,7 +307,7 @@ def test_msckf_logs_to_rerun(vi_recording, tmp_path):
 
 
 def test_compress_normal_keeps_information():
-    from pipeline.msckf import compress_normal
+    from uwbcal.pipeline.vio.msckf import compress_normal
 
     rng = np.random.default_rng(4)
     H = rng.normal(size=(200, 30)) @ np.diag(np.r_[np.ones(26), np.zeros(4)])  # 4 gauge directions
@@ -421,7 +421,7 @@ def test_disparity_reference_is_derotated():
     """`_derotate` against the direct projection: far points (no lever-arm parallax) seen at IMU orientation R0,
     turned to R1 (0.5 deg), land where the camera at R1 sees them; `_disparity_reference` picks the newest recent
     frame at least the baseline old when the last MSCKF frame is younger."""
-    from pipeline.imu import ImuNoise
+    from uwbcal.pipeline.vio.imu import ImuNoise
 
     est = MsckfEstimator(VioConfig(), CAM, ImuNoise(1e-4, 1e-3, 1e-5, 1e-4))
     rng = np.random.default_rng(1)
@@ -485,8 +485,8 @@ def test_zupt_not_on_motion(vi_recording):
 
 
 def test_static_propagation_keeps_the_unobservable_subspace():
-    from pipeline.imu import ImuNoise, propagate_static
-    from pipeline.state import ImuState
+    from uwbcal.pipeline.core.state import ImuState
+    from uwbcal.pipeline.vio.imu import ImuNoise, propagate_static
 
     rng = np.random.default_rng(1)
     noise = ImuNoise(1e-4, 1e-3, 1e-5, 1e-4)

@@ -3,9 +3,9 @@ import pickle
 import numpy as np
 import pytest
 
-from convert.recording import RecordingReader, RecordingWriter
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import (
+from uwbcal.convert.recording import RecordingReader, RecordingWriter
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import (
     compose,
     exp_so3,
     log_so3,
@@ -15,15 +15,15 @@ from pipeline.core.geometry import (
     se3_interpolate,
     skew,
 )
-from pipeline.driver import run_estimator
-from pipeline.odometry_filter import (
+from uwbcal.pipeline.core.state import Pose, ekf_update
+from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.vio.odometry_filter import (
     OdometryEstimator,
     OdometryFilterConfig,
     OdometryStats,
     clean_odometry,
     increment_noise,
 )
-from pipeline.state import Pose, ekf_update
 
 from support import T0
 
@@ -248,7 +248,7 @@ def test_increment_noise_is_rate_independent():
 
 # -- simulated odometry: drifts as the filter's drift model says -------------------------------------------------
 def _simulated_odometry(tmp_path, seed, scale=1.0, duration=30.0):
-    from convert.simulator import SimConfig, simulate_to_file
+    from uwbcal.convert.simulator import SimConfig, simulate_to_file
 
     path = tmp_path / f"odo{seed}.mcap"
     simulate_to_file(
@@ -262,8 +262,8 @@ def test_simulated_odometry_is_consistent_with_the_drift_model(tmp_path):
     """The simulator draws the odometry's increments from `increment_noise` (sigmas declared in the recording's
     calibration); the filter that reads those sigmas is consistent: 6-DoF pose ANEES over 8 runs x 30 s inside
     the chi-square bounds of the run average (time-correlated samples: the bounds of 8 runs, not of all samples)."""
-    from evaluate.consistency import chi2_bounds
-    from pipeline.odometry_filter import apply_calibration_noise
+    from uwbcal.evaluate.consistency import chi2_bounds
+    from uwbcal.pipeline.vio.odometry_filter import apply_calibration_noise
 
     per_run = []
     for seed in range(8):
@@ -293,7 +293,7 @@ def test_simulated_odometry_without_noise_is_the_truth(tmp_path):
 
 
 def test_calibration_noise_fills_only_unset_sigmas():
-    from pipeline.odometry_filter import apply_calibration_noise
+    from uwbcal.pipeline.vio.odometry_filter import apply_calibration_noise
 
     cal = {"odometry": {"noise": {"sigma_p_per_sqrt_m": 0.005, "initial_sigma_p": 0.002}}}
     cfg = OdometryFilterConfig(initial_sigma_p=0.05)
@@ -307,7 +307,7 @@ def test_calibration_noise_fills_only_unset_sigmas():
 def test_fit_drift_noise_recovers_a_random_walk_per_metre():
     """A trajectory whose position variance grows by s^2 per metre and yaw variance by k^2 per metre gives back
     s and k (the loose coupling's drift model of the MSCKF output)."""
-    from pipeline.odometry_filter import fit_drift_noise
+    from uwbcal.pipeline.vio.odometry_filter import fit_drift_noise
 
     n = 101
     p = np.column_stack([np.linspace(0, 50, n), np.zeros(n), np.zeros(n)])  # 50 m straight
@@ -326,7 +326,7 @@ def test_fit_drift_noise_recovers_a_random_walk_per_metre():
 
 # -- the bounded (Gauss-Markov) error model of a SLAM output --------------------------------------------------------
 def test_resolve_error_model_precedence():
-    from pipeline.odometry_filter import resolve_error_model
+    from uwbcal.pipeline.vio.odometry_filter import resolve_error_model
 
     cal = {"odometry": {"error_model": "bounded", "correlation_time_s": 4.0}}
     assert resolve_error_model(OdometryFilterConfig(), cal) == ("bounded", 4.0)
@@ -341,7 +341,7 @@ def test_resolve_error_model_precedence():
 def test_bounded_step_decays_the_offset_and_its_jacobian_is_exact():
     """The estimate's offset from the odometry (body-frame attitude, world position) decays by phi and is carried
     onto the new odometry pose; F matches finite differences of the step."""
-    from pipeline.odometry_filter import bounded_step
+    from uwbcal.pipeline.vio.odometry_filter import bounded_step
 
     rng = np.random.default_rng(11)
     R_ref, p_ref = exp_so3(rng.normal(size=3)), rng.normal(size=3)

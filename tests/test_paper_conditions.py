@@ -9,14 +9,20 @@ import numpy as np
 import polars as pl
 import pytest
 
-from convert.simulator import SimConfig
-from evaluate.paired import paired_difference
-from evaluate.paper_conditions import first_paying_level, main, skf_vs_ekf, table1_claims, write_report
-from evaluate.ri_vs_lsi_drift import parse_levels, summarise
-from evaluate.vio_degrade import VioDegrade
-from pipeline.config import load_config
-from pipeline.core.errors import InputError
-from pipeline.imu import ImuNoise
+from uwbcal.convert.simulator import SimConfig
+from uwbcal.evaluate.experiments.paired import paired_difference
+from uwbcal.evaluate.experiments.paper_conditions import (
+    first_paying_level,
+    main,
+    skf_vs_ekf,
+    table1_claims,
+    write_report,
+)
+from uwbcal.evaluate.experiments.ri_vs_lsi_drift import parse_levels, summarise
+from uwbcal.evaluate.experiments.vio_degrade import VioDegrade
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run.config import load_config
+from uwbcal.pipeline.vio.imu import ImuNoise
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -237,7 +243,7 @@ def test_report_from_experiment_folders(tmp_path, capsys):
 def test_ri_vs_lsi_drift_experiment_on_a_short_simulation(tmp_path):
     """Two drift levels x one seed on the built-in trajectory: every initialiser's error per anchor, the VIO's own
     sigma grows with the level, the same seed at both levels."""
-    from evaluate.ri_vs_lsi_drift import ri_vs_lsi_drift
+    from uwbcal.evaluate.experiments.ri_vs_lsi_drift import ri_vs_lsi_drift
 
     table, extra = ri_vs_lsi_drift(
         tmp_path, 1, 1, None, 0, vio_noise_scales="1,3", trajectory="", duration=20.0

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cli import app
-from pipeline.runlog import read_rrd_summary
+from uwbcal.cli import app
+from uwbcal.pipeline.viz.runlog import read_rrd_summary
 
 runner = CliRunner()
 
@@ -119,7 +119,7 @@ def test_loose_coupling_runs_the_uwb_stages_on_the_vio_output(sim, tmp_path):
     drift model fitted to the MSCKF's covariance drives init/refine/localize; refine re-runs alone identically."""
     import numpy as np
 
-    from convert.recording import TOPIC_VIO, RecordingReader
+    from uwbcal.convert.recording import TOPIC_VIO, RecordingReader
 
     cfg = tmp_path / "loose.toml"
     cfg.write_text('[run]\ncoupling = "loose"\nlog = false\n')
@@ -162,7 +162,7 @@ def test_bad_config_and_recording(sim, tmp_path):
 
 # -- the artefacts agree with each other and with the run -------------------------------------------------------------
 def _truth_anchors(sim) -> dict[str, np.ndarray]:
-    from convert.recording import RecordingReader
+    from uwbcal.convert.recording import RecordingReader
 
     return {
         a: np.r_[t["position"], t["beta"], t["gamma"]]
@@ -208,7 +208,7 @@ def test_artefacts_agree_with_each_other_and_the_run(run_dir, sim):
     the window lengths unset) and metrics' PRMSE is recomputed from it; run.rrd is there and not empty."""
     import tomllib
 
-    from convert.recording import RecordingReader
+    from uwbcal.convert.recording import RecordingReader
 
     truth = _truth_anchors(sim)
     rows = {r["anchor"]: _xyzbg(r) for r in _anchors_csv(run_dir) if r["stage"] == "refine"}
@@ -270,12 +270,12 @@ def test_demo_pose_nees_over_seeds(tmp_path):
     With the anchors taken as exact in localisation (instead of considered) the last segment was at 13.2."""
     from scipy.stats import chi2
 
-    from convert.recording import RecordingReader
-    from convert.simulator import SimConfig, simulate_to_file
-    from evaluate.consistency import pose_nees
-    from pipeline.config import load_config
-    from pipeline.core.geometry import quat_to_rot
-    from pipeline.run import Pipeline
+    from uwbcal.convert.recording import RecordingReader
+    from uwbcal.convert.simulator import SimConfig, simulate_to_file
+    from uwbcal.evaluate.consistency import pose_nees
+    from uwbcal.pipeline.core.geometry import quat_to_rot
+    from uwbcal.pipeline.run.config import load_config
+    from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
     seeds = range(4)
     per_segment = np.zeros((len(seeds), 3))
@@ -360,7 +360,7 @@ def test_replay_adapts_to_a_simulated_run(run_dir, sim):
 def test_replay_timeline_starts_at_zero_for_simulation(run_dir, sim):
     import numpy as np
 
-    from convert.recording import RecordingReader
+    from uwbcal.convert.recording import RecordingReader
 
     t0 = RecordingReader(sim).time_span()[0]
     gt = _chunks(run_dir / "run.rrd", "world/gt/pose")
@@ -442,8 +442,8 @@ def test_anchor_ranges_jumping_mid_refinement_are_named(run_dir, sim, tmp_path):
         d.distance[(d.anchor == 2) & (d.t_ns * 1e-9 >= t_jump)] += 1.0
         return d
 
-    from pipeline.config import load_config
-    from pipeline.run import Pipeline
+    from uwbcal.pipeline.run.config import load_config
+    from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
     rec = fi.rewrite(sim, tmp_path / "jump.mcap", ranges=jump)
     # the stages' Python API: the CLI refuses (rightly) to mix two recordings in one run directory

@@ -12,10 +12,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from convert.ntu_viral import convert_ntu_viral
-from evaluate.evaluation import evaluate_stage
-from pipeline.config import load_config
-from pipeline.run import Pipeline
+from uwbcal.convert.ntu_viral import convert_ntu_viral
+from uwbcal.evaluate.evaluation import evaluate_stage
+from uwbcal.pipeline.run.config import load_config
+from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
 
 @pytest.mark.data

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from convert.scenarios import simulate_scenario
-from pipeline.anchor_search import search_anchor
-from pipeline.core.geometry import quat_to_rot
-from pipeline.planar_levers import (
+from uwbcal.convert.scenarios import simulate_scenario
+from uwbcal.pipeline.core.geometry import quat_to_rot
+from uwbcal.pipeline.uwb.initializer import InitWindow
+from uwbcal.pipeline.uwb.planar_levers import (
     LeverData,
     carrier_heading,
     choose_lever_arms,
@@ -20,7 +20,7 @@ from pipeline.planar_levers import (
     lever_residuals,
     refit_searches,
 )
-from pipeline.uwb_init import InitWindow
+from uwbcal.pipeline.uwb.search import search_anchor
 
 
 def test_lever_residual_jacobians_match_finite_differences():

@@ -13,10 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from convert.sources import ID_MAX, read_ranges_csv, read_tum
-from evaluate.export import tum_text
-from pipeline.config import load_config
-from pipeline.core.errors import InputError
+from uwbcal.convert.sources import ID_MAX, read_ranges_csv, read_tum
+from uwbcal.evaluate.export import tum_text
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run.config import load_config
 
 SETTINGS = settings(
     max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]

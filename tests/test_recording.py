@@ -8,7 +8,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from convert.recording import (
+from uwbcal.convert.recording import (
     META_CALIBRATION,
     TOPIC_CAM0,
     TOPIC_FEATURES,
@@ -20,7 +20,7 @@ from convert.recording import (
     RecordingReader,
     RecordingWriter,
 )
-from pipeline.core.errors import InputError
+from uwbcal.pipeline.core.errors import InputError
 
 from support import T0
 
@@ -138,7 +138,7 @@ def test_rerun_mcap_importer_decodes_our_recording(sample, tmp_path):
     reflection from our schemas, none kept as raw bytes."""
     import subprocess
 
-    from pipeline.runlog import _rerun_exe
+    from uwbcal.pipeline.viz.runlog import _rerun_exe
 
     path, _ = sample
     out = tmp_path / "rec.rrd"
@@ -215,7 +215,7 @@ def test_missing_topic_names_the_file(sample):
 
 
 def test_merged_reader_interleaves_and_delegates(sample, tmp_path):
-    from convert.recording import MergedReader
+    from uwbcal.convert.recording import MergedReader
 
     path, d = sample
     extra = tmp_path / "features.mcap"
@@ -237,7 +237,7 @@ def _hdr(T, t, frame):
 
 
 def test_hand_packed_layouts_are_byte_identical_to_rosbags():
-    from convert import msgs
+    from uwbcal.convert import msgs
 
     ts = msgs.typestore()
     T = ts.types

@@ -8,12 +8,12 @@ import pytest
 from rosbags.rosbag1 import Reader, ReaderError, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from benchmarks.convert_bag import write_euroc_bag
-from convert import msgs
-from convert.euroc import convert_euroc
-from convert.recording import RecordingReader
-from convert.ros1_wire import image_cdr, messages, stamped_doubles_cdr, transform_stamped
-from pipeline.core.errors import InputError
+from uwbcal.benchmarks.convert_bag import write_euroc_bag
+from uwbcal.convert import msgs
+from uwbcal.convert.euroc import convert_euroc
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.convert.ros1_wire import image_cdr, messages, stamped_doubles_cdr, transform_stamped
+from uwbcal.pipeline.core.errors import InputError
 
 TS1 = get_typestore(Stores.ROS1_NOETIC)
 T = TS1.types

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import runlog as L
-from pipeline.core.errors import InputError
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.viz import runlog as L
 
 from support import T0
 
@@ -319,7 +319,7 @@ def test_moving_nis_band_holds_95_percent_of_consistent_averages() -> None:
 
 
 def test_sliding_mean_is_the_mean_of_each_window() -> None:
-    from pipeline.core.series import sliding_mean
+    from uwbcal.pipeline.core.series import sliding_mean
 
     x = np.random.default_rng(0).normal(size=(40, 3))
     got = sliding_mean(x, 7)

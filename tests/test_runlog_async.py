@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from test_runlog import _log_everything  # tests/ is on sys.path (no package)
 
-from pipeline import runlog as L
-from pipeline.runlog_async import AsyncRunLog, start_log_server
+from uwbcal.pipeline.viz import runlog as L
+from uwbcal.pipeline.viz.log_server import AsyncRunLog, start_log_server
 
 
 @pytest.fixture
@@ -54,7 +54,7 @@ def test_discarded_log_leaves_no_file(tmp_path: Path, server) -> None:
 def test_no_helper_in_daemonic_process(monkeypatch) -> None:
     from types import SimpleNamespace
 
-    import pipeline.runlog_async as A
+    import uwbcal.pipeline.viz.log_server as A
 
     monkeypatch.setattr(A.mp, "current_process", lambda: SimpleNamespace(daemon=True))
     assert start_log_server() is None

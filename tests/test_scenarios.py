@@ -7,11 +7,11 @@ import pytest
 from scipy.stats import binom
 from typer.testing import CliRunner
 
-from cli import app
-from convert.recording import RecordingReader
-from convert.scenarios import CAMPUS_BRIEF, NLOS_ANCHORS, SCENARIOS, scenario_config, simulate_scenario
-from convert.simulator import rel_seconds
-from pipeline.core.errors import InputError
+from uwbcal.cli import app
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.convert.scenarios import CAMPUS_BRIEF, NLOS_ANCHORS, SCENARIOS, scenario_config, simulate_scenario
+from uwbcal.convert.simulator import rel_seconds
+from uwbcal.pipeline.core.errors import InputError
 
 
 def _tag_positions(data) -> np.ndarray:

@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from convert.recording import RecordingReader
-from convert.scenarios import PLANAR_ANCHORS, scenario_to_file
-from evaluate.evaluation import evaluate_stage
-from pipeline.config import load_config
-from pipeline.run import Pipeline
+from uwbcal.convert.recording import RecordingReader
+from uwbcal.convert.scenarios import PLANAR_ANCHORS, scenario_to_file
+from uwbcal.evaluate.evaluation import evaluate_stage
+from uwbcal.pipeline.run.config import load_config
+from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
 
 def _run(tmp_path, name, schedule=None, **kw):
@@ -111,7 +111,7 @@ def _monte_carlo(tmp_path, name, seeds, uwb=None, **kw):
     3-dof anchor position NEES of every anchor at the moment it joins the filter (`add_initialised_anchors`:
     the initialiser's estimate with the covariance and cross-covariances refinement starts from; anchors
     joining later are left out) and at the end of the run (metrics.json ``anchors.<id>.nees_position``)."""
-    from pipeline.uwb_filter import add_initialised_anchors, anchor_var
+    from uwbcal.pipeline.uwb.updater import add_initialised_anchors, anchor_var
 
     joined, final, runs = [], [], []
     for seed in seeds:

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from convert.simulator import (
+from uwbcal.convert.simulator import (
     SimConfig,
     camera_model,
     project_radtan,
@@ -15,9 +15,9 @@ from convert.simulator import (
     simulate_imu,
     simulate_to_file,
 )
-from convert.trajectory import default_trajectory, load_groundtruth, load_trajectory
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import exp_so3, log_so3, quat_to_rot
+from uwbcal.convert.trajectory import default_trajectory, load_groundtruth, load_trajectory
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import exp_so3, log_so3, quat_to_rot
 
 NOISE_FREE_IMU = dict(
     gyro_noise_density=0.0, gyro_random_walk=0.0, acc_noise_density=0.0, acc_random_walk=0.0
@@ -372,7 +372,7 @@ def test_euroc_mh01_loads(data_dir):
 # file output
 # ---------------------------------------------------------------------------------------------------------------
 def test_simulate_to_file_round_trip(tmp_path):
-    from convert.recording import RecordingReader
+    from uwbcal.convert.recording import RecordingReader
 
     out = tmp_path / "sim.mcap"
     cfg = SimConfig(duration=8.0, seed=9, nlos_rate=0.1)

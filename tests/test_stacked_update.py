@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from pipeline.core.geometry import exp_so3
-from pipeline.estimator import RangeMeasurement
-from pipeline.state import Kind, Pose, State, Vec, ekf_update
-from pipeline.uwb_filter import UwbUpdater
+from uwbcal.pipeline.core.geometry import exp_so3
+from uwbcal.pipeline.core.state import Kind, Pose, State, Vec, ekf_update
+from uwbcal.pipeline.uwb.updater import UwbUpdater
+from uwbcal.pipeline.vio.estimator import RangeMeasurement
 
 ARMS = {(1, 0): np.array([0.2, 0.3, 0.0]), (2, 0): np.array([0.2, -0.3, 0.1])}
 
@@ -192,7 +192,7 @@ def test_frozen_epoch_is_the_batch_consider_update():
     [imu, clone, anchors], the gain P H^T S^-1 with the anchors' rows zeroed, Joseph form; the anchors' estimates
     and own covariance unchanged. (Sequential consider updates are not the batch one: each leaves the considered
     covariance as it was, so the order and the grouping matter; the epoch is the exact one.)"""
-    from pipeline.core.uwb_model import jacobians
+    from uwbcal.pipeline.uwb.model import jacobians
 
     st = _state()
     batch = _epoch(st, 6)
@@ -240,10 +240,10 @@ def test_update_epoch_of_one_range_is_update_and_skips_unknown_anchors():
 def test_driver_hands_each_stamp_to_an_epoch_handler_once(tmp_path):
     """Odometry + ranges to 3 anchors at each stamp: an epoch handler gets one batch per stamp; a plain handler
     every range (the updates themselves: the tests above)."""
-    from convert.recording import RecordingReader
-    from convert.tabular import convert_tabular
-    from pipeline.driver import run_estimator
-    from pipeline.odometry_filter import OdometryEstimator
+    from uwbcal.convert.recording import RecordingReader
+    from uwbcal.convert.tabular import convert_tabular
+    from uwbcal.pipeline.run.driver import run_estimator
+    from uwbcal.pipeline.vio.odometry_filter import OdometryEstimator
 
     t0 = 1_700_000_000_000_000_000
     (tmp_path / "p.tum").write_text(

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from pipeline.core.geometry import exp_so3, log_so3
-from pipeline.state import ImuState, Kind, Pose, State, Vec, _lower_solve, ekf_update
+from uwbcal.pipeline.core.geometry import exp_so3, log_so3
+from uwbcal.pipeline.core.state import ImuState, Kind, Pose, State, Vec, _lower_solve, ekf_update
 
 
 def _random_spd(rng, n):
@@ -124,7 +124,7 @@ def test_fej_switch():
 def test_considered_variables_and_pose_probes():
     """A probe keeps the pose of its time as a considered variable: no update changes it or its own block, its
     cross-covariances follow the updates exactly (as an explicit Schmidt update would), and it can be dropped."""
-    from pipeline.state import add_probe, remove_probes
+    from uwbcal.pipeline.core.state import add_probe, remove_probes
 
     rng = np.random.default_rng(5)
     s = State()
@@ -269,7 +269,7 @@ def test_clone_window_reuses_slots_without_reallocating():
 def test_dropping_most_of_the_state_packs_the_covariance():
     """Probes dropped at once leave more free slots than used ones: the state packs them (P shrinks to the
     variables left) and keeps every remaining block."""
-    from pipeline.state import add_probe, remove_probes
+    from uwbcal.pipeline.core.state import add_probe, remove_probes
 
     rng = np.random.default_rng(10)
     s = State()

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from convert.recording import RecordingReader, RecordingWriter
-from pipeline.core.errors import InputError
-from pipeline.core.geometry import exp_so3
-from pipeline.static_init import (
+from uwbcal.convert.recording import RecordingReader, RecordingWriter
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import exp_so3
+from uwbcal.pipeline.vio.static_init import (
     StaticInitConfig,
     gravity_aligned_rotation,
     roll_pitch,
@@ -132,7 +132,7 @@ def test_real_euroc_excerpt_starts_still(data_dir):
         data_dir / "euroc/groundtruth/V1_01_easy.csv", delimiter=",", comments="#", skiprows=1, max_rows=1
     )
     assert np.allclose(res.state.bg, gt[11:14], atol=2e-3)
-    from pipeline.core.geometry import quat_to_rot
+    from uwbcal.pipeline.core.geometry import quat_to_rot
 
     R_gt = quat_to_rot(gt[[5, 6, 7, 4]])
     ang = np.degrees(np.arccos(np.clip((R_gt.T @ [0, 0, 1]) @ (res.state.R.T @ [0, 0, 1]), -1, 1)))

@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from convert.tabular import convert_tabular
-from evaluate.evaluation import evaluate_stage
-from pipeline.config import load_config
-from pipeline.run import Pipeline
+from uwbcal.convert.tabular import convert_tabular
+from uwbcal.evaluate.evaluation import evaluate_stage
+from uwbcal.pipeline.run.config import load_config
+from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
 
 def _run(data_dir, tmp_path, name):

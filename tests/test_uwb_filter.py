@@ -8,11 +8,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from evaluate.ri_vs_lsi import smooth_trajectory
-from pipeline.core.geometry import exp_so3, log_so3, rot_to_quat
-from pipeline.estimator import RangeMeasurement
-from pipeline.state import Kind, Pose, State, Vec
-from pipeline.uwb_filter import (
+from uwbcal.evaluate.experiments.ri_vs_lsi import smooth_trajectory
+from uwbcal.pipeline.core.geometry import exp_so3, log_so3, rot_to_quat
+from uwbcal.pipeline.core.state import Kind, Pose, State, Vec
+from uwbcal.pipeline.uwb.updater import (
     METHODS,
     UwbConfig,
     UwbUpdater,
@@ -22,6 +21,7 @@ from pipeline.uwb_filter import (
     initialize_anchors,
     windows_from_trajectory,
 )
+from uwbcal.pipeline.vio.estimator import RangeMeasurement
 
 ARMS = {(1, 0): np.array([0.2, 0.3, 0.0]), (1, 1): np.array([0.2, -0.3, 0.0])}
 CALIB = {
@@ -275,7 +275,7 @@ def test_frozen_considers_the_anchor_covariance():
     """Frozen (localisation): the anchor of the state is considered: the innovation variance holds its Jacobian
     and covariance, S = H P H^T + R over [imu, anchor] (closed form), the gain on the anchor is zero (estimate and
     own covariance unchanged) and the rest is the Joseph update with that gain."""
-    from pipeline.core.uwb_model import jacobians
+    from uwbcal.pipeline.uwb.model import jacobians
 
     state = _state_with_anchor()
     P0 = state.P.copy()
@@ -368,9 +368,10 @@ def test_windows_from_trajectory_interpolates():
 
 
 def test_log_and_summaries_write_an_rrd(tmp_path):
-    from evaluate.ri_vs_lsi import simulate_window
-    from pipeline.rundir import anchor_row, init_summary
-    from pipeline.runlog import RunLog, read_rrd_summary
+    from uwbcal.evaluate.experiments.ri_vs_lsi import simulate_window
+    from uwbcal.pipeline.run.rundir import anchor_row, init_summary
+    from uwbcal.pipeline.viz.observers import log_uwb_updates
+    from uwbcal.pipeline.viz.runlog import RunLog, read_rrd_summary
 
     w = simulate_window(np.random.default_rng(0), 0.05)
     res = initialize_anchors(
@@ -386,7 +387,7 @@ def test_log_and_summaries_write_an_rrd(tmp_path):
         upd.update(state, RangeMeasurement(10 + k, 1, k % 2, 3, 6.0))
     path = tmp_path / "init.rrd"
     with RunLog(path, anchors=[3, 5]) as log:
-        upd.log(log)
+        log_uwb_updates(log, upd)
     assert path.is_file() and path.stat().st_size > 0
     s = read_rrd_summary(path)  # one residual row per range the updater processed, for the anchor it was for
     assert s.rows["uwb/3/residual"] == len(upd.records[3].t_ns) == 5 and "uwb/5/residual" not in s.rows
@@ -396,8 +397,8 @@ def test_link_offset_map_matches_refit():
     """Per-link bias: the anchor's initial covariance carries the offsets' error through J[links/<id>], the
     first-order map of a change of one link's offset into the fitted anchor. Independent reference: refit the
     window with that link's ranges shifted by eps (the solver, not the formula) and difference."""
-    from pipeline.uwb_filter import anchor_init_covariance, link_var
-    from pipeline.uwb_init import InitWindow, solve_from
+    from uwbcal.pipeline.uwb.initializer import InitWindow, solve_from
+    from uwbcal.pipeline.uwb.updater import anchor_init_covariance, link_var
 
     rng = np.random.default_rng(5)
     t = np.arange(0.0, 40.0, 0.05)
@@ -451,7 +452,7 @@ def test_gate_rates_and_warning_name_the_faulty_anchor():
     each run of 40 ranges; a burst of rejections on anchor 7 is named with its span (s after t0) and the
     one-anchor cause, anchor 3's consistent 5 % is not; with a robust loss (no gate, nothing rejected) the rate
     counts the NIS beyond the quantile instead; every anchor bursting: the pose is named."""
-    from pipeline.uwb_filter import AnchorRecord
+    from uwbcal.pipeline.uwb.updater import AnchorRecord
 
     rng = np.random.default_rng(1)
     gate = chi2.ppf(0.95, 1)
@@ -505,7 +506,7 @@ def test_gate_excess_warning_against_the_binomial_tail():
 
     from scipy.stats import binom
 
-    from pipeline.uwb_filter import AnchorRecord
+    from uwbcal.pipeline.uwb.updater import AnchorRecord
 
     upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
     for k, warns in ((0, False), (50, False), (65, False), (90, True)):
@@ -552,8 +553,8 @@ def test_filter_warnings_go_to_the_stage_log():
     rerun log as a WARN text at the stage's end (what the viewer shows)."""
     from types import SimpleNamespace
 
-    from pipeline.stages.context import filter_warnings
-    from pipeline.uwb_filter import UwbConfig
+    from uwbcal.pipeline.run.context import filter_warnings
+    from uwbcal.pipeline.uwb.updater import UwbConfig
 
     logged = []
     log = SimpleNamespace(text=lambda msg, level="INFO", t_ns=None: logged.append((msg, level, t_ns)))
@@ -561,7 +562,7 @@ def test_filter_warnings_go_to_the_stage_log():
         config=SimpleNamespace(uwb=UwbConfig()), windows=lambda: SimpleNamespace(start_ns=0)
     )
     est = SimpleNamespace(span_warnings=lambda stage, a, b, t0: [f"{stage}: inconsistent visual updates"])
-    from pipeline.uwb_filter import AnchorRecord
+    from uwbcal.pipeline.uwb.updater import AnchorRecord
 
     upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)
     upd.records = {1: AnchorRecord(rejected=[True] * 100 + [False] * 900)}

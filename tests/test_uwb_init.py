@@ -3,8 +3,13 @@
 import numpy as np
 import pytest
 
-from evaluate.ri_vs_lsi import ANCHOR_RI_VS_LSI, ri_vs_lsi_sweep, simulate_window, smooth_trajectory
-from pipeline.uwb_init import (
+from uwbcal.evaluate.experiments.ri_vs_lsi import (
+    ANCHOR_RI_VS_LSI,
+    ri_vs_lsi_sweep,
+    simulate_window,
+    smooth_trajectory,
+)
+from uwbcal.pipeline.uwb.initializer import (
     InitWindow,
     initialize_anchor,
     multilateration,
@@ -150,7 +155,7 @@ def test_robust_noise_factor_is_the_m_estimators_variance():
     """Independent reference (Monte Carlo): a location M-estimate (Cauchy, c = 5 sigma, IRLS) from 300 samples,
     30 % of them junk of +-Exp(15 sigma). The IRLS variance sum w^2 / (sum w)^2 is over-confident by > 2x; the
     sandwich factor closes the gap to within 20 %. On Gaussian samples the factor stays exactly 1."""
-    from pipeline.uwb_init import _loss, robust_noise_factor
+    from uwbcal.pipeline.uwb.initializer import _loss, robust_noise_factor
 
     c = 5.0
 

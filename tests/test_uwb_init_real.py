@@ -14,7 +14,7 @@ import polars as pl
 import pytest
 import yaml
 
-from pipeline.uwb_filter import UwbConfig, initialize_anchors, windows_from_trajectory
+from uwbcal.pipeline.uwb.updater import UwbConfig, initialize_anchors, windows_from_trajectory
 
 
 def _calibration(root):

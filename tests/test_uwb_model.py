@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from pipeline.core.geometry import exp_so3
-from pipeline.core.uwb_model import jacobians, range_model, range_variance
+from uwbcal.pipeline.core.geometry import exp_so3
+from uwbcal.pipeline.uwb.model import jacobians, range_model, range_variance
 
 
 def _setup(n=7, seed=0):

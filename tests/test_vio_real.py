@@ -11,13 +11,13 @@ within a few centimetres. Initialisation: ground truth with the EuRoC bias estim
 import numpy as np
 import pytest
 
-from benchmarks.vio_mh01 import posyaw_align
-from convert.recording import MergedReader, RecordingReader
+from uwbcal.benchmarks.vio_mh01 import posyaw_align
+from uwbcal.convert.recording import MergedReader, RecordingReader
 
 
 @pytest.fixture(scope="module")
 def euroc_vi(euroc_micro, tmp_path_factory):
-    from pipeline.frontend import FrontendConfig, run_frontend
+    from uwbcal.pipeline.vio.frontend import FrontendConfig, run_frontend
 
     rec = euroc_micro[0]  # the session's one conversion (conftest), with the V1_01_easy ground truth
     fe = tmp_path_factory.mktemp("euroc_vio") / "fe.mcap"
@@ -38,8 +38,8 @@ def _errors(est, gt, align=False):
 
 
 def test_euroc_converter_carries_groundtruth_biases(euroc_vi):
-    from pipeline.core.topics import TOPIC_GT_IMU_BIAS
-    from pipeline.msckf import groundtruth_state
+    from uwbcal.pipeline.core.topics import TOPIC_GT_IMU_BIAS
+    from uwbcal.pipeline.vio.msckf import groundtruth_state
 
     rec, _ = euroc_vi
     assert TOPIC_GT_IMU_BIAS in rec.topics()
@@ -53,8 +53,8 @@ def test_euroc_converter_carries_groundtruth_biases(euroc_vi):
 
 
 def test_msckf_real_euroc_excerpt_within_10cm(euroc_vi):
-    from pipeline.driver import run_estimator
-    from pipeline.msckf import MsckfEstimator, VioConfig
+    from uwbcal.pipeline.run.driver import run_estimator
+    from uwbcal.pipeline.vio.msckf import MsckfEstimator, VioConfig
 
     rec, reader = euroc_vi
     gt = rec.read_poses("/groundtruth/pose")
@@ -68,9 +68,9 @@ def test_msckf_real_euroc_excerpt_within_10cm(euroc_vi):
 
 
 def test_msckf_real_euroc_excerpt_static_init(euroc_vi):
-    from pipeline.driver import run_estimator
-    from pipeline.msckf import MsckfEstimator, VioConfig
-    from pipeline.static_init import static_init_from_recording
+    from uwbcal.pipeline.run.driver import run_estimator
+    from uwbcal.pipeline.vio.msckf import MsckfEstimator, VioConfig
+    from uwbcal.pipeline.vio.static_init import static_init_from_recording
 
     rec, reader = euroc_vi
     gt = rec.read_poses("/groundtruth/pose")

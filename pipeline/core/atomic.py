@@ -14,7 +14,7 @@ import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
-from .errors import TEMP_RE, InputError
+from uwbcal.pipeline.core.errors import TEMP_RE, InputError
 
 
 def _umask() -> int:

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import exp_so3, quat_to_rot, rot_to_quat
-from .series import interpolate_positions, interpolate_quats
+from uwbcal.pipeline.core.geometry import exp_so3, quat_to_rot, rot_to_quat
+from uwbcal.pipeline.core.series import interpolate_positions, interpolate_quats
 
 DOWN = np.array([0.0, 0.0, -1.0])
 _CHUNK = 65536  # IMU samples per pass

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import quat_slerp
+from uwbcal.pipeline.core.geometry import quat_slerp
 
 
 def sliding_mean(x: np.ndarray, k: int) -> np.ndarray:

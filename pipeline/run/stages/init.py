@@ -1,0 +1,145 @@
+"""Stage `init` (paper stage 1): every initialiser on the VIO poses of the initialisation window -> init.pkl,
+init.json, the `init` rows of anchors.csv."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.names import INIT_METHODS
+from uwbcal.pipeline.run import rundir as rd
+from uwbcal.pipeline.run.context import StageContext, StageResult
+from uwbcal.pipeline.uwb.planar_levers import planar_windows, refit_searches
+from uwbcal.pipeline.uwb.schedule import join_time
+from uwbcal.pipeline.uwb.updater import initialize_anchors, search_window, windows_from_trajectory
+from uwbcal.pipeline.viz import runlog as rl
+
+
+def run(ctx: StageContext) -> StageResult:
+
+    win = ctx.windows()
+    vio = ctx.dir.load_npz("vio.npz", "init")
+    cal = ctx.reader.calibration
+    rng = ctx.reader.read_ranges(start_ns=win.start_ns, end_ns=win.init_end_ns)
+    if len(rng) == 0:
+        raise InputError(
+            f"{ctx.recording}: no UWB ranges in the initialisation window "
+            f"({win.start_ns * 1e-9:.1f}-{win.init_end_ns * 1e-9:.1f} s)"
+        )
+    per_anchor = ctx.config.run.schedule == "per-anchor"
+    if per_anchor:  # the late anchors' windows run up to their join time
+        rng = ctx.reader.read_ranges(start_ns=win.start_ns, end_ns=win.end_ns + 1)
+    end = win.end_ns + 1 if per_anchor else win.init_end_ns
+    windows = windows_from_trajectory(vio, vars(rng), cal, win.start_ns, end)
+    windows, levers = _lever_arms(ctx, windows)
+    windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor, levers is not None)
+    if levers is not None and searches:
+        sigma = ctx.config.uwb.sigma(cal) * ctx.config.uwb.sigma_scale
+        searches = refit_searches(levers, windows, searches, sigma)
+    results = {
+        m: initialize_anchors(windows, ctx.config.uwb, cal, method=m, searches=searches) for m in INIT_METHODS
+    }
+    for res in results.values():
+        for a, r in res.items():
+            j = joins.get(a)
+            r.join_ns = j if (j is not None and j > win.init_end_ns) else None
+    ctx.dir.save_pickle("init.pkl", results)
+    chosen = ctx.config.uwb.init_method
+    summary = {m: {str(a): rd.init_summary(r) for a, r in res.items()} for m, res in results.items()}
+    info = {"chosen": chosen, "window": win.as_dict(), "methods": summary}
+    if levers is not None:
+        info["lever_arms"] = levers.summary()
+    ctx.dir.save_json("init.json", info)
+    rows = [rd.anchor_row(a, m, "init", r.x) for m, res in results.items() for a, r in res.items() if r.ok]
+    rows += [rd.undetermined_row(a, chosen, "init") for a, r in results[chosen].items() if not r.ok]
+    rd.write_anchors(ctx.dir, rows, replace_stage="init")
+    warns = [f"init {chosen} anchor {a}: {w}" for a, r in results[chosen].items() for w in r.warnings]
+    if levers is not None:
+        warns.insert(0, f"init: {levers.message()}")
+    warns += [
+        f"init {chosen} anchor {a}: {r.status}"
+        for a, r in results[chosen].items()
+        if not r.ok and r.status != "not determined"  # its warning states the reason
+    ]
+    with ctx.runlog("init") as log:
+        log.stage("init", win.start_ns)
+        ctx.log_truth_anchors(log)
+        log.legend(list(results))
+        for m, res in results.items():
+            for a, r in res.items():
+                if not r.ok:
+                    continue
+                log.initialiser(a, m, r.x[:3])
+                if m == chosen and np.all(np.isfinite(r.cov[:3, :3])):  # 3σ, then updated over refinement
+                    log.ellipsoids(
+                        rl.anchor_world(a, "cov"), r.x[:3], r.cov[None, :3, :3], t_ns=win.init_end_ns
+                    )
+                if r.costs:
+                    t = np.linspace(win.start_ns, win.init_end_ns, len(r.costs)).astype(np.int64)
+                    log.scalars(rl.init(m, "cost") + f"/{a}", t, np.asarray(r.costs))
+                if r.fim is not None:
+                    log.scalars(
+                        rl.init(m, "fim_logdet") + f"/{a}",
+                        [win.init_end_ns],
+                        [r.fim.summary().get("logdet", np.nan)],
+                    )
+        for w in warns:
+            log.text(w, "WARN", win.init_end_ns)
+    ok = sum(r.ok for r in results[chosen].values())
+    errs = ctx.anchor_errors({a: r.x for a, r in results[chosen].items() if r.ok})
+    res = results[chosen]
+    late = sum(r.join_ns is not None for r in res.values() if r.ok)
+    weak = sum(not r.verdict.get("height_observable", True) for r in res.values() if r.ok)
+    nd = [str(a) for a, r in res.items() if not r.ok]
+    extra = f" ({late} joining later)" if late else ""
+    extra += f"; height unobservable for {weak}" if weak else ""
+    extra += f"; not determined: {', '.join(nd)}" if nd else ""
+    sched = ctx.config.run.schedule
+    return StageResult("init", f"{chosen} [{sched}]: {ok}/{len(res)} anchors initialised{extra}{errs}", warns)
+
+
+def _lever_arms(ctx: StageContext, windows: dict):
+    """``uwb.lever_arms = "planar"``: the windows with the planar carrier's estimated lever arms and the model
+    (saved as lever_arms.pkl for refine and localize); else the windows as given and None."""
+
+    cfg = ctx.config.uwb
+    if ctx.dir.exists("lever_arms.pkl"):
+        ctx.dir.file("lever_arms.pkl").unlink()
+    if cfg.lever_arms != "planar":
+        return windows, None
+    sigma = cfg.sigma(ctx.reader.calibration) * cfg.sigma_scale
+    windows, levers = planar_windows(
+        windows, lambda w: search_window(w, cfg, sigma, ctx.reader.calibration), sigma
+    )
+    if levers is not None:
+        ctx.dir.save_pickle("lever_arms.pkl", levers)
+    return windows, levers
+
+
+def _schedule(ctx: StageContext, windows: dict, init_end_ns: int, per_anchor: bool, whole: bool = False):
+    """Per anchor: the window its initialisation uses, its search result and its join time
+    (`schedule.join_time`); without the search (the paper's multi-start) the first window for every anchor.
+    ``whole`` (per-anchor schedule with estimated planar lever arms): every anchor from all its ranges, at the
+    end; the arms come from every anchor's ranges over the whole recording, so an anchor initialised from a
+    prefix would already lean on the later ranges and its refinement would count them twice."""
+
+    cfg = ctx.config.uwb
+    if not cfg.search:
+        return {a: w.subset(w.t_ns < init_end_ns) for a, w in windows.items()}, None, {}
+    sigma = cfg.sigma(ctx.reader.calibration) * cfg.sigma_scale
+    out_w, searches, joins = {}, {}, {}
+    for a, w in windows.items():
+        end = init_end_ns
+        if whole and per_anchor and len(w):
+            end = int(w.t_ns.max()) + 1
+        j = join_time(
+            w,
+            end,
+            lambda sub: search_window(sub, cfg, sigma, ctx.reader.calibration),
+            per_anchor=per_anchor and not whole,
+            min_ranges=max(cfg.min_ranges, 30),
+            join_sigma=cfg.join_sigma_m if per_anchor else None,
+            join_ratio=cfg.join_ratio,
+        )
+        out_w[a], searches[a], joins[a] = j.window, j.search, j.join_ns
+    return out_w, searches, joins

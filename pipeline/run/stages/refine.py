@@ -1,0 +1,136 @@
+"""Stage `refine` (paper stage 2): the chosen initialisation joins the filter state; EKF or Schmidt updates with
+every range of the refinement window -> anchor_states.json, refine.npz/.mcap, the `refine` rows of anchors.csv."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uwbcal.pipeline.run import rundir as rd
+from uwbcal.pipeline.run.context import StageContext, StageResult, filter_warnings
+from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.uwb.height_regain import HeightRegain
+from uwbcal.pipeline.uwb.updater import UwbUpdater, add_initialised_anchors, initialize_anchors, search_window
+from uwbcal.pipeline.viz import observers
+from uwbcal.pipeline.viz import runlog as rl
+
+
+def run(ctx: StageContext) -> StageResult:
+
+    win = ctx.windows()
+    est = ctx.dir.load_pickle("checkpoint_init.pkl", "refine")
+    results = ctx.dir.load_pickle("init.pkl", "refine")[ctx.config.uwb.init_method]
+    cal = ctx.reader.calibration
+    cfg = ctx.config.uwb
+    tau = getattr(est, "pose_correlation_s", None)  # bounded pose errors: their correlation time
+    warns = add_initialised_anchors(est.state, results, cfg, cal, pose_correlation_s=tau)
+    inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
+    updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
+    if ctx.dir.exists("lever_arms.pkl"):  # a planar carrier's estimated lever arms (init)
+        updater.planar_arms = ctx.dir.load_pickle("lever_arms.pkl", "refine")
+    updater.schedule(  # late anchors join at their time; per-link offsets; heights left alone where unobservable
+        results,
+        {
+            "sigma_range": cfg.sigma(cal) * cfg.sigma_scale,
+            "gamma_prior": cfg.gamma_prior(cal),
+            "beta_prior": cfg.beta_prior(cal),
+            "pose_correlation_s": tau,
+        },
+    )
+    regain = None
+    if cfg.search and cfg.regain_heights and cfg.refine_method != "none":
+        sigma = cfg.sigma(cal) * cfg.sigma_scale
+        regain = updater.regain = HeightRegain(
+            results,
+            lambda w: search_window(w, cfg, sigma, cal),
+            lambda a, w, sr: initialize_anchors({a: w}, cfg, cal, method=cfg.init_method, searches={a: sr})[
+                a
+            ],
+        )
+    with ctx.runlog("refine") as log:
+        log.stage("refine", win.init_end_ns)
+        run_estimator(
+            est, ctx.features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log
+        )
+        observers.log_uwb_updates(log, updater)
+        consistency = filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns, log)
+        for a, arr in updater.arrays().items():
+            if len(arr["t_ns"]) and arr["cov"].any():
+                log.ellipsoid_series(
+                    rl.anchor_world(a, "cov"), arr["t_ns"], arr["x"][:, :3], arr["cov"][:, :3, :3]
+                )
+                log.point_series(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
+        for (
+            a,
+            n,
+        ) in est.state.anchors.items():  # at the end of refinement: the covariance anchor_states.json holds
+            x = est.state.value(n).x
+            log.ellipsoids(
+                rl.anchor_world(a, "cov"), x[:3], est.state.cov(n)[None, :3, :3], t_ns=win.refine_end_ns
+            )
+    ctx.dir.save_pickle("checkpoint_refine.pkl", est)
+    hist = est.history().arrays()
+    seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
+    ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
+    rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
+    offsets, offset_cov = updater.offsets(est.state), updater.offset_covariances(est.state)
+    states = {
+        str(a): {
+            "x": est.state.value(n).x,
+            "P": est.state.cov(n),
+            "noise_inflation": inflation.get(a, 1.0),
+            "link_offsets": {str(k): v for k, v in offsets.get(a, {}).items()},
+            **({"link_offsets_cov": offset_cov[a]} if a in offset_cov else {}),
+        }
+        for a, n in est.state.anchors.items()
+    }
+    for a, r in updater.pending.items():  # determined only by all their ranges: nothing left to refine with
+        states[str(a)] = {
+            "x": r.x,
+            "P": r.cov,
+            "noise_inflation": float(r.noise_inflation),
+            "link_offsets": {str(k): v for k, v in r.link_offsets.items()},
+        }
+    if updater.pending:
+        warns.append(
+            f"refine: anchors {sorted(updater.pending)} were determined only by all their ranges; reported at "
+            "their initial estimate"
+        )
+    regained = regain.summary() if regain is not None else {}
+    for a, s in states.items():  # a height the data cannot see stays as uncertain as at init
+        r = results.get(rd.anchor_key(a))
+        if a in regained:
+            s["height_regained"] = regained[a]
+        elif r is not None and not r.verdict.get("height_observable", True):
+            s["P"] = _keep_height_sigma(s["P"], r.cov)
+    if regained:
+        warns.append(
+            "refine: height regained for anchors "
+            + ", ".join(f"{a} at {g['t_s'] - win.init_end_ns * 1e-9:.0f} s" for a, g in regained.items())
+            + " into refinement (the motion left the init window's plane; re-initialised from all their ranges)"
+        )
+    ctx.dir.save_json("anchor_states.json", states)
+    label = f"{cfg.init_method}+{cfg.refine_method}"
+    rd.write_anchors(
+        ctx.dir,
+        [rd.anchor_row(a, label, "refine", s["x"]) for a, s in states.items()]
+        + [rd.undetermined_row(a, label, "refine") for a, r in results.items() if not r.ok],
+        replace_stage="refine",
+    )
+    ctx.assemble_trajectory()
+    c = updater.counts
+    warns += consistency
+    errs = ctx.anchor_errors({a: s["x"] for a, s in states.items()})
+    return StageResult(
+        "refine", f"{cfg.refine_method}: {c['accepted']} range updates, {c['rejected']} rejected{errs}", warns
+    )
+
+
+def _keep_height_sigma(P, P_init) -> np.ndarray:
+    """The anchor covariance with its z variance at least that of ``P_init`` (its correlations scaled)."""
+    P = np.asarray(P, float).copy()
+    vz, v0 = P[2, 2], float(np.asarray(P_init)[2, 2])
+    if np.isfinite(v0) and v0 > vz > 0:
+        f = np.sqrt(v0 / vz)
+        P[2, :] *= f
+        P[:, 2] *= f
+    return P

@@ -1,0 +1,1206 @@
+"""UWB on the filter side: anchor covariance initialisation, refinement (EKF / SKF) and localisation updates.
+
+- `windows_from_trajectory` builds the per-anchor initialisation windows (poses + 6x6 covariances interpolated at
+  the range stamps) from a `TrajectoryRecord` and the ranges;
+- `initialize_anchors` runs the initialiser (`uwb_init`) on every anchor;
+- `add_anchor_to_state` adds an initialised anchor to the filter state with its covariance and cross-covariances
+  (paper Sec. III-B, OpenVINS-style "state variable initialisation");
+- `UwbUpdater` is the `on_range` handler of an `Estimator`: modes ekf, skf, none, frozen.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.geometry import quat_slerp, quat_to_rot
+from uwbcal.pipeline.core.names import INIT_METHODS, REFINE_METHODS
+from uwbcal.pipeline.core.series import sliding_mean
+from uwbcal.pipeline.core.state import (
+    Kind,
+    State,
+    UpdateResult,
+    Vec,
+    chi2_ppf,
+    ekf_update,
+    remove_probes,
+    schmidt_update,
+)
+from uwbcal.pipeline.uwb.initializer import InitResult, InitWindow, initialize_anchor
+from uwbcal.pipeline.uwb.link_bias import bias_evidence
+from uwbcal.pipeline.uwb.model import jacobians, range_model, range_variance
+from uwbcal.pipeline.uwb.search import SearchResult, _not_determined, search_anchor
+
+if TYPE_CHECKING:
+    from uwbcal.pipeline.vio.estimator import RangeMeasurement
+
+# Method names of tables and CLI: (initialiser, refinement).
+METHODS: dict[str, tuple[str, str]] = {
+    "viro": ("lsi", "ekf"),
+    "lsi+ekf": ("lsi", "ekf"),
+    "lsi+skf": ("lsi", "skf"),
+    "ri+ekf": ("ri", "ekf"),
+    "ri+skf": ("ri", "skf"),
+    "ri-robust+ekf": ("ri-robust", "ekf"),
+    "ri-robust+skf": ("ri-robust", "skf"),
+}
+
+
+def anchor_var(anchor: Any) -> str:
+    return f"anchor/{anchor}"
+
+
+def link_var(anchor: Any) -> str:
+    """The per-link offsets of an anchor (`Kind.LINK`, one entry per link of ``InitResult.link_offsets``)."""
+    return f"links/{anchor}"
+
+
+def link_columns(links: Sequence[int]) -> dict[int, int]:
+    """link id -> entry of an anchor's offset variable (the order of ``InitResult.link_offsets``)."""
+    return {int(lk): i for i, lk in enumerate(links)}
+
+
+class UwbConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    init_method: Literal[("auto", *INIT_METHODS)] = Field(
+        "auto",
+        description="auto: ri-robust on real recordings (NLOS is the rule there), ri (the paper's) on simulated",
+    )
+    refine_method: Literal[(*REFINE_METHODS, "none")] = "skf"
+    sigma_range: float | None = Field(
+        None, gt=0, description="range noise sigma [m]; default calibration or 0.1"
+    )
+    sigma_scale: float = Field(
+        1.0, gt=0, description="assumed / nominal noise ratio (sigma_U of paper Table 1)"
+    )
+    chi2_quantile: float | None = Field(
+        0.95, gt=0, lt=1, description="NIS gate of range updates (update_loss gate); None: off"
+    )
+    update_loss: Literal["auto", "gate", "huber", "cauchy"] = Field(
+        "auto",
+        description="range updates: gate (reject NIS > chi2_quantile), or a robust loss on the innovation (R "
+        "inflated by the IRLS weight, scale robust_scale, no hard gate); auto: cauchy with ri-robust, else gate",
+    )
+    gate_window_s: float = Field(
+        20.0,
+        gt=0,
+        description="sliding window of the range gate warning: per anchor, its ranges of this many seconds at its "
+        "mean range rate in the stage (NLOS bursts of real data last up to ~10 s; a walking anchor or a diverging "
+        "pose stays)",
+    )
+    gate_min_ranges: int = Field(20, ge=2, description="ranges a gate warning window needs at least")
+    gate_max_rejected: float = Field(
+        0.6,
+        gt=0,
+        le=1,
+        description="refine / localize warn when more than this fraction of an anchor's ranges in a gate_window_s "
+        "window fail the chi2_quantile gate (rejected, or with a robust loss beyond it; consistent: "
+        "1 - chi2_quantile): its estimate, its ranges (NLOS) or the pose disagree there",
+    )
+    robust_loss: Literal["huber", "cauchy"] = "cauchy"
+    robust_scale: float = Field(0.5, gt=0, description="robust loss scale [m] at the nominal sigma")
+    force: bool = Field(False, description="initialise even on a degenerate (rank-deficient) geometry")
+    beta_sigma: float | None = Field(
+        None, gt=0, description="prior sigma of beta; default calibration uwb.beta_prior.sigma, else 0.05"
+    )
+    estimate_beta: bool = Field(
+        True,
+        description="estimate beta at init under its prior (else fixed to the prior mean, 1 without a prior)",
+    )
+    min_ranges: int = Field(20, ge=5, description="fewer ranges in the init window: anchor skipped")
+    n_perturbed_starts: int = Field(4, ge=0)
+    gamma_prior_mean: float | None = Field(
+        None, description="override uwb.gamma_prior.mean of the calibration"
+    )
+    gamma_prior_sigma: float | None = Field(None, gt=0, description="override uwb.gamma_prior.sigma")
+    pose_sigma_floor_m: float = Field(0.0, ge=0, description="added to the pose position sigma at init")
+    residual_factor: float = Field(
+        3.0, gt=1, description="post-fit residual spread > factor x sigma: warning"
+    )
+    init_probe_period_s: float | None = Field(
+        2.0,
+        gt=0,
+        description="MSCKF: keep the pose every this many seconds of the init window as a considered (Schmidt) "
+        "variable, so that the anchors' cross-covariances with the filter are exact (the paper's window states "
+        "X_I; 1, 2 and 5 s give the same anchor NEES); None: random-walk approximation from the poses' marginal "
+        "covariances",
+    )
+    search: bool = Field(
+        True,
+        description="global search (consensus over closed forms, verified by residuals; anchor_search) as the "
+        "initialiser's start and observability verdict; false: the paper's multi-start (closed form, mirror, "
+        "perturbed)",
+    )
+    regain_heights: bool = Field(
+        True,
+        description="refinement re-searches an anchor whose height init flagged unobservable as its ranges grow "
+        "(x1.5) and re-initialises it when the motion has revealed the height (height_regain); false: a flagged "
+        "height stays at its init value and sigma",
+    )
+    bias: Literal["auto", "per-anchor", "per-link"] = Field(
+        "auto",
+        description="range offset model: per-anchor (one gamma) or per-link (gamma + an offset per (tag, antenna) "
+        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links, "
+        "their offsets differ beyond their uncertainty and the differences predict held-out ranges (over time and "
+        "over the sides of the carrier facing the anchor: a delay, not an antenna pattern; link_bias)",
+    )
+    lever_arms: Literal["auto", "given", "planar"] = Field(
+        "auto",
+        description="antenna lever arms: given (the calibration's, rotated by the full attitude) or planar (a "
+        "planar carrier: the in-plane arms estimated from the ranges jointly with anchors and link offsets, "
+        "turned by the heading about the plane normal; planar_levers); auto: planar when the pose source's "
+        "carrier moves in a plane and turns",
+    )
+    anchor_z_prior: dict[str, float] | dict[str, dict[str, float]] | None = Field(
+        None,
+        description="prior on anchor heights: {mean, sigma} for all anchors, or {anchor id: {mean, sigma}}",
+    )
+    max_init_ranges: int = Field(
+        2000, ge=50, description="dense ranging: the init window of an anchor is evenly subsampled to this"
+    )
+    max_sigma_horizontal_m: float = Field(
+        1.0,
+        gt=0,
+        description="an anchor whose horizontal sigma after the search exceeds this is not (yet) determined",
+    )
+    join_sigma_m: float = Field(
+        0.3,
+        gt=0,
+        description="per-anchor schedule: an anchor joins the refinement at the first prefix of its ranges whose "
+        "horizontal sigma is below this and below join_ratio x its median range (a start good enough for the "
+        "filter's first-estimate Jacobians); one that never gets there but is determined by all its ranges is "
+        "initialised from all of them",
+    )
+    join_ratio: float = Field(0.02, gt=0, description="see join_sigma_m (about 1 degree of bearing)")
+    min_duration_s: float = Field(
+        5.0, ge=0, description="an anchor ranged over a shorter time span is not determined"
+    )
+    correlation_block_s: float | None = Field(
+        10.0,
+        gt=0,
+        description="block length [s] of the check for time-correlated range errors at init (batch means); "
+        "its variance factor kappa scales the anchor covariance and the range noise of refine/localize. "
+        "None: off (kappa = 1)",
+    )
+
+    def sigma(self, calibration: Mapping | None = None) -> float:
+        """The nominal range sigma: config, else calibration uwb.sigma_range, else 0.1 m."""
+        if self.sigma_range is not None:
+            return float(self.sigma_range)
+        uwb = (calibration or {}).get("uwb", {}) or {}
+        return float(uwb.get("sigma_range") or 0.1)
+
+    def beta_prior(self, calibration: Mapping | None = None) -> tuple[float, float]:
+        """(mean, sigma) of beta: config beta_sigma, else calibration uwb.beta_prior, else (1, 0.05)."""
+        uwb = (calibration or {}).get("uwb", {}) or {}
+        bp = uwb.get("beta_prior") or {}
+        mean = float(bp.get("mean", 1.0))
+        sigma = self.beta_sigma if self.beta_sigma is not None else bp.get("sigma")
+        return mean, float(sigma if sigma else 0.05)
+
+    def init_beta_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
+        """The beta prior the initialiser estimates beta under, or None (beta fixed to 1)."""
+        return self.beta_prior(calibration) if self.estimate_beta else None
+
+    def z_prior(self, anchor: Any) -> tuple[float, float] | None:
+        """(mean, sigma) of the anchor's height from ``anchor_z_prior``, or None."""
+        zp = self.anchor_z_prior
+        if not zp:
+            return None
+        if "mean" in zp:
+            return float(zp["mean"]), float(zp.get("sigma", 1.0))  # type: ignore[arg-type]
+        one = zp.get(str(anchor))
+        if isinstance(one, dict) and "mean" in one:
+            return float(one["mean"]), float(one.get("sigma", 1.0))
+        return None
+
+    def gamma_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
+        uwb = (calibration or {}).get("uwb", {}) or {}
+        gp = uwb.get("gamma_prior") or {}
+        mean = self.gamma_prior_mean if self.gamma_prior_mean is not None else gp.get("mean")
+        sigma = self.gamma_prior_sigma if self.gamma_prior_sigma is not None else gp.get("sigma")
+        if mean is None:
+            return None
+        return float(mean), float(sigma if sigma else 1.0)
+
+
+def lever_arms(calibration: Mapping) -> dict[tuple[int, int], np.ndarray]:
+    """(tag, antenna) -> p_T from calibration uwb.tags; a missing table means a tag at the IMU origin."""
+    tags = ((calibration or {}).get("uwb", {}) or {}).get("tags", {}) or {}
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for tag, spec in tags.items():
+        for i, a in enumerate(spec.get("antennas", [])):
+            out[(int(tag), i)] = np.asarray(a, float)
+    return out
+
+
+def _lever_arm(arms: Mapping[tuple[int, int], np.ndarray], tag: int, antenna: int) -> np.ndarray:
+    if not arms:
+        return np.zeros(3)
+    try:
+        return arms[(int(tag), int(antenna))]
+    except KeyError:
+        raise InputError(
+            f"calibration: uwb.tags: no lever arm for tag {tag} antenna {antenna}; add it to the antenna table"
+        ) from None
+
+
+def range_lever_arms(calibration: Mapping, tag: np.ndarray, antenna: np.ndarray) -> np.ndarray:
+    """p_T of every range (N, 3) from its (tag, antenna), one lookup per distinct link."""
+    arms = lever_arms(calibration)
+    tag, antenna = np.asarray(tag), np.asarray(antenna)
+    out = np.zeros((len(tag), 3))
+    for key in {(int(a), int(b)) for a, b in zip(tag.tolist(), antenna.tolist(), strict=True)}:
+        out[(tag == key[0]) & (antenna == key[1])] = _lever_arm(arms, *key)
+    return out
+
+
+# -----------------------------------------------------------------------------------------------------------------
+def interpolate_poses(traj: Mapping[str, np.ndarray], t_ns: np.ndarray):
+    """Pose (R, p) and 6x6 covariance linearly interpolated (slerp for R) at ``t_ns``; mask of stamps inside."""
+    tt = np.asarray(traj["t_ns"], np.int64)
+    t_ns = np.asarray(t_ns, np.int64)
+    inside = (t_ns >= tt[0]) & (t_ns <= tt[-1]) if len(tt) else np.zeros(len(t_ns), bool)
+    t = t_ns[inside]
+    i1 = (
+        np.clip(np.searchsorted(tt, t, side="right"), 1, len(tt) - 1)
+        if len(tt) > 1
+        else np.zeros(len(t), int)
+    )
+    i0 = np.maximum(i1 - 1, 0)
+    dt = (tt[i1] - tt[i0]).astype(float)
+    s = np.where(dt > 0, (t - tt[i0]) / np.where(dt > 0, dt, 1.0), 0.0)
+    p = traj["p"][i0] + s[:, None] * (traj["p"][i1] - traj["p"][i0])
+    q = quat_slerp(traj["q_xyzw"][i0], traj["q_xyzw"][i1], s)
+    cov = traj["cov"][i0] + s[:, None, None] * (traj["cov"][i1] - traj["cov"][i0])
+    return quat_to_rot(q), p, cov, inside
+
+
+def windows_from_trajectory(
+    traj: Mapping[str, np.ndarray],
+    ranges: Mapping[str, np.ndarray],
+    calibration: Mapping,
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+    pose_cov: np.ndarray | None = None,
+) -> dict[int, InitWindow]:
+    """Per-anchor windows: ranges (``t_ns, tag, antenna, anchor, distance``) in [start, end) with the pose
+    estimates interpolated at their stamps. ``pose_cov`` (6x6) replaces the trajectory's covariances."""
+    t = np.asarray(ranges["t_ns"], np.int64)
+    sel = np.ones(len(t), bool)
+    if start_ns is not None:
+        sel &= t >= start_ns
+    if end_ns is not None:
+        sel &= t < end_ns
+    idx = np.flatnonzero(sel)
+    R, p, cov, inside = interpolate_poses(traj, t[idx])
+    idx = idx[inside]
+    if pose_cov is not None:
+        cov = np.broadcast_to(np.asarray(pose_cov, float), (len(idx), 6, 6))
+    tag = np.asarray(ranges["tag"])[idx]
+    ant = np.asarray(ranges["antenna"])[idx]
+    pT = range_lever_arms(calibration, tag, ant)
+    anchors = np.asarray(ranges["anchor"])[idx]
+    d = np.asarray(ranges["distance"], float)[idx]
+    link = link_id(tag, ant)
+    out = {}
+    for a in np.unique(anchors):
+        m = anchors == a
+        out[int(a)] = InitWindow(d[m], pT[m], R[m], p[m], cov[m], t[idx][m], link[m])
+    return out
+
+
+def link_id(tag, antenna):
+    """One id per (tag, antenna) pair: tag * 256 + antenna (vectorised)."""
+    return np.asarray(tag, np.int64) * 256 + np.asarray(antenna, np.int64)
+
+
+def auto_init_method(dataset: str | None) -> str:
+    """The initialiser ``init_method = "auto"`` stands for: ri-robust on real data (NLOS ranges are the rule:
+    eee_01 anchor 100 throws plain RI off by metres), the paper's ri on simulated recordings."""
+    return "ri" if str(dataset or "simulation").lower() == "simulation" else "ri-robust"
+
+
+def _method(m: str) -> str:
+    return auto_init_method(None) if m == "auto" else m
+
+
+def initialize_anchors(
+    windows: Mapping[Any, InitWindow],
+    config: UwbConfig,
+    calibration: Mapping | None = None,
+    method: str | None = None,
+    searches: dict[Any, SearchResult] | None = None,
+) -> dict[Any, InitResult]:
+    """Run the configured initialiser on every anchor window (``auto``: see `auto_init_method`; the pipeline
+    resolves it from the recording's source, here it means ri)."""
+    sigma = config.sigma(calibration) * config.sigma_scale
+    out = {}
+    searches = searches if searches is not None else {}
+    for a, w in windows.items():
+        if config.pose_sigma_floor_m > 0:
+            w = InitWindow(w.d, w.p_T, w.R, w.p, w.P_pose.copy(), w.t_ns, w.link)
+            w.P_pose[:, 3:6, 3:6] += np.eye(3) * config.pose_sigma_floor_m**2
+        sr = None
+        if config.search:
+            sr = searches.get(a)
+            if sr is None:
+                sr = searches[a] = search_window(w, config, sigma, calibration)
+        evidence = bias_evidence(sr, w.tag_xyz, w.d, w.links(), w.t_ns, w.R) if sr is not None else None
+        out[a] = initialize_anchor(
+            w,
+            _method(method or config.init_method),
+            anchor=str(a),
+            sigma_range=sigma,
+            gamma_prior=config.gamma_prior(calibration),
+            beta_sigma=config.beta_prior(calibration)[1],
+            beta_prior=config.init_beta_prior(calibration),
+            robust_loss=config.robust_loss,
+            robust_scale=config.robust_scale,
+            min_ranges=config.min_ranges,
+            n_perturbed=config.n_perturbed_starts,
+            force=config.force,
+            residual_factor=config.residual_factor,
+            correlation_block_s=config.correlation_block_s,
+            search=sr,
+            per_link=config.bias == "per-link"
+            or (config.bias == "auto" and evidence is not None and evidence["model"] == "per-link"),
+            max_ranges=config.max_init_ranges,
+            z_prior=config.z_prior(a),
+        )
+        if evidence is not None and out[a].ok:  # the bias model used and the evidence, for init/metrics.json
+            out[a].verdict["bias"] = evidence | {"model": "per-link" if out[a].link_offsets else "per-anchor"}
+    return out
+
+
+def search_window(
+    w: InitWindow, config: UwbConfig, sigma: float, calibration: Mapping | None = None
+) -> SearchResult:
+    """`anchor_search.search_anchor` on an init window with the configured thresholds and the recording's
+    gamma prior."""
+
+    if len(w) == 0:
+        return _not_determined("no ranges", 0, np.zeros(0, np.int64))
+    if w.t_ns is not None and (w.t_ns.max() - w.t_ns.min()) * 1e-9 < config.min_duration_s:
+        span = (w.t_ns.max() - w.t_ns.min()) * 1e-9
+        return _not_determined(
+            f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
+        )
+    pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
+    kw = dict(
+        t_ns=w.t_ns,
+        sigma_range=sigma,
+        min_ranges=max(config.min_ranges, 30),
+        max_sigma_horizontal=config.max_sigma_horizontal_m,
+        gamma_prior=config.gamma_prior(calibration),
+        pos_cov=pos_cov,
+        arm_xyz=np.einsum("nij,nj->ni", w.R, w.p_T),
+        attitude_sigma=np.sqrt(np.maximum(np.trace(w.P_pose[:, 0:3, 0:3], axis1=1, axis2=2), 0.0) / 3.0),
+    )
+    sr = search_anchor(w.tag_xyz, w.d, w.links(), **kw)
+    bp = config.init_beta_prior(calibration)
+    if bp is None:
+        return sr
+    if not sr.ok and sr.code == "offset":
+        # a fit that needs metres of offset: on a one-sided arc the fixed scale (beta = 1) is traded against the
+        # anchor's distance; refit with beta under its prior, as the initialiser estimates it
+        sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
+        return sb if sb.ok else sr
+    if sr.ok and sr.costs.get("kappa", 1.0) > 1.0:
+        # the fixed-scale fit leaves time-correlated residuals; a scale error does (its residual grows with the
+        # range along the path, and the fit bends the anchor's position, height first, to absorb it). The scale
+        # is estimated when it removes that correlation and the ranges demand it (`beta_supported`)
+        sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
+        pose_var = float(np.mean(np.trace(pos_cov, axis1=1, axis2=2))) / 3.0 * _pose_error_run(w, calibration)
+        if sb.ok and sb.costs.get("kappa", 1.0) < sr.costs["kappa"] and beta_supported(sr, sb, pose_var):
+            return sb
+    return sr
+
+
+def _pose_error_run(w: InitWindow, calibration: Mapping | None) -> float:
+    """How many of the window's ranges share one pose error: for a bounded pose source (calibration
+    ``odometry.error_model = "bounded"``, a Gauss-Markov error with ``correlation_time_s``, default 10 s) the
+    ranges within two correlation times; 1 for a drifting source (VIO, dead reckoning: its error within the
+    window is its covariance's growth, already small against the ranges' noise)."""
+    odo = ((calibration or {}).get("odometry") or {}) if isinstance(calibration, Mapping) else {}
+    if str(odo.get("error_model") or "drift") != "bounded" or w.t_ns is None or len(w) < 2:
+        return 1.0
+    tau = float(odo.get("correlation_time_s") or 10.0)
+    span = max(float(w.t_ns.max() - w.t_ns.min()) * 1e-9, 1e-9)
+    return float(np.clip(len(w) * 2.0 * tau / span, 1.0, len(w)))
+
+
+def beta_supported(
+    fixed: SearchResult, fitted: SearchResult, pose_var: float = 0.0, chi2_1: float = 10.83
+) -> bool:
+    """The range scale beta (``fitted``) explains the ranges better than beta = 1 (``fixed``, the same ranges):
+    the drop of the squared residual sum, both truncated at 3 x the fitted residual sigma (NLOS junk must not
+    vote), over the noise a range carries (that variance plus the pose variance ``pose_var`` [m^2] along the
+    line of sight, times the ranges that share one pose error (`_pose_error_run`): a pose error bends the
+    ranges as a scale does) and over the fitted model's correlation inflation kappa, exceeds ``chi2_1`` (chi2 with 1 dof at 99.9 %)."""
+    rf, rb = fixed.residuals, fitted.residuals
+    if rf is None or rb is None or len(rf) != len(rb) or not np.isfinite(fitted.scale) or fitted.scale <= 0:
+        return False
+    c2 = (3.0 * fitted.scale) ** 2
+    drop = float(np.sum(np.minimum(rf**2, c2)) - np.sum(np.minimum(rb**2, c2)))
+    kappa = max(float(fitted.costs.get("kappa", 1.0)), 1.0)
+    return bool(drop / (fitted.scale**2 + max(pose_var, 0.0)) / kappa > chi2_1)
+
+
+# -----------------------------------------------------------------------------------------------------------------
+def _psd(A: np.ndarray) -> np.ndarray:
+    A = 0.5 * (A + np.swapaxes(A, -1, -2))
+    w, V = np.linalg.eigh(A)
+    return (V * np.maximum(w, 0.0)[..., None, :]) @ np.swapaxes(V, -1, -2)
+
+
+def anchor_init_covariance(
+    result: InitResult,
+    state: State,
+    *,
+    sigma_range: float,
+    gamma_prior: tuple[float, float] | None,
+    beta_prior: tuple[float, float],
+    pose_var: str | None = None,
+    links: str | None = None,
+    pose_correlation_s: float | None = None,
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """(J, Q) such that x~_U = sum_v J[v] e_v + n, n ~ N(0, Q) independent of the filter state.
+
+    ``links``: the name of the anchor's per-link offset variable when the window's ranges were corrected by
+    estimated offsets (``result.link_offsets``): their error delta~_l enters every range of link l like a
+    constant noise, x~_U = ... - sum_l (sum_(k in l) G^-1 H_Bk^T w_k) delta~_l, so J[links] holds that map and
+    the offsets' uncertainty reaches the anchor covariance and its cross-covariances.
+
+    Stacked linearisation over the window (paper eqs. H_A, H_B): r = H_A X~ + H_B x~_U + n. At the optimum of the
+    (weighted) least squares the normal equations give the estimator's error map
+    x~_(p_a,gamma) = -G^-1 [sum_k H_Bk^T w_k (H_Ak X~_k + h_beta,k beta~ + n_k) + e_gamma eps / s^2],
+    G = sum H_Bk^T w_k H_Bk + prior, i.e. x~_U = sum_k B_k e_k + (noise, prior and fixed-beta terms). For the GLS
+    weights this is exactly the invertible block of the paper's QR split (x~_U = H_B1^-1 (r_1 - H_A1 X~ - n_1));
+    written this way it also holds for LSI's unit weights, RI's weights, robust weights, beta fixed at its prior
+    mean (beta~ ~ N(0, sigma^2) of ``beta_prior = (mean, sigma)``, independent) and the gamma prior. When the
+    initialiser estimated beta (``result.params`` has index 3) the same holds with (p_a, beta, gamma) and the beta
+    prior, whose mean error enters like the gamma prior's.
+
+    The window's pose errors e_k (X_I of the paper):
+    - with pose probes in the state (`state.add_probe`, kept by the MSCKF over the window as considered
+      variables), e_k is interpolated linearly in time between the probes around t_k, so J holds one block per
+      probe and the cross-covariances with everything in the filter are the filter's own (exact up to the
+      interpolation);
+    - without probes only the marginal covariances P_k are known: the pose errors are taken as a random walk in
+      the world frame ([R dtheta, dp]) up to now, Cov(e_j, e_k) = P_min(j,k), Cov(e_k, e_now) = P_k, increments
+      clipped to PSD; the part correlated with the current pose enters J[pose_var], the rest Q. Exact for a
+      pose-only random-walk filter (the odometry filter); for the MSCKF it ignores how its updates decorrelate past
+      from present errors (over-confident anchors after refinement; docs/results/measurements.md).
+    """
+    w = result.window
+    x = result.x
+    assert w is not None
+    n = len(w)
+    beta_sigma = float(beta_prior[1])
+    J = jacobians(w.R, w.p, w.p_T, x)
+    ag = list(result.params)
+    est_beta = 3 in ag
+    na = len(ag)
+    HB = J.H_U[:, ag]
+    if result.method == "lsi":
+        s2 = np.full(n, sigma_range**2)
+    else:
+        s2, _ = range_variance(w.R, w.p, w.p_T, x, w.P_pose, sigma_range**2)
+    wk = (result.weights if result.weights is not None else np.ones(n)) / s2
+    G = (HB * wk[:, None]).T @ HB
+    priors = []  # (column in theta, sigma)
+    if gamma_prior is not None:
+        priors.append((na - 1, float(gamma_prior[1])))
+    if est_beta:
+        priors.append((3, beta_sigma))
+    for i, sd in priors:
+        G[i, i] += 1.0 / sd**2
+    Ginv = np.linalg.inv(G)
+    L = np.zeros((5, na))
+    L[ag, range(na)] = 1.0
+    a = (Ginv @ (HB * wk[:, None]).T).T  # (n,na) a_k = G^-1 H_Bk^T w_k
+    La = a @ L.T  # (n,5)
+    # world-frame pose Jacobians: e_k = [R_k dtheta_k, dp_k]
+    HW = J.H_I.copy()
+    HW[:, 0:3] = np.einsum("nj,nij->ni", J.H_I[:, 0:3], w.R)  # H_theta R_k^T
+    B = -La[:, :, None] * HW[:, None, :]  # (n,5,6)
+    t_k = w.t_ns if w.t_ns is not None else np.arange(n)
+    pr = state.probes
+    if pr and w.t_ns is not None:
+        Jd, cov = _probe_map(state, B, np.asarray(t_k, np.int64), pr)
+    elif pose_correlation_s is not None and w.t_ns is not None:
+        Jd, cov = _gauss_markov_map(
+            state, B, w, np.asarray(t_k, np.int64), pose_var or state.nav, pose_correlation_s
+        )
+    else:
+        Jd, cov = _random_walk_map(state, B, w, t_k, pose_var or state.nav)
+    # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
+    cov += result.noise_inflation * sigma_range**2 * (La.T @ La)
+    if links is not None and result.link_offsets:
+        col = link_columns(list(result.link_offsets))
+        li = np.array([col.get(int(lk), -1) for lk in w.links()])
+        S = np.zeros((5, len(col)))
+        for j in range(len(col)):
+            S[:, j] = La[li == j].sum(axis=0)
+        Jd = {**Jd, links: -S}
+    if not est_beta:
+        g_beta = np.zeros(5)
+        g_beta[3] = 1.0
+        g_beta -= L @ (a.T @ J.rho)
+        cov += np.outer(g_beta, g_beta) * beta_sigma**2
+    for i, sd in priors:  # the error of each prior mean, N(0, sd^2), enters through G^-1 e_i / sd^2
+        gp = L @ Ginv[:, i] / sd
+        cov += np.outer(gp, gp)
+    return Jd, _psd(cov)
+
+
+def _probe_map(
+    state: State, B: np.ndarray, t_k: np.ndarray, pr: list[tuple[int, str]]
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """e_k = (1 - s) e_j + s e_j+1 between the probes around t_k (the first / last probe outside them); the probe
+    errors are body-frame [dtheta, dp], so the world-frame B_k is mapped with each probe's rotation."""
+    tp = np.array([t for t, _ in pr], np.int64)
+    j0 = np.clip(np.searchsorted(tp, t_k, side="right") - 1, 0, len(tp) - 1)
+    j1 = np.minimum(j0 + 1, len(tp) - 1)
+    span = (tp[j1] - tp[j0]).astype(float)
+    frac = np.where(span > 0, np.clip((t_k - tp[j0]) / np.where(span > 0, span, 1.0), 0.0, 1.0), 0.0)
+    Bp = np.zeros((len(tp), 5, 6))
+    np.add.at(Bp, j0, (1.0 - frac)[:, None, None] * B)
+    np.add.at(Bp, j1, frac[:, None, None] * B)
+    Jd = {}
+    for j, (_, name) in enumerate(pr):
+        if Bp[j].any():
+            T = np.eye(6)
+            T[0:3, 0:3] = state.value(name).R
+            Jd[name] = Bp[j] @ T
+    return Jd, np.zeros((5, 5))
+
+
+def _gauss_markov_map(
+    state: State, B: np.ndarray, w: InitWindow, t_ns: np.ndarray, pose_var: str, tau_s: float
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Bounded pose errors (no probes): world-frame errors stationary with correlation exp(-|dt| / tau), the
+    pose source's bounded model. The ranges are pooled in bins of tau / 10 (B summed, the covariance averaged);
+    Cov(e_i, e_j) = rho_ij (P_i + P_j) / 2, Cov(e_i, e_now) = rho_i,now P_i with "now" the window's last stamp;
+    the part correlated with the current pose enters J[pose_var], the rest Q."""
+    T = np.zeros((len(B), 6, 6))
+    T[:, 0:3, 0:3] = w.R
+    T[:, 3:6, 3:6] = np.eye(3)
+    PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
+    t = (t_ns - t_ns.min()) * 1e-9
+    h = max(tau_s / 10.0, 1e-3)
+    b = np.floor(t / h).astype(np.int64)
+    ub, inv = np.unique(b, return_inverse=True)
+    nb = len(ub)
+    Bb = np.zeros((nb, 5, 6))
+    np.add.at(Bb, inv, B)
+    cnt = np.bincount(inv, minlength=nb).astype(float)
+    Pb = np.zeros((nb, 6, 6))
+    np.add.at(Pb, inv, PW)
+    Pb /= cnt[:, None, None]
+    tb = np.bincount(inv, weights=t, minlength=nb) / cnt
+    rho = np.exp(-np.abs(tb[:, None] - tb[None, :]) / tau_s)
+    BP = np.einsum("bij,bjk->bik", Bb, Pb)  # B_b P_b
+    # sum_ij rho_ij B_i (P_i + P_j)/2 B_j^T
+    cov_pose = 0.5 * (np.einsum("ab,aij,bkj->ik", rho, BP, Bb) + np.einsum("ab,aij,bkj->ik", rho, Bb, BP))
+    rn = np.exp(-(t.max() - tb) / tau_s)
+    Tn = np.eye(6)
+    Tn[0:3, 0:3] = state.value(pose_var).R
+    C = np.einsum("b,bij->ij", rn, BP) @ Tn
+    P_now = state.cov(pose_var)[0:6, 0:6]
+    P_now = 0.5 * (P_now + P_now.T)
+    Jn = np.linalg.solve(P_now.T, C.T).T
+    Jfull = np.zeros((5, state.dim(pose_var)))
+    Jfull[:, 0:6] = Jn
+    return {pose_var: Jfull}, _psd(cov_pose - Jn @ P_now @ Jn.T)
+
+
+def _random_walk_map(
+    state: State, B: np.ndarray, w: InitWindow, t_k: np.ndarray, pose_var: str
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The random-walk model of `anchor_init_covariance` (no probes): J on the current pose, the rest in Q."""
+    n = len(B)
+    T = np.zeros((n, 6, 6))
+    T[:, 0:3, 0:3] = w.R
+    T[:, 3:6, 3:6] = np.eye(3)
+    PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
+    order = np.argsort(t_k, kind="stable")
+    Bo = B[order]
+    dP = _psd(np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6))))
+    S = np.cumsum(Bo[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
+    cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
+    Pk = np.cumsum(dP, axis=0)  # implied P_k under the random-walk model
+    Tn = np.eye(6)
+    Tn[0:3, 0:3] = state.value(pose_var).R
+    C = np.einsum("nij,njk->ik", Bo, Pk) @ Tn  # Cov(x~_U, e_now (body))
+    P_now = state.cov(pose_var)[0:6, 0:6]
+    P_now = 0.5 * (P_now + P_now.T)
+    Jn = np.linalg.solve(P_now.T, C.T).T
+    Jfull = np.zeros((5, state.dim(pose_var)))
+    Jfull[:, 0:6] = Jn
+    return {pose_var: Jfull}, cov_pose - Jn @ P_now @ Jn.T
+
+
+def add_anchor_to_state(
+    state: State,
+    anchor: Any,
+    result: InitResult,
+    *,
+    sigma_range: float,
+    gamma_prior: tuple[float, float] | None,
+    beta_prior: tuple[float, float] = (1.0, 0.05),
+    pose_var: str | None = None,
+    pose_correlation_s: float | None = None,
+) -> None:
+    """Add ``anchor/<id>`` = result.x with covariance and cross-covariances (see `anchor_init_covariance`).
+
+    Per-link bias (``result.link_offsets`` with ``link_cov``): first ``links/<id>`` = the offsets with their
+    covariance (the search's, relative to their mean), then the anchor with its map from the offsets' error, so
+    the range updates estimate the offsets too (OpenVINS-style: one augment per variable, cross-covariances
+    from the Jacobians)."""
+    if not result.ok:
+        raise ValueError(f"anchor {anchor}: initialisation {result.status}; not added to the state")
+    pose_var = pose_var or state.nav
+    P_now = state.cov(pose_var)[0:6, 0:6]
+    if not np.all(np.isfinite(P_now)):
+        raise FloatingPointError(f"anchor {anchor}: the filter's pose covariance has NaN/inf")
+    links = None
+    if result.link_offsets and result.link_cov is not None:
+        links = link_var(anchor)
+        offsets = np.array(list(result.link_offsets.values()), float)
+        Q_links = _psd(np.asarray(result.link_cov, float))
+        state.augment(links, Vec(offsets), {}, Q=Q_links, kind=Kind.LINK, key=anchor)
+    J, Q = anchor_init_covariance(
+        result,
+        state,
+        sigma_range=sigma_range,
+        gamma_prior=gamma_prior,
+        beta_prior=beta_prior,
+        pose_var=pose_var,
+        links=links,
+        pose_correlation_s=pose_correlation_s,
+    )
+    if not result.verdict.get("height_observable", True):
+        # unobservable height: independent of everything, with the init's honest sigma (the range updates
+        # leave it alone, UwbUpdater.fixed_height)
+        J = {v: np.where(np.arange(5)[:, None] == 2, 0.0, M) for v, M in J.items()}
+        Q = Q.copy()
+        Q[2, :] = Q[:, 2] = 0.0
+        Q[2, 2] = float(result.cov[2, 2])
+    state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
+
+
+def add_initialised_anchors(
+    state: State,
+    results: Mapping[Any, InitResult],
+    config: UwbConfig,
+    calibration: Mapping | None,
+    pose_correlation_s: float | None = None,
+) -> list[str]:
+    """Every initialised anchor of ``results`` into ``state`` (`add_anchor_to_state`) with the configured range
+    noise and the recording's priors, then drop the pose probes; warnings name the anchors left out.
+    ``pose_correlation_s``: the pose source's bounded-error correlation time (`OdometryEstimator.
+    pose_correlation_s`; None: drift)."""
+    warns = []
+    for a, r in results.items():
+        if not r.ok:
+            warns.append(f"refine: anchor {a} not initialised ({r.status}); left out")
+            continue
+        if r.join_ns is not None:  # joins later (UwbUpdater.schedule)
+            continue
+        add_anchor_to_state(
+            state,
+            a,
+            r,
+            sigma_range=config.sigma(calibration) * config.sigma_scale,
+            gamma_prior=config.gamma_prior(calibration),
+            beta_prior=config.beta_prior(calibration),
+            pose_correlation_s=pose_correlation_s,
+        )
+    remove_probes(state)  # they only served the anchors' cross-covariances
+    return warns
+
+
+# -----------------------------------------------------------------------------------------------------------------
+@dataclass
+class AnchorRecord:
+    t_ns: list[int] = field(default_factory=list)
+    x: list[np.ndarray] = field(default_factory=list)
+    cov: list[np.ndarray] = field(default_factory=list)
+    residual: list[float] = field(default_factory=list)
+    nis: list[float] = field(default_factory=list)
+    rejected: list[bool] = field(default_factory=list)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        n = len(self.t_ns)
+        return {
+            "t_ns": np.asarray(self.t_ns, np.int64),
+            "x": np.asarray(self.x, float).reshape(n, 5),
+            "cov": np.asarray(self.cov, float).reshape(n, 5, 5),
+            "residual": np.asarray(self.residual, float),
+            "nis": np.asarray(self.nis, float),
+            "rejected": np.asarray(self.rejected, bool),
+        }
+
+
+class UwbUpdater:
+    """`on_range` handler. Modes: ``ekf`` (joint update of navigation state and anchor), ``skf`` (Schmidt: every
+    non-anchor variable considered, not estimated), ``none`` (no update; residuals recorded), ``frozen``
+    (localisation: the anchors' estimates stay where calibration left them, only the navigation state is
+    updated; an anchor of the state is *considered* (Schmidt: its Jacobian and covariance enter the innovation
+    covariance and the cross-covariances, its estimate and own covariance do not change), so the poses carry the
+    calibration's uncertainty instead of taking the anchors as exact; an anchor given only as a constant
+    (``anchors``, not in the state) enters with H_I alone).
+
+    Anchor Jacobians use the anchor's first estimate (``state.fej``) when ``state.use_fej``; residuals use the
+    current estimates. Updates whose NIS exceeds the chi-square ``chi2_quantile`` gate are rejected and counted.
+    """
+
+    def __init__(
+        self,
+        mode: Literal["ekf", "skf", "none", "frozen"],
+        lever_arms: Mapping[tuple[int, int], np.ndarray],
+        *,
+        sigma_range: float = 0.1,
+        chi2_quantile: float | None = 0.95,
+        anchors: Mapping[Any, np.ndarray] | None = None,
+        pose_var: str | None = None,
+        inflation: Mapping[Any, float] | None = None,
+        robust: tuple[str, float] | None = None,
+    ) -> None:
+        if mode not in ("ekf", "skf", "none", "frozen"):
+            raise ValueError(f"unknown UWB update mode {mode!r}")
+        self.mode = mode
+        self.arms = dict(lever_arms)
+        self.sigma = float(sigma_range)
+        self.chi2_quantile = chi2_quantile
+        self.frozen = {k: np.asarray(v, float) for k, v in (anchors or {}).items()}
+        self.pose_var = pose_var
+        # per-anchor variance factor kappa of time-correlated range errors (from init; 1 when absent)
+        self.inflation = {k: float(v) for k, v in (inflation or {}).items()}
+        # robust update (loss, scale [m]) instead of the chi2 gate
+        self.robust = robust
+        self.records: dict[Any, AnchorRecord] = {}
+        self.counts = {"accepted": 0, "rejected": 0, "skipped": 0, "recorded": 0}
+        # per-link bias: anchor -> {link id: offset relative to the anchor's gamma}, subtracted from the range;
+        # while the anchor's offsets are a state variable (links/<id>, refinement) its current estimate is used
+        # and the update estimates it (column link_cols[anchor][link])
+        self.link_offsets: dict[Any, dict[int, float]] = {}
+        self.link_cols: dict[Any, dict[int, int]] = {}
+        # per-anchor schedule: anchors that join the state at their first range at or after result.join_ns
+        self.pending: dict[Any, InitResult] = {}
+        self.join_kw: dict = {}
+        self.joined: dict[Any, int] = {}
+        # anchors whose height the init found unobservable: range updates leave it alone (no z column), so a
+        # tilting tag's lever arm cannot walk it to either side of the motion plane
+        self.fixed_height: set = set()
+        # a planar carrier's estimated lever arms (planar_levers.PlanarLevers): p_T from the attitude
+        self.planar_arms: Any = None
+        # heights flagged at init, regained when the motion later reveals them (height_regain.HeightRegain)
+        self.regain: Any = None
+
+    @classmethod
+    def from_config(
+        cls,
+        config: UwbConfig,
+        calibration: Mapping,
+        mode: str | None = None,
+        anchors: Mapping[Any, np.ndarray] | None = None,
+        inflation: Mapping[Any, float] | None = None,
+    ) -> UwbUpdater:
+        loss = config.update_loss
+        if loss == "auto":
+            loss = "cauchy" if config.init_method == "ri-robust" else "gate"
+        robust = None if loss == "gate" else (loss, config.robust_scale)
+        return cls(
+            mode or config.refine_method,  # type: ignore[arg-type]
+            lever_arms(calibration),
+            sigma_range=config.sigma(calibration) * config.sigma_scale,
+            chi2_quantile=config.chi2_quantile if robust is None else None,
+            anchors=anchors,
+            inflation=inflation,
+            robust=robust,
+        )
+
+    def __call__(self, estimator: Any, meas: RangeMeasurement) -> UpdateResult | None:
+        return self.update(estimator.state, meas)
+
+    def schedule(self, results: Mapping[Any, InitResult], join_kw: dict) -> None:
+        """Anchors initialised later than the refinement's start join the state at their ``join_ns``."""
+        self.pending = {a: r for a, r in results.items() if r.ok and r.join_ns is not None}
+        self.join_kw = dict(join_kw)
+        self.fixed_height = {
+            a for a, r in results.items() if r.ok and not r.verdict.get("height_observable", True)
+        }
+        self.link_offsets = {a: r.link_offsets for a, r in results.items() if r.ok and r.link_offsets}
+        self.link_cols = {a: link_columns(list(off)) for a, off in self.link_offsets.items()}
+
+    def _offset(self, state: State, meas: RangeMeasurement) -> tuple[float, str | None, int]:
+        """(offset of the range's link, its state variable or None, its column): the state's estimate while
+        the offsets are in the state (estimated in refinement, considered like their anchor in localisation),
+        else the fixed table."""
+        lk = int(meas.tag) * 256 + int(meas.antenna)
+        name = link_var(meas.anchor)
+        col = self.link_cols.get(meas.anchor, {}).get(lk)
+        if col is not None and name in state:
+            return float(state.value(name).x[col]), name, col
+        return self.link_offsets.get(meas.anchor, {}).get(lk, 0.0), None, -1
+
+    def offsets(self, state: State) -> dict[Any, dict[int, float]]:
+        """The per-link offsets now: the state's estimates where they are variables, else the fixed table."""
+        out = {a: dict(off) for a, off in self.link_offsets.items()}
+        for a, cols in self.link_cols.items():
+            if link_var(a) in state:
+                x = state.value(link_var(a)).x
+                out[a] = {lk: float(x[c]) for lk, c in cols.items()}
+        return out
+
+    def offset_covariances(self, state: State) -> dict[Any, np.ndarray]:
+        """The covariance of each anchor's offset variable (in ``link_cols`` order)."""
+        return {a: state.cov(link_var(a)).copy() for a in self.link_cols if link_var(a) in state}
+
+    @staticmethod
+    def _estimated(state: State) -> list[str]:
+        """The variables range updates estimate: anchors and their per-link offsets."""
+        return [n for _, n in state.of_kind(Kind.ANCHOR)] + [n for _, n in state.of_kind(Kind.LINK)]
+
+    def _arms(self, R: np.ndarray, rows: Sequence[RangeMeasurement]) -> np.ndarray:
+        """p_T (k, 3) of the ranges ``rows`` at the attitude R: the calibration's, or the planar model's."""
+        if self.planar_arms is None:
+            return np.stack([_lever_arm(self.arms, m.tag, m.antenna) for m in rows])
+        link = link_id([m.tag for m in rows], [m.antenna for m in rows])
+        return self.planar_arms.body_arms(np.broadcast_to(R, (len(rows), 3, 3)), link)
+
+    def _join(self, state: State, meas: RangeMeasurement) -> bool:
+        r = self.pending.get(meas.anchor)
+        if r is None or r.join_ns is None or meas.t_ns < r.join_ns or self.mode in ("frozen",):
+            return False
+        add_anchor_to_state(state, meas.anchor, r, pose_var=self.pose_var, **self.join_kw)
+        del self.pending[meas.anchor]
+        self.joined[meas.anchor] = int(meas.t_ns)
+        return True
+
+    def epoch(self, estimator: Any, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
+        """All ranges of one stamp: `update_epoch` (the estimators' range loop hands them over together)."""
+        return self.update_epoch(estimator.state, batch)
+
+    def update(self, state: State, meas: RangeMeasurement) -> UpdateResult | None:
+        name = anchor_var(meas.anchor)
+        in_state = name in state or (bool(self.pending) and self._join(state, meas))
+        if self.mode == "frozen" and meas.anchor in self.frozen:
+            x_cur = x_lin = self.frozen[meas.anchor]
+        elif in_state:
+            x_cur = state.value(name).x
+            x_lin = state.fej(name).x
+        else:
+            self.counts["skipped"] += 1
+            return None
+        pose_var = self.pose_var or state.nav
+        pose = state.value(pose_var)
+        # Jacobians at the first estimates of pose and anchor (FEJ: a range at a camera stamp comes after that
+        # frame's update, when the pose estimate already differs from its propagated first estimate)
+        pose_lin = state.fej(pose_var)
+        p_T = self._arms(pose_lin.R, [meas])[0]
+        J = jacobians(pose_lin.R, pose_lin.p, p_T, x_lin)
+        same = (
+            pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
+        ) and (x_lin is x_cur or np.array_equal(x_lin, x_cur))
+        h = J.h[0] if same else range_model(pose.R, pose.p, p_T, x_cur)[0]
+        d = meas.distance
+        lvar, lcol = None, -1
+        if self.link_offsets:
+            off, lvar, lcol = self._offset(state, meas)
+            d -= off
+        r = float(d - h)
+        R0 = (self.sigma * x_cur[3]) ** 2
+        R = self.inflation.get(meas.anchor, 1.0) * R0
+        robust = None
+        if self.robust is not None:  # scale in sigmas of the per-sample noise, as at init
+            robust = (self.robust[0], self.robust[1] / (self.sigma * x_cur[3]))
+        if meas.anchor in self.fixed_height:
+            J.H_U[:, 2] = 0.0
+        H_imu = np.zeros((1, state.dim(pose_var)))
+        H_imu[:, 0:6] = J.H_I
+        res: UpdateResult | None = None
+        H_link = {}
+        if lvar is not None and in_state:
+            H_link = {lvar: np.zeros((1, state.dim(lvar)))}
+            H_link[lvar][0, lcol] = 1.0
+        if self.mode == "none":
+            # record only: NIS of the would-be joint update
+            Hs = {pose_var: H_imu, **({name: J.H_U, **H_link} if in_state else {})}
+            S = R
+            for a, Ha in Hs.items():
+                for b, Hb in Hs.items():
+                    S += float((Ha @ state.cov(a, b) @ Hb.T).squeeze())
+            res = UpdateResult(True, r * r / S, 1, None)
+            self.counts["recorded"] += 1
+        else:
+            options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
+            anchors = self._estimated(state)
+            if self.mode == "frozen":  # the anchors considered: the range corrects the pose only
+                Hf = {pose_var: H_imu, **({name: J.H_U, **H_link} if in_state else {})}
+                res = ekf_update(state, Hf, np.array([r]), R, schmidt=anchors, **options)
+            elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
+                H = {pose_var: H_imu, name: J.H_U, **H_link}
+                res = schmidt_update(state, H, np.array([r]), R, estimated=anchors, **options)
+            else:
+                res = ekf_update(state, {pose_var: H_imu, name: J.H_U, **H_link}, np.array([r]), R, **options)
+            self.counts["accepted" if res.accepted else "rejected"] += 1
+        rec = self.records.setdefault(meas.anchor, AnchorRecord())
+        rec.t_ns.append(int(meas.t_ns))
+        if in_state:
+            rec.x.append(state.value(name).x.copy())
+            rec.cov.append(state.cov(name).copy())
+        else:
+            rec.x.append(np.asarray(x_cur, float).copy())
+            rec.cov.append(np.zeros((5, 5)))
+        rec.residual.append(r)
+        rec.nis.append(res.nis)
+        rec.rejected.append(not res.accepted)
+        if in_state and self.regain is not None and meas.anchor in self.regain:
+            self._watch_height(state, pose_var, pose, [meas])
+        return res
+
+    def update_epoch(self, state: State, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
+        """All ranges of one epoch (the same stamp, hence the same pose) in one stacked `ekf_update`: block
+        Jacobians (the pose block of every row, each anchor's block on its rows), per-row gate / robust weight
+        on the marginal innovation variance (``per_row``), one covariance update. One range: exactly `update`.
+        Mode ``none`` records each range as `update` does. The records get the anchor state after the epoch."""
+        if len(batch) == 1 or self.mode == "none":
+            res = None
+            for meas in batch:
+                res = self.update(state, meas)
+            return res
+        rows, names, xs_cur, xs_lin = [], [], [], []
+        for meas in batch:
+            name = anchor_var(meas.anchor)
+            if self.mode == "frozen" and meas.anchor in self.frozen:
+                x_cur = x_lin = self.frozen[meas.anchor]
+            elif name in state or (bool(self.pending) and self._join(state, meas)):
+                x_cur, x_lin = state.value(name).x, state.fej(name).x
+            else:
+                self.counts["skipped"] += 1
+                continue
+            rows.append(meas)
+            names.append(name)
+            xs_cur.append(x_cur)
+            xs_lin.append(x_lin)
+        if len(rows) <= 1:
+            return self.update(state, rows[0]) if rows else None
+        k = len(rows)
+        pose_var = self.pose_var or state.nav
+        pose, pose_lin = state.value(pose_var), state.fej(pose_var)
+        p_T = self._arms(pose_lin.R, rows)
+        X_cur, X_lin = np.stack(xs_cur), np.stack(xs_lin)
+        J = jacobians(pose_lin.R, pose_lin.p, p_T, X_lin)
+        same_pose = pose_lin is pose or (
+            np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R)
+        )
+        h = J.h if same_pose and np.array_equal(X_lin, X_cur) else range_model(pose.R, pose.p, p_T, X_cur)
+        d = np.array([m.distance for m in rows], float)
+        link_rows = []  # (row, variable, column) of the ranges whose link offset is a state variable
+        if self.link_offsets:  # per-link bias: the link's offset relative to the anchor's gamma
+            for i, m in enumerate(rows):
+                off, lvar, lcol = self._offset(state, m)
+                d[i] -= off
+                if lvar is not None:
+                    link_rows.append((i, lvar, lcol))
+        r = d - h
+        sig = self.sigma * X_cur[:, 3]
+        R0 = sig**2
+        R = (np.array([self.inflation.get(m.anchor, 1.0) for m in rows]) * R0)[None, :]
+        robust = None if self.robust is None else (self.robust[0], self.robust[1] / sig)
+        H_imu = np.zeros((k, state.dim(pose_var)))
+        H_imu[:, 0:6] = J.H_I
+        H: dict[str, np.ndarray] = {pose_var: H_imu}
+        options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0, "per_row": True}
+        anchors = self._estimated(state)
+        for i, name in enumerate(names):
+            if name in state:  # frozen: only the anchors of the state have a covariance to consider
+                H.setdefault(name, np.zeros((k, 5)))[i] = J.H_U[i]
+                if rows[i].anchor in self.fixed_height:  # an unobservable height is left alone
+                    H[name][i, 2] = 0.0
+        for i, lvar, lcol in link_rows:
+            H.setdefault(lvar, np.zeros((k, state.dim(lvar))))[i, lcol] = 1.0
+        if self.mode == "frozen":  # the anchors considered: the ranges correct the pose only
+            res = ekf_update(state, H, r, R, schmidt=anchors, **options)
+        elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
+            res = schmidt_update(state, H, r, R, estimated=anchors, **options)
+        else:
+            res = ekf_update(state, H, r, R, **options)
+        ok = res.row_accepted
+        self.counts["accepted"] += int(ok.sum())
+        self.counts["rejected"] += int(k - ok.sum())
+        after = {n: (state.value(n).x.copy(), state.cov(n).copy()) for n in set(names) if n in state}
+        for i, (meas, name) in enumerate(zip(rows, names, strict=True)):
+            rec = self.records.setdefault(meas.anchor, AnchorRecord())
+            rec.t_ns.append(int(meas.t_ns))
+            x, P = after.get(name, (np.asarray(xs_cur[i], float).copy(), np.zeros((5, 5))))
+            rec.x.append(x)
+            rec.cov.append(P)
+            rec.residual.append(float(r[i]))
+            rec.nis.append(float(res.row_nis[i]))
+            rec.rejected.append(not bool(ok[i]))
+        if self.regain is not None:
+            watched = [m for m, n in zip(rows, names, strict=True) if m.anchor in self.regain and n in state]
+            if watched:
+                self._watch_height(state, pose_var, pose, watched)
+        return res
+
+    def _watch_height(self, state: State, pose_var: str, pose: Any, rows: Sequence[RangeMeasurement]) -> None:
+        """Hand the ranges of anchors whose height is flagged to `regain` with the pose they were taken at; an
+        anchor whose height the grown window now reveals replaces its variable by the new initialisation (all
+        its ranges so far, none counted twice) and its height is estimated from then on."""
+        P6 = state.cov(pose_var)[0:6, 0:6]
+        p_T = self._arms(pose.R, rows)
+        for i, m in enumerate(rows):
+            name = anchor_var(m.anchor)
+            if name not in state:
+                continue
+            new = self.regain.record(
+                m.anchor,
+                m.t_ns,
+                m.distance,
+                int(link_id(m.tag, m.antenna)),
+                p_T[i],
+                pose.R,
+                pose.p,
+                P6,
+                float(state.value(name).x[2]),
+            )
+            if new is None:
+                continue
+            state.remove(name)
+            if link_var(m.anchor) in state:
+                state.remove(link_var(m.anchor))
+            add_anchor_to_state(state, m.anchor, new, pose_var=self.pose_var, **self.join_kw)
+            self.fixed_height.discard(m.anchor)
+            self.inflation[m.anchor] = float(new.noise_inflation)
+            self.link_offsets.pop(m.anchor, None)
+            self.link_cols.pop(m.anchor, None)
+            if new.link_offsets:
+                self.link_offsets[m.anchor] = new.link_offsets
+                self.link_cols[m.anchor] = link_columns(list(new.link_offsets))
+
+    def arrays(self) -> dict[Any, dict[str, np.ndarray]]:
+        return {a: rec.arrays() for a, rec in self.records.items()}
+
+    def gate_rates(
+        self, window_s: float, min_ranges: int, quantile: float | None
+    ) -> dict[Any, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per anchor: its range stamps, which failed the chi2 gate at ``quantile`` (rejected by it, or, with a
+        robust loss and no gate, NIS beyond it), and for every run of k consecutive ranges (k: ``window_s`` at the
+        anchor's mean range rate in the records, at least ``min_ranges``; an anchor with fewer is not judged) the
+        fraction that failed; from the records, once at the stage's end. An anchor whose flagged height was
+        regained (`height_regain`) counts from the regain on: before it its height was held at an init value the
+        motion has since shown wrong (its ranges failed for that reason, which the refine stage reports)."""
+        gate = chi2_ppf(quantile, 1) if quantile is not None else np.inf
+        out = {}
+        for a, rec in self.records.items():
+            t = np.asarray(rec.t_ns, np.int64)
+            i = self._judged_from(a)
+            t = t[i:]
+            if len(t) < max(min_ranges, 2):
+                continue
+            k = max(min_ranges, round(window_s * (len(t) - 1) / max((t[-1] - t[0]) * 1e-9, 1e-9)))
+            if len(t) < k:
+                continue
+            failed = np.asarray(rec.rejected[i:], bool) | (
+                np.asarray(rec.nis[i:], float) > gate
+            )  # NaN: False
+            out[a] = (t, failed, sliding_mean(failed, k))
+        return out
+
+    def _judged_from(self, anchor: Any) -> int:
+        """Index of the anchor's first record the gate warnings judge: after a regained height (`height_regain`),
+        whose ranges failed before it because the height was held at an init value the motion has since shown
+        wrong (the refine stage reports the regain)."""
+        regained = getattr(self.regain, "regained", {})
+        if anchor not in regained:
+            return 0
+        return int(
+            np.searchsorted(np.asarray(self.records[anchor].t_ns, np.int64), regained[anchor].t_ns, "left")
+        )
+
+    def gate_excess_warning(self, stage: str, alpha: float = 1e-3) -> list[str]:
+        """A warning when the stage's gate rejected more ranges than a consistent filter would, over all ranges
+        or over one anchor's: k of n rejected at the gate (``chi2_quantile``, q) with the binomial tail
+        P(K >= k | n, 1 - q) below ``alpha`` (per anchor: ``alpha`` / anchors). A consistent filter rejects
+        ~1 - q of its ranges; counting any rejection cried wolf on every clean run. A burst inside the stage (one
+        anchor, a stretch of NLOS) is `gate_warnings`' job; this one sees an anchor whose estimate or covariance
+        is off over the whole stage. Counted from the records, as `gate_rates` (from a regained height on)."""
+        from scipy.special import bdtrc
+
+        q = self.chi2_quantile
+        if q is None:
+            return []
+
+        def tail(k: int, n: int) -> float:
+            return float(bdtrc(k - 1, n, 1.0 - q)) if k else 1.0
+
+        def shown(p: float) -> str:  # a tail below the smallest double prints as such, not as 0
+            return f"{p:.1e}" if p > 0.0 else "< 1e-308"
+
+        judged = {a: r.rejected[self._judged_from(a) :] for a, r in self.records.items()}
+        per = {a: (int(np.sum(rej)), len(rej)) for a, rej in judged.items() if rej}
+        bad = {a: kn for a, kn in per.items() if tail(*kn) < alpha / len(per)}
+        k, n = sum(kn[0] for kn in per.values()), sum(kn[1] for kn in per.values())
+        if not bad and not (n and tail(k, n) < alpha):
+            return []
+        named = "".join(
+            f"; anchor {a}: {ka} of {na} ({ka / na:.0%}, tail {shown(tail(ka, na))})"
+            for a, (ka, na) in sorted(bad.items(), key=lambda kv: str(kv[0]))
+        )
+        return [
+            f"{stage}: {k} of {n} ranges ({k / n:.1%}; tail {shown(tail(k, n))}) rejected by the chi2 gate{named}: "
+            f"more than the {1 - q:.0%} a consistent filter rejects (binomial tail < {alpha:g}, per anchor < "
+            f"{alpha:g} / anchors): the ranges' noise (uwb.sigma_range), the anchors' or the poses' covariance is "
+            "too small, or the ranges carry NLOS"
+        ]
+
+    def gate_warnings(
+        self,
+        stage: str,
+        window_s: float,
+        min_ranges: int,
+        max_rejected: float,
+        quantile: float | None,
+        t0_ns: int,
+    ) -> list[str]:
+        """One warning naming the anchors of which more than ``max_rejected`` of the ranges of some ``window_s``
+        window failed the chi2 gate, each with its largest fraction and the span (s after ``t0_ns``) from the first
+        to the last failed range of those windows; the likely cause from the pattern (some anchors: their ranges
+        or estimates; every anchor judged: the pose)."""
+        rates = self.gate_rates(window_s, min_ranges, quantile)
+        parts = []
+        for a, (t, failed, rate) in sorted(rates.items(), key=lambda kv: str(kv[0])):
+            bad = np.flatnonzero(rate > max_rejected)
+            if len(bad):
+                edge = np.zeros(len(t) + 1, int)  # the ranges of the windows over the threshold
+                np.add.at(edge, bad, 1)
+                np.add.at(edge, bad + len(t) - len(rate) + 1, -1)
+                hit = np.flatnonzero((np.cumsum(edge[:-1]) > 0) & failed)
+                first, last = (t[hit[[0, -1]]] - t0_ns) * 1e-9
+                parts.append(f"anchor {a} from {first:.1f} s to {last:.1f} s (up to {rate.max():.0%})")
+        if not parts:
+            return []
+        cause = (
+            "every anchor: the pose is likely off (a drifting or diverged pose source)"
+            if len(parts) == len(rates) > 1
+            else "only these anchors: their ranges are biased there (NLOS, multipath) or their estimates walked off"
+        )
+        return [
+            f"{stage}: more than {max_rejected:.0%} of the ranges of a {window_s:g} s window failed the chi2 gate "
+            f"(uwb.chi2_quantile; threshold uwb.gate_max_rejected = {max_rejected:g}), in s after the start: "
+            + ", ".join(parts)
+            + "; "
+            + cause
+        ]
