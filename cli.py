@@ -366,6 +366,21 @@ def info(
     typer.echo(recording_info(recording).render())
 
 
+@app.command("config")
+@_guard
+def config_cmd(
+    reference: Annotated[
+        bool,
+        typer.Option("--reference", help="The configuration reference (Markdown) instead of the defaults"),
+    ] = False,
+) -> None:
+    """The default configuration as TOML (a starting point for --config), or its reference."""
+    from uwbcal.pipeline.run.config import PipelineConfig
+    from uwbcal.pipeline.run.config_reference import reference_markdown
+
+    typer.echo(reference_markdown() if reference else PipelineConfig().to_toml(), nl=False)
+
+
 @app.command()
 @_guard
 def run(

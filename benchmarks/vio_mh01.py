@@ -22,7 +22,8 @@ from uwbcal.convert.recording import RecordingReader
 from uwbcal.convert.simulator import SimConfig, simulate_to_file
 from uwbcal.pipeline.core.geometry import log_so3, quat_slerp, quat_to_rot
 from uwbcal.pipeline.run.driver import run_estimator
-from uwbcal.pipeline.vio.msckf import MsckfEstimator, VioConfig
+from uwbcal.pipeline.vio.config import VioConfig
+from uwbcal.pipeline.vio.msckf import MsckfEstimator
 
 
 def simulate(path: Path, seed: int, duration: float | None) -> str:

@@ -28,7 +28,7 @@ from uwbcal.evaluate.tables import render
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import quat_to_rot
-from uwbcal.pipeline.run.real_imu import imu_is_real
+from uwbcal.pipeline.run.resolve import imu_is_real
 from uwbcal.pipeline.run.rundir import read_json
 from uwbcal.pipeline.viz import runlog as rl
 

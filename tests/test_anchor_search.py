@@ -5,16 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from uwbcal.pipeline.uwb.config import UwbConfig
 from uwbcal.pipeline.uwb.initializer import InitWindow, _fuse_z_prior
 from uwbcal.pipeline.uwb.link_bias import bias_evidence, link_offset_contrast, per_link_supported
 from uwbcal.pipeline.uwb.schedule import candidate_ends, choose_schedule, join_time
 from uwbcal.pipeline.uwb.search import closed_form_candidates, plane_frame, search_anchor
-from uwbcal.pipeline.uwb.updater import (
-    UwbConfig,
-    add_initialised_anchors,
-    initialize_anchors,
-    search_window,
-)
+from uwbcal.pipeline.uwb.updater import add_initialised_anchors, initialize_anchors, search_window
 
 
 def _ground_track(n: int, rng, extent=8.0, z=0.3, z_wobble=0.01):

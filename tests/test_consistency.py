@@ -21,8 +21,9 @@ from scipy.stats import chi2
 from uwbcal.convert.recording import RecordingReader, RecordingWriter
 from uwbcal.pipeline.core.geometry import exp_so3, log_so3, quat_to_rot, rot_to_quat
 from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.vio.config import VioConfig
 from uwbcal.pipeline.vio.estimator import TrajectoryRecord
-from uwbcal.pipeline.vio.msckf import MsckfEstimator, VioConfig, groundtruth_state
+from uwbcal.pipeline.vio.msckf import MsckfEstimator, groundtruth_state
 from uwbcal.pipeline.vio.odometry_filter import OdometryEstimator, OdometryFilterConfig
 
 from support import T0, errors_vs_truth, simulate_vi

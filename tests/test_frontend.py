@@ -5,14 +5,8 @@ from uwbcal.convert.recording import META_CALIBRATION, RecordingReader, Recordin
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import exp_so3
 from uwbcal.pipeline.vio.camera import Camera
-from uwbcal.pipeline.vio.frontend import (
-    FrontendConfig,
-    KltFrontend,
-    bucket_select,
-    decode_image,
-    run_frontend,
-    track_frames,
-)
+from uwbcal.pipeline.vio.config import FrontendConfig
+from uwbcal.pipeline.vio.frontend import KltFrontend, bucket_select, decode_image, run_frontend, track_frames
 
 from support import T0
 

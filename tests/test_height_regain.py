@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from uwbcal.pipeline.core.state import Kind, Pose, State
+from uwbcal.pipeline.uwb.config import UwbConfig
 from uwbcal.pipeline.uwb.height_regain import HeightRegain
 from uwbcal.pipeline.uwb.initializer import InitWindow
 from uwbcal.pipeline.uwb.search import NORMAL_SNR, normal_corruption, plane_frame, search_anchor
 from uwbcal.pipeline.uwb.updater import (
-    UwbConfig,
     UwbUpdater,
     add_initialised_anchors,
     anchor_var,

@@ -1,6 +1,6 @@
 """Real-IMU hybrid recordings (`uwbcal simulate --imu-from`): the real EuRoC V1_01 IMU and ground truth with
 feature tracks and UWB ranges simulated along the real trajectory; the MSCKF and the full pipeline on it, started
-as a user starts them (static initialiser, the real-IMU defaults of pipeline/run/real_imu.py)."""
+as a user starts them (static initialiser, the real-IMU defaults of pipeline/run/resolve.py)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,6 @@ import pytest
 from uwbcal.convert.recording import RecordingReader
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import quat_to_rot
-from uwbcal.pipeline.run.real_imu import REAL_IMU_DEFAULTS, apply_real_imu_defaults, imu_is_real
-from uwbcal.pipeline.vio.msckf import VioConfig
 
 DURATION = 40.0  # s of the 145 s flight: keeps the CI test short
 
@@ -38,20 +36,6 @@ def hybrid(euroc_rec):
     out = euroc_rec.parent / "hybrid.mcap"
     hybrid_to_file(euroc_rec, SimConfig(duration=DURATION, seed=1), out)
     return out
-
-
-def test_real_imu_defaults_only_fill_unset_fields():
-    assert imu_is_real({"dataset": "euroc"}) and imu_is_real({"dataset": "hybrid", "real": ["/imu"]})
-    assert not imu_is_real({"dataset": "simulation"}) and not imu_is_real({"dataset": "x", "real": []})
-    vio = VioConfig(max_clones=12)
-    applied = apply_real_imu_defaults(vio, {"dataset": "euroc"})
-    assert vio.max_clones == 12 and "max_clones" not in applied
-    assert (
-        vio.init_from_groundtruth is False
-        and vio.imu_noise_inflation == REAL_IMU_DEFAULTS["imu_noise_inflation"]
-    )
-    sim = VioConfig()
-    assert apply_real_imu_defaults(sim, {"dataset": "simulation"}) == {} and sim.init_from_groundtruth
 
 
 @pytest.mark.data

@@ -14,11 +14,11 @@ from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import exp_so3, rot_to_quat
 from uwbcal.pipeline.core.state import Kind
 from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.vio.config import VioConfig
 from uwbcal.pipeline.vio.imu import GRAVITY
 from uwbcal.pipeline.vio.msckf import (
     FeatureDatabase,
     MsckfEstimator,
-    VioConfig,
     VioStats,
     compress,
     feature_jacobians,

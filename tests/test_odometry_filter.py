@@ -263,13 +263,14 @@ def test_simulated_odometry_is_consistent_with_the_drift_model(tmp_path):
     calibration); the filter that reads those sigmas is consistent: 6-DoF pose ANEES over 8 runs x 30 s inside
     the chi-square bounds of the run average (time-correlated samples: the bounds of 8 runs, not of all samples)."""
     from uwbcal.evaluate.consistency import chi2_bounds
-    from uwbcal.pipeline.vio.odometry_filter import apply_calibration_noise
+    from uwbcal.pipeline.vio.odometry_filter import declared_noise
 
     per_run = []
     for seed in range(8):
         rd = _simulated_odometry(tmp_path, seed)
-        cfg = OdometryFilterConfig()
-        assert apply_calibration_noise(cfg, rd.calibration) == list(rd.calibration["odometry"]["noise"])
+        noise = declared_noise(rd.calibration)
+        assert list(noise) == list(rd.calibration["odometry"]["noise"])
+        cfg = OdometryFilterConfig(**noise)
         est = OdometryEstimator.from_recording(rd, cfg)
         run_estimator(est, rd, None, None)
         h = est.history().arrays()
@@ -292,16 +293,14 @@ def test_simulated_odometry_without_noise_is_the_truth(tmp_path):
     assert rd.calibration["odometry"]["error_model"] == "drift"
 
 
-def test_calibration_noise_fills_only_unset_sigmas():
-    from uwbcal.pipeline.vio.odometry_filter import apply_calibration_noise
+def test_declared_noise_refuses_unknown_keys():
+    from uwbcal.pipeline.vio.odometry_filter import declared_noise
 
-    cal = {"odometry": {"noise": {"sigma_p_per_sqrt_m": 0.005, "initial_sigma_p": 0.002}}}
-    cfg = OdometryFilterConfig(initial_sigma_p=0.05)
-    assert apply_calibration_noise(cfg, cal) == ["sigma_p_per_sqrt_m"]
-    assert cfg.sigma_p_per_sqrt_m == 0.005 and cfg.initial_sigma_p == 0.05
-    assert apply_calibration_noise(OdometryFilterConfig(), {}) == []
+    assert declared_noise({}) == {} and declared_noise(
+        {"odometry": {"noise": {"initial_sigma_p": 2e-3}}}
+    ) == {"initial_sigma_p": 2e-3}
     with pytest.raises(InputError, match="odometry.noise: unknown key"):
-        apply_calibration_noise(OdometryFilterConfig(), {"odometry": {"noise": {"sigma_x": 1.0}}})
+        declared_noise({"odometry": {"noise": {"sigma_x": 1.0}}})
 
 
 def test_fit_drift_noise_recovers_a_random_walk_per_metre():

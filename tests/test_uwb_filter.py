@@ -11,9 +11,9 @@ from scipy.stats import chi2
 from uwbcal.evaluate.experiments.ri_vs_lsi import smooth_trajectory
 from uwbcal.pipeline.core.geometry import exp_so3, log_so3, rot_to_quat
 from uwbcal.pipeline.core.state import Kind, Pose, State, Vec
+from uwbcal.pipeline.uwb.config import UwbConfig
 from uwbcal.pipeline.uwb.updater import (
     METHODS,
-    UwbConfig,
     UwbUpdater,
     add_anchor_to_state,
     add_initialised_anchors,
@@ -554,7 +554,7 @@ def test_filter_warnings_go_to_the_stage_log():
     from types import SimpleNamespace
 
     from uwbcal.pipeline.run.context import filter_warnings
-    from uwbcal.pipeline.uwb.updater import UwbConfig
+    from uwbcal.pipeline.uwb.config import UwbConfig
 
     logged = []
     log = SimpleNamespace(text=lambda msg, level="INFO", t_ns=None: logged.append((msg, level, t_ns)))

@@ -14,7 +14,8 @@ import polars as pl
 import pytest
 import yaml
 
-from uwbcal.pipeline.uwb.updater import UwbConfig, initialize_anchors, windows_from_trajectory
+from uwbcal.pipeline.uwb.config import UwbConfig
+from uwbcal.pipeline.uwb.updater import initialize_anchors, windows_from_trajectory
 
 
 def _calibration(root):

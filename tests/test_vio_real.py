@@ -17,7 +17,8 @@ from uwbcal.convert.recording import MergedReader, RecordingReader
 
 @pytest.fixture(scope="module")
 def euroc_vi(euroc_micro, tmp_path_factory):
-    from uwbcal.pipeline.vio.frontend import FrontendConfig, run_frontend
+    from uwbcal.pipeline.vio.config import FrontendConfig
+    from uwbcal.pipeline.vio.frontend import run_frontend
 
     rec = euroc_micro[0]  # the session's one conversion (conftest), with the V1_01_easy ground truth
     fe = tmp_path_factory.mktemp("euroc_vio") / "fe.mcap"
@@ -54,7 +55,8 @@ def test_euroc_converter_carries_groundtruth_biases(euroc_vi):
 
 def test_msckf_real_euroc_excerpt_within_10cm(euroc_vi):
     from uwbcal.pipeline.run.driver import run_estimator
-    from uwbcal.pipeline.vio.msckf import MsckfEstimator, VioConfig
+    from uwbcal.pipeline.vio.config import VioConfig
+    from uwbcal.pipeline.vio.msckf import MsckfEstimator
 
     rec, reader = euroc_vi
     gt = rec.read_poses("/groundtruth/pose")
@@ -69,7 +71,8 @@ def test_msckf_real_euroc_excerpt_within_10cm(euroc_vi):
 
 def test_msckf_real_euroc_excerpt_static_init(euroc_vi):
     from uwbcal.pipeline.run.driver import run_estimator
-    from uwbcal.pipeline.vio.msckf import MsckfEstimator, VioConfig
+    from uwbcal.pipeline.vio.config import VioConfig
+    from uwbcal.pipeline.vio.msckf import MsckfEstimator
     from uwbcal.pipeline.vio.static_init import static_init_from_recording
 
     rec, reader = euroc_vi

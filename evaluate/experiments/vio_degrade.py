@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from uwbcal.convert.simulator import SimConfig
 from uwbcal.pipeline.core.errors import InputError
-from uwbcal.pipeline.vio.msckf import VioConfig
+from uwbcal.pipeline.vio.config import VioConfig
 
 
 class VioDegrade(BaseModel):

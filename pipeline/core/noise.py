@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 class OdometryFilterConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    topic: str = "/odometry"
+    topic: str = Field("/odometry", description="the recording topic of the external odometry")
     sigma_p_per_sqrt_m: float = Field(
         0.02, ge=0, description="position random walk per metre travelled [m/√m]"
     )

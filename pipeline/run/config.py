@@ -13,23 +13,30 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.names import STAGES
 from uwbcal.pipeline.core.noise import OdometryFilterConfig
-from uwbcal.pipeline.uwb.updater import UwbConfig
-from uwbcal.pipeline.vio.frontend import FrontendConfig
-from uwbcal.pipeline.vio.msckf import VioConfig
+from uwbcal.pipeline.uwb.config import UwbConfig
+from uwbcal.pipeline.vio.config import FrontendConfig, VioConfig
 
 
 class RunSection(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    recording: str = ""
-    pose_source: Literal["auto", "msckf", "odometry"] = "auto"
-    stages: list[str] = Field(default_factory=lambda: list(STAGES))
+    recording: str = Field("", description="the recording (.mcap) the run is of; set by `uwbcal run REC`")
+    pose_source: Literal["auto", "msckf", "odometry"] = Field(
+        "auto",
+        description="msckf: our VIO on IMU + camera; odometry: the filter on /odometry; auto: msckf when the recording has IMU and camera",
+    )
+    stages: list[str] = Field(
+        default_factory=lambda: list(STAGES), description="the stages to run, in run order"
+    )
     init_window_s: float | None = Field(
         None, gt=0, description="length of paper stage 1; default 1/3 of the data"
     )
     refine_window_s: float | None = Field(None, gt=0, description="length of paper stage 2; default 1/3")
-    align: Literal["auto", "none", "posyaw", "se3", "sim3"] = "auto"
-    log: bool = True
+    align: Literal["auto", "none", "posyaw", "se3", "sim3"] = Field(
+        "auto",
+        description="trajectory alignment of the evaluation; auto: none in a shared world frame, posyaw for a VIO in its own frame",
+    )
+    log: bool = Field(True, description="write the rerun recording run.rrd (--no-log: false)")
     log_process: bool = Field(
         True,
         description="rerun logging in a helper process that overlaps with the computation (false: in-process)",

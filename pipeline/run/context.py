@@ -16,32 +16,17 @@ from pathlib import Path
 import numpy as np
 
 from uwbcal.convert.recording import MergedReader, RecordingReader
-from uwbcal.pipeline.core.errors import InputError
-from uwbcal.pipeline.core.geometry import quat_to_rot
 from uwbcal.pipeline.core.names import STAGE_NUMBER
 from uwbcal.pipeline.core.topics import (
-    TOPIC_CAM0,
-    TOPIC_FEATURES,
     TOPIC_GT_POSE,
     TOPIC_GT_POSITION,
-    TOPIC_IMU,
-    TOPIC_ODOM,
-    TOPIC_RANGE,
 )
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.config import PipelineConfig
-from uwbcal.pipeline.run.real_imu import apply_real_imu_defaults
-from uwbcal.pipeline.run.windows import Windows, split_windows
-from uwbcal.pipeline.uwb.planar_levers import choose_lever_arms
-from uwbcal.pipeline.uwb.schedule import choose_schedule
-from uwbcal.pipeline.uwb.updater import auto_init_method, lever_arms
+from uwbcal.pipeline.run.windows import Windows, recording_windows
 from uwbcal.pipeline.vio.estimator import Estimator
 from uwbcal.pipeline.vio.msckf import MsckfEstimator
-from uwbcal.pipeline.vio.odometry_filter import (
-    OdometryEstimator,
-    apply_calibration_noise,
-    resolve_error_model,
-)
+from uwbcal.pipeline.vio.odometry_filter import OdometryEstimator
 from uwbcal.pipeline.vio.static_init import static_init_from_recording
 from uwbcal.pipeline.viz import runlog as rl
 
@@ -90,6 +75,7 @@ class StageContext:
         self.evaluator = evaluator
         self.stages = list(config.run.stages)  # this invocation's stages (Pipeline.run narrows it)
         self.results_text = ""
+        self.choices: list[dict] = []  # the recording-aware defaults resolved for this run (run.resolve)
         self._reader: RecordingReader | None = None
         self.log_server = None  # rerun logging helper process while Pipeline.run runs (runlog_async)
 
@@ -129,99 +115,14 @@ class StageContext:
         return self.reader.time_span()[0] if simulated else None
 
     def windows(self) -> Windows:
-        topics = self.reader.topics()
-        if TOPIC_RANGE not in topics:
-            raise InputError(f"{self.recording}: no '{TOPIC_RANGE}' topic; UWB calibration needs ranges")
-        src = [t for t in (TOPIC_IMU, TOPIC_ODOM) if t in topics]
-        if not src:
-            raise InputError(f"{self.recording}: neither '{TOPIC_IMU}' nor '{TOPIC_ODOM}'; no pose source")
-        start = max(topics[TOPIC_RANGE].start_ns, min(topics[t].start_ns for t in src))
-        end = min(topics[TOPIC_RANGE].end_ns, max(topics[t].end_ns for t in src))
-        return split_windows(
-            start, end, self.config.run.init_window_s, self.config.run.refine_window_s, str(self.recording)
-        )
-
-    def resolve_auto(self) -> None:
-        """Recording-aware defaults, resolved before the config is written (so config.toml states them).
-
-        - ``uwb.init_method = "auto"``: ri-robust on real recordings, ri on simulated ones;
-        - odometry pose source: drift sigmas the recording declares (calibration ``odometry.noise``, e.g. the
-          simulator's odometry) for those the config does not set;
-        - MSCKF on a real IMU: the real-IMU vio defaults (`pipeline.real_imu`) for the settings not given;
-        - windows, when not given and the poses come from an odometry with a *bounded* error (a SLAM output in
-          the world frame, calibration ``odometry.error_model = "bounded"``, e.g. NTU-VIRAL SLICT): the thirds
-          of the paper exist so that a drifting VIO is calibrated before it drifts; a bounded pose source does
-          not drift, and the anchors need most of the flight to be observed. Default: init over the first 2/3,
-          refine over the rest, no localisation segment.
-        """
-
-        uwb = self.config.uwb
-        if uwb.init_method == "auto":
-            uwb.init_method = auto_init_method(self.reader.source.get("dataset"))  # type: ignore[assignment]
         run = self.config.run
-        odometry = self.pose_source() == "odometry"
-        if odometry:
-            apply_calibration_noise(self.config.odometry, self.reader.calibration)
-        else:  # a real IMU: static initialisation and the real-IMU noise model (pipeline/run/real_imu.py)
-            for k, v in apply_real_imu_defaults(self.config.vio, self.reader.source).items():
-                _log.info("vio.%s = %s (real-IMU default, pipeline/run/real_imu.py)", k, v)
-        if uwb.lever_arms == "auto":
-            uwb.lever_arms, why = self.choose_lever_arms()  # type: ignore[assignment]
-            _log.info("uwb.lever_arms = %s: %s", uwb.lever_arms, why)
-        if run.schedule == "auto":
-            rng = self.reader.read_ranges()
-            init_end = self.windows().init_end_ns
-            run.schedule, why = choose_schedule(  # type: ignore[assignment]
-                rng.t_ns, rng.anchor, init_end, min_ranges=max(uwb.min_ranges, 30)
-            )
-            if run.schedule == "windows" and odometry and uwb.search:
-                model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
-                if model == "bounded":
-                    # poses in the anchors' frame that do not drift (ground truth, SLAM with a map): the thirds
-                    # guard against drift that is not there; every anchor joins when its own ranges pin it
-                    # down and is refined to the end of the data
-                    run.schedule = "per-anchor"  # type: ignore[assignment]
-                    why = "bounded pose source: anchors refined to the end of the data"
-            _log.info("run.schedule = %s: %s", run.schedule, why)
-        if run.schedule == "per-anchor" and run.refine_window_s is None:
-            # late anchors are refined from their own join time: refinement runs to the end
-            win = self.windows()
-            run.refine_window_s = round((win.end_ns - win.init_end_ns) * 1e-9 + 1.0, 3)
-            if run.vio_extent == "auto":
-                run.vio_extent = "full"  # the late anchors' init windows need the poses up to their join
-        # (with the search the per-anchor schedule does this per anchor, from the data)
-        if run.init_window_s is None and run.refine_window_s is None and odometry and not uwb.search:
-            model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
-            if model == "bounded":
-                win = self.windows()
-                span = (win.end_ns - win.start_ns) * 1e-9
-                run.init_window_s = round(span * 2.0 / 3.0, 3)
-                # refine to the end: the 1 s margin absorbs the rounding (split_windows clamps at the end)
-                run.refine_window_s = round(span - run.init_window_s + 1.0, 3)
-
-    def choose_lever_arms(self) -> tuple[str, str]:
-        """``uwb.lever_arms = "auto"`` (`planar_levers.choose_lever_arms`) from the odometry poses the UWB stages
-        use, when they come from an external system in the anchors' frame (error model bounded: motion capture,
-        SLAM with a map), whose body frame need not be the one the arms were measured in. A VIO or a drifting
-        odometry is the robot's own (the arms are given in its frame) and keeps the calibration's arms."""
-
-        if self.pose_source() != "odometry":
-            return "given", "VIO poses: the calibration's lever arms are in its IMU frame"
-        model, _ = resolve_error_model(self.config.odometry, self.reader.calibration)
-        if model != "bounded":
-            return "given", f"{model} odometry: the robot's own frame, the calibration's lever arms"
-        odo = self.reader.read_poses(TOPIC_ODOM)
-        step = max(1, len(odo.t_ns) // 20000)
-        n_ant = len(lever_arms(self.reader.calibration))
-        return choose_lever_arms(quat_to_rot(odo.q_xyzw[::step]), odo.p[::step], n_ant)
+        return recording_windows(self.reader, run.init_window_s, run.refine_window_s)
 
     def pose_source(self) -> str:
+        """The resolved ``run.pose_source`` (`resolve`)."""
         choice = self.config.run.pose_source
-        if choice != "auto":
-            return choice
-        topics = self.reader.topics()
-        has_vi = TOPIC_IMU in topics and (TOPIC_FEATURES in topics or TOPIC_CAM0 in topics)
-        return "msckf" if has_vi else "odometry"
+        assert choice != "auto", "resolve the config before the stages run"
+        return choice
 
     def loose(self) -> bool:
         """UWB stages on the VIO output instead of inside the MSCKF (``run.coupling = "loose"``)."""

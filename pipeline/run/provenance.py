@@ -51,9 +51,15 @@ def load_stages(run: rd.RunDir) -> dict[str, dict]:
 
 
 def record_stage(
-    run: rd.RunDir, stage: str, entry: dict, cfg: PipelineConfig, invocation: list[str]
+    run: rd.RunDir,
+    stage: str,
+    entry: dict,
+    cfg: PipelineConfig,
+    invocation: list[str],
+    choices: list[dict] | None = None,
 ) -> list[str]:
-    """Add ``stage`` (wall_s, summary, warnings) with its config to stages.json, then write config.toml.
+    """Add ``stage`` (wall_s, summary, warnings) with its config to stages.json, then write config.toml and,
+    when this invocation resolved ``"auto"`` keys, resolved.json (each key, its value and why).
     Returns warnings about stages outside this ``invocation`` whose artefacts were made under another config
     (also stored with the stage)."""
     stages = load_stages(run)
@@ -76,4 +82,6 @@ def record_stage(
     out = cfg.model_copy(deep=True)
     out.run.stages = done
     rd.write_text(run.file(rd.CONFIG), out.to_toml())
+    if choices:
+        run.save_json(rd.RESOLVED, choices)
     return warns

@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from uwbcal.pipeline.run.windows import Windows
 
 CONFIG = "config.toml"
+RESOLVED = "resolved.json"  # the recording-aware defaults of the run and why (run.resolve)
 METRICS = "metrics.json"
 ANCHORS = "anchors.csv"
 RRD = "run.rrd"

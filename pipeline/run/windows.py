@@ -4,7 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
+from uwbcal.convert.recording import RecordingReader
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.topics import TOPIC_IMU, TOPIC_ODOM, TOPIC_RANGE
 
 
 @dataclass(frozen=True)
@@ -16,8 +20,6 @@ class Windows:
 
     def segment_of(self, t_ns):
         """0 init, 1 refine, 2 localize (vectorised over numpy arrays)."""
-        import numpy as np
-
         t = np.asarray(t_ns)
         return (t >= self.init_end_ns).astype(np.int8) + (t >= self.refine_end_ns).astype(np.int8)
 
@@ -47,3 +49,17 @@ def split_windows(
             f"recording ({span * 1e-9:.1f} s); shorten run.init_window_s"
         )
     return Windows(start_ns, init_end, refine_end, end_ns)
+
+
+def recording_windows(reader: RecordingReader, init_s: float | None, refine_s: float | None) -> Windows:
+    """The windows over the span where the recording has both ranges and a pose source (IMU or odometry)."""
+    topics = reader.topics()
+    rec = getattr(reader, "path", "recording")
+    if TOPIC_RANGE not in topics:
+        raise InputError(f"{rec}: no '{TOPIC_RANGE}' topic; UWB calibration needs ranges")
+    src = [t for t in (TOPIC_IMU, TOPIC_ODOM) if t in topics]
+    if not src:
+        raise InputError(f"{rec}: neither '{TOPIC_IMU}' nor '{TOPIC_ODOM}'; no pose source")
+    start = max(topics[TOPIC_RANGE].start_ns, min(topics[t].start_ns for t in src))
+    end = min(topics[TOPIC_RANGE].end_ns, max(topics[t].end_ns for t in src))
+    return split_windows(start, end, init_s, refine_s, str(rec))

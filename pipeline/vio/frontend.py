@@ -20,11 +20,10 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from uwbcal.convert import msgs
 from uwbcal.convert.recording import (
@@ -37,6 +36,7 @@ from uwbcal.convert.recording import (
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.progress import progress
 from uwbcal.pipeline.vio.camera import Camera
+from uwbcal.pipeline.vio.config import FrontendConfig
 
 # sees every logged frame: (t_ns, image, uv (n, 2), track ids (n,))
 FrameObserver = Callable[[int, np.ndarray, np.ndarray, np.ndarray], None]
@@ -48,29 +48,6 @@ _USAC = {
     "usac": getattr(cv2, "USAC_DEFAULT", cv2.FM_RANSAC),
     "ransac": cv2.FM_RANSAC,
 }
-
-
-class FrontendConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    max_features: int = Field(200, gt=0, description="target number of live tracks per frame")
-    grid_cols: int = Field(8, gt=0)
-    grid_rows: int = Field(5, gt=0)
-    min_distance_px: float = Field(12.0, ge=0, description="minimum distance of a new corner to any track")
-    quality_level: float = Field(0.005, gt=0, lt=1, description="Shi-Tomasi quality relative to the best")
-    border_px: int = Field(8, ge=0, description="no detections or tracks this close to the image border")
-    equalize: bool = Field(True, description="CLAHE histogram equalisation before tracking")
-    klt_window: int = Field(21, ge=5)
-    klt_levels: int = Field(3, ge=0)
-    klt_iterations: int = Field(30, gt=0)
-    fb_threshold_px: float = Field(1.0, gt=0, description="forward-backward KLT consistency")
-    ransac: bool = True
-    ransac_method: Literal["magsac", "usac", "ransac"] = "magsac"
-    ransac_threshold_px: float = Field(1.0, gt=0, description="epipolar distance threshold (undistorted px)")
-    ransac_confidence: float = Field(0.999, gt=0, lt=1)
-    stereo: bool = Field(False, description="match cam0 features into cam1 (KLT + epipolar check)")
-    stereo_epipolar_px: float = Field(2.0, gt=0)
-    log_every: int = Field(10, ge=1, description="log every n-th image and its tracks to rerun")
 
 
 @dataclass
@@ -533,7 +510,6 @@ def run_frontend(
 
 
 __all__ = [
-    "FrontendConfig",
     "FrontendStats",
     "KltFrontend",
     "bucket_select",

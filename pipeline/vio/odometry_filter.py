@@ -167,9 +167,9 @@ def resolve_error_model(config: OdometryFilterConfig, calibration: dict | None) 
     return model, tau
 
 
-def apply_calibration_noise(config: OdometryFilterConfig, calibration: dict | None) -> list[str]:
-    """Take the drift sigmas the recording declares (calibration ``odometry.noise``, e.g. the simulator's) for
-    every sigma the user did not set; returns the keys taken. Unknown keys are an error naming them."""
+def declared_noise(calibration: dict | None) -> dict[str, float]:
+    """The drift sigmas the recording declares (calibration ``odometry.noise``, e.g. the simulator's odometry).
+    Unknown keys are an error naming them."""
     noise = (
         (((calibration or {}).get("odometry") or {}).get("noise") or {})
         if isinstance(calibration, dict)
@@ -178,10 +178,7 @@ def apply_calibration_noise(config: OdometryFilterConfig, calibration: dict | No
     bad = sorted(set(noise) - set(NOISE_KEYS))
     if bad:
         raise InputError(f"calibration: odometry.noise: unknown key(s) {bad}; known: {', '.join(NOISE_KEYS)}")
-    taken = [k for k in NOISE_KEYS if k in noise and k not in config.model_fields_set]
-    for k in taken:
-        setattr(config, k, float(noise[k]))
-    return taken
+    return {k: float(noise[k]) for k in NOISE_KEYS if k in noise}
 
 
 def fit_drift_noise(traj: dict[str, np.ndarray]) -> dict[str, float]:

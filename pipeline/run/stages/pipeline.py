@@ -9,6 +9,7 @@ earlier artefacts untouched, and each stage can be re-run alone.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from pathlib import Path
 
@@ -21,8 +22,11 @@ from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.config import PipelineConfig, load_config, read_toml
 from uwbcal.pipeline.run.context import Evaluator, StageContext, StageResult
 from uwbcal.pipeline.run.provenance import record_stage
+from uwbcal.pipeline.run.resolve import resolve
 from uwbcal.pipeline.run.stages import REGISTRY
 from uwbcal.pipeline.viz.log_server import start_log_server
+
+_log = logging.getLogger(__name__)
 
 
 class Pipeline:
@@ -61,7 +65,10 @@ class Pipeline:
             for w in ctx.reader.warnings:  # once here; the results table leaves them out (run_cli)
                 progress(f"warning: {w}")
                 self.shown_warnings.add(f"warning: {w}")
-            ctx.resolve_auto()
+            resolved = resolve(ctx.config, ctx.reader)
+            ctx.config, ctx.choices = resolved.config, resolved.summary()
+            for c in resolved.choices:
+                _log.info("%s", c)
             if any(s != "frontend" for s in stages):
                 ctx.windows()  # the recording has what the stages need (ranges, a pose source): fail before any
                 check_values(ctx)
@@ -90,7 +97,9 @@ class Pipeline:
     def _record_stage(self, res: StageResult) -> None:
 
         entry = {"wall_s": res.wall_s, "summary": res.summary, "warnings": res.warnings}
-        res.warnings += record_stage(self.dir, res.stage, entry, self.config, self.ctx.stages)
+        res.warnings += record_stage(
+            self.dir, res.stage, entry, self.config, self.ctx.stages, self.ctx.choices
+        )
 
 
 def check_values(ctx: StageContext) -> None:
