@@ -123,4 +123,6 @@ def test_every_config_key_is_described_and_the_reference_is_current():
     ]
     assert missing == []
     doc = Path(__file__).resolve().parents[1] / "docs" / "configuration.md"
-    assert doc.read_text() == reference_markdown(), "regenerate: uwbcal config --reference > docs/configuration.md"
+    assert doc.read_text() == reference_markdown(), (
+        "regenerate: uwbcal config --reference > docs/configuration.md"
+    )
