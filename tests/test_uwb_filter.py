@@ -180,9 +180,12 @@ def test_anchor_left_out_of_refinement(mode):
     )
     assert upd.counts["skipped"] == 100 and upd_ref.counts["skipped"] == 0  # 10 s of ranges at 10 Hz
     assert st.names == st_ref.names
-    np.testing.assert_array_equal(st.P, st_ref.P)
-    np.testing.assert_array_equal(st.value(anchor_var(7)).x, st_ref.value(anchor_var(7)).x)
-    np.testing.assert_array_equal(st.value("imu").p, st_ref.value("imu").p)
+    # the same filter along two paths (ranges skipped vs never delivered: other epoch batches): equal to rounding
+    np.testing.assert_allclose(st.P, st_ref.P, rtol=0, atol=1e-12 * np.abs(st_ref.P).max())
+    np.testing.assert_allclose(
+        st.value(anchor_var(7)).x, st_ref.value(anchor_var(7)).x, rtol=1e-12, atol=1e-12
+    )
+    np.testing.assert_allclose(st.value("imu").p, st_ref.value("imu").p, rtol=1e-12, atol=1e-12)
 
 
 def test_methods_mapping():
