@@ -208,6 +208,26 @@ def anchor_metrics(
     ``nees_states``: the (x, P) the NEES are taken of when they live in another frame than the errors' (a
     static-initialised run: errors after the trajectory's fitted alignment, NEES in the filter's own gauge);
     default ``run.states``."""
+    anchors = _anchor_entries(run)
+    top: dict = {}
+    if ref is None:
+        return anchors, top, []
+    summary, warns = _truth_summary(run, ref)
+    if not ref.same_frame:
+        warns.append(
+            f"anchor truth ({ref.label}) is not in this run's frame: only inter-anchor distances are compared"
+        )
+        top["anchor_truth"] = summary
+        return anchors, top, warns
+    top.update(_absolute_errors(run, ref, anchors, summary))
+    top.update(_position_nees(run.states if nees_states is None else nees_states, ref, anchors))
+    top["anchor_truth"] = summary
+    return anchors, top, warns
+
+
+def _anchor_entries(run: RunAnchors) -> dict[str, dict]:
+    """metrics["anchors"] without truth: the estimate, its 1-sigma and the method; the reason of an anchor not
+    determined."""
     anchors: dict[str, dict] = {}
     for aid, a in run.estimates.items():
         anchors[aid] = {
@@ -222,10 +242,12 @@ def anchor_metrics(
             anchors[aid]["sigma_xyz"] = np.sqrt(np.clip(np.diag(P)[:3], 0.0, None)).tolist()
     for aid, u in run.undetermined.items():
         anchors[aid] = {"determined": False, "reason": u["reason"], "method": u["method"]}
-    top: dict = {}
-    warns: list[str] = []
-    if ref is None:
-        return anchors, top, warns
+    return anchors
+
+
+def _truth_summary(run: RunAnchors, ref: AnchorReference) -> tuple[dict, list[str]]:
+    """``anchor_truth`` as far as it needs no common frame (counts, the frame-free inter-anchor distances), and
+    a warning naming the truth anchors the run did not calibrate."""
     truth = ref.anchors
     summary: dict = {
         "kind": ref.kind,
@@ -243,15 +265,15 @@ def anchor_metrics(
             "max_abs": dist.max_abs_m,
             "per_pair": dist.per_pair,
         }
-    if summary["missing"]:
-        warns.append(f"anchors not calibrated: {', '.join(summary['missing'])}")
-    if not ref.same_frame:
-        warns.append(
-            f"anchor truth ({ref.label}) is not in this run's frame: only inter-anchor distances are compared"
-        )
-        top["anchor_truth"] = summary
-        return anchors, top, warns
-    ae = anchor_errors(run.estimates, truth)
+    warns = [f"anchors not calibrated: {', '.join(summary['missing'])}"] if summary["missing"] else []
+    return summary, warns
+
+
+def _absolute_errors(run: RunAnchors, ref: AnchorReference, anchors: dict, summary: dict) -> dict:
+    """Per-anchor errors against truth in the run's frame (into ``anchors`` and ``summary``); the top-level
+    means."""
+    top: dict = {}
+    ae = anchor_errors(run.estimates, ref.anchors)
     for aid, row in ae.per_anchor.items():
         anchors[aid].update(row)
         sig = anchors[aid].get("sigma_xyz")
@@ -266,8 +288,15 @@ def anchor_metrics(
         top["beta_error"] = ae.mean_abs_beta
     if np.isfinite(ae.mean_abs_gamma):
         top["gamma_error"] = ae.mean_abs_gamma
+    return top
+
+
+def _position_nees(states: dict, ref: AnchorReference, anchors: dict) -> dict:
+    """Each anchor's position NEES (and, simulated, the NEES of its whole state) into ``anchors``; their mean
+    with the chi-square bounds as ``nees_anchor_position``."""
+    truth = ref.anchors
     vals = []
-    for aid, (x, P) in (run.states if nees_states is None else nees_states).items():
+    for aid, (x, P) in states.items():
         if aid not in truth:
             continue
         p_true = np.asarray(truth[aid]["position"], float)
@@ -281,12 +310,13 @@ def anchor_metrics(
         ):  # (p_a, beta, gamma) with known truth
             full = np.r_[p_true, t.get("beta", 1.0), t.get("gamma", 0.0)]
             anchors[aid]["nees"] = float(anchor_nees(x, P, full))
-    if vals:
-        top["nees_anchor_position"] = {
+    if not vals:
+        return {}
+    return {
+        "nees_anchor_position": {
             "mean": float(np.mean(vals)),
             "dof": 3,
             "n_runs": len(vals),
             "bounds": list(chi2_bounds(len(vals), 3)),
         }
-    top["anchor_truth"] = summary
-    return anchors, top, warns
+    }

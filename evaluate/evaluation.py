@@ -9,6 +9,7 @@ import json
 import time
 import tomllib
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -18,9 +19,23 @@ import polars as pl
 from uwbcal.convert.recording import RecordingReader
 from uwbcal.evaluate.align import Alignment
 from uwbcal.evaluate.align import align as fit_alignment
-from uwbcal.evaluate.anchor_report import aligned_anchors, anchor_metrics, read_run_anchors, reference_anchors
+from uwbcal.evaluate.anchor_report import (
+    AnchorReference,
+    aligned_anchors,
+    anchor_metrics,
+    read_run_anchors,
+    reference_anchors,
+)
 from uwbcal.evaluate.consistency import chi2_bounds, pose_nees, summarize_nees
-from uwbcal.evaluate.export import compare, load_ground_truth, load_run_trajectory, run_recording_path
+from uwbcal.evaluate.export import (
+    Compared,
+    GroundTruth,
+    RunTrajectory,
+    compare,
+    load_ground_truth,
+    load_run_trajectory,
+    run_recording_path,
+)
 from uwbcal.evaluate.gravity import level_truth
 from uwbcal.evaluate.metrics import ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
 from uwbcal.evaluate.quality import range_quality
@@ -50,6 +65,25 @@ def initial_pose_alignment(
     return Alignment(R=Rz, t=p_gt0 - Rz @ p_est0, method="initial-pose")
 
 
+@dataclass(frozen=True)
+class _Run:
+    """What the parts of an evaluation read: the run directory, its recording and trajectory, and the frame."""
+
+    run_dir: Path
+    reader: RecordingReader
+    traj: RunTrajectory
+    static_frame: bool  # a VIO started by the static initialiser: estimates in its own frame
+    align: str  # the trajectory's alignment method
+
+
+@dataclass
+class _TrajectoryFit:
+    alignment: Alignment | None = None  # fitted to the ground truth (None: no trajectory comparison)
+    gauge: Alignment | None = (
+        None  # a static-initialised run: its filter's gauge (yaw and position of the first pose)
+    )
+
+
 def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = None) -> dict:
     """metrics.json content; ``series`` (if given) receives the per-time NEES arrays for logging."""
     run_dir = Path(run_dir)
@@ -57,21 +91,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     rec_path = run_recording_path(run_dir)
     reader = RecordingReader(rec_path)
     traj = load_run_trajectory(run_dir)
-    metrics: dict = {"warnings": []}
-    summary_path = run_dir / "stages.json"
-    stages = read_json(summary_path) if summary_path.is_file() else {}
-    if not all(isinstance(st, dict) for st in stages.values()):
-        raise InputError(f"{summary_path}: expected an object per stage; the run directory is damaged")
-    metrics["warnings"].extend(
-        w for w in reader.verify() if w not in metrics["warnings"]
-    )  # truncation, damage
-    for st in stages.values():
-        metrics["warnings"].extend(str(w) for w in st.get("warnings", []) if w not in metrics["warnings"])
-    if stages:
-        metrics["wall_s"] = float(sum(float(st.get("wall_s", 0.0)) for st in stages.values()))
-    if len(traj):
-        metrics["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
-
+    metrics = _run_notes(run_dir, reader, traj)
     ref = reference_anchors(reader)
     # a VIO started by the static initialiser estimates in its own frame (gravity-aligned, yaw 0, origin at
     # the start): position and yaw are a gauge, the anchors live in that frame too
@@ -80,8 +100,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         simulated = ref is not None and ref.kind == "simulated"
         align = "posyaw" if static_frame else "none" if simulated else "se3"
     metrics["alignment"] = align
-
-    # -- trajectory -----------------------------------------------------------------------------------------
+    run = _Run(run_dir, reader, traj, static_frame, align)
     try:
         gt = load_ground_truth(rec_path)
     except InputError as exc:
@@ -91,100 +110,156 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
         # compared in position and yaw only: a ground truth whose frame is not level (motion capture) is first
         # turned into the gravity-aligned frame the filter estimates in (the simulator's world is level)
         gt, ref, metrics["truth_levelled"] = level_truth(reader, gt, ref)
-    al = None
-    gauge = None  # a static-initialised run: its filter's gauge (yaw and position of the first pose)
+    fit = _TrajectoryFit()
     if gt is not None and len(traj):
-        cmp = compare(traj.t_ns, traj.p, traj.q_xyzw, gt)
-        al = fit_alignment(cmp.p_est, cmp.p_gt, align)
-        R_est = quat_to_rot(cmp.q_est)
-        p_al, R_al = al.apply_positions(cmp.p_est), al.apply_rotations(R_est)
-        seg = traj.segment[cmp.assoc.idx] if traj.segment is not None else np.zeros(len(cmp.t_ns), np.int64)
-        masks = segment_masks_from_ids(seg)
-        metrics["prmse_m"] = prmse_by_segment(p_al, cmp.p_gt, masks)
-        if cmp.q_gt is not None:
-            R_gt = quat_to_rot(cmp.q_gt)
-            metrics["ormse_deg"] = ormse_deg_by_segment(R_al, R_gt, masks)
-            if static_frame:
-                gauge = initial_pose_alignment(R_est[0], cmp.p_est[0], R_gt[0], cmp.p_gt[0])
-            if (align == "none" or static_frame) and traj.cov is not None:
-                # NEES of the body pose (the lever arm is zero for full-pose ground truth). In the static
-                # initialiser's frame: after the alignment that is its gauge (yaw and position of the first pose
-                # set to the ground truth's; the filter's covariance starts ~0 in them), not a fitted one (that
-                # would take out error the covariance accounts for)
-                ga = Alignment()
-                if gauge is not None:
-                    ga = gauge
-                    metrics["nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
-                A = np.eye(6)
-                A[3:, 3:] = ga.R
-                cov = A @ traj.cov[cmp.assoc.idx] @ A.T
-                p_body = ga.apply_positions(traj.p[cmp.assoc.idx])
-                ne = pose_nees(ga.apply_rotations(R_est), p_body, cov, R_gt, cmp.p_gt)
-                metrics["nees_pose"] = summarize_nees(ne.pose, 6)
-                metrics["nees_orientation"] = summarize_nees(ne.orientation, 3)
-                metrics["nees_position"] = summarize_nees(ne.position, 3)
-                if series is not None:
-                    series.update(
-                        t_ns=cmp.t_ns,
-                        nees_pose=ne.pose,
-                        nees_orientation=ne.orientation,
-                        nees_position=ne.position,
-                    )
-        metrics["matched_poses"] = int(len(cmp.t_ns))
+        part, fit = _trajectory_metrics(run, gt, series)
+        metrics.update(part)
+    part, warnings = _anchor_section(run, ref, fit)
+    metrics.update(part)
+    metrics["warnings"].extend(warnings)
+    metrics["evaluate_s"] = time.perf_counter() - t0
+    return metrics
 
-    # -- anchors ---------------------------------------------------------------------------------------------
-    cfg = tomllib.loads((run_dir / "config.toml").read_text())  # parsed by run_recording_path already
-    run_anchors = read_run_anchors(run_dir, (cfg.get("uwb") or {}).get("init_method"))
+
+def _run_notes(run_dir: Path, reader: RecordingReader, traj: RunTrajectory) -> dict:
+    """The warnings of the recording (truncation, damage) and of the stages, the stages' wall time, the span."""
+    summary_path = run_dir / "stages.json"
+    stages = read_json(summary_path) if summary_path.is_file() else {}
+    if not all(isinstance(st, dict) for st in stages.values()):
+        raise InputError(f"{summary_path}: expected an object per stage; the run directory is damaged")
+    warnings: list[str] = []
+    warnings.extend(w for w in reader.verify() if w not in warnings)  # truncation, damage
+    for st in stages.values():
+        warnings.extend(str(w) for w in st.get("warnings", []) if w not in warnings)
+    notes: dict = {"warnings": warnings}
+    if stages:
+        notes["wall_s"] = float(sum(float(st.get("wall_s", 0.0)) for st in stages.values()))
+    if len(traj):
+        notes["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
+    return notes
+
+
+def _trajectory_metrics(run: _Run, gt: GroundTruth, series: dict | None) -> tuple[dict, _TrajectoryFit]:
+    """PRMSE and ORMSE per segment after the alignment, the pose NEES where the covariance is in the ground
+    truth's frame (no fitted alignment, or the static initialiser's gauge)."""
+    traj = run.traj
+    out: dict = {}
+    cmp = compare(traj.t_ns, traj.p, traj.q_xyzw, gt)
+    fit = _TrajectoryFit(fit_alignment(cmp.p_est, cmp.p_gt, run.align))
+    R_est = quat_to_rot(cmp.q_est)
+    p_al, R_al = fit.alignment.apply_positions(cmp.p_est), fit.alignment.apply_rotations(R_est)
+    seg = traj.segment[cmp.assoc.idx] if traj.segment is not None else np.zeros(len(cmp.t_ns), np.int64)
+    masks = segment_masks_from_ids(seg)
+    out["prmse_m"] = prmse_by_segment(p_al, cmp.p_gt, masks)
+    if cmp.q_gt is not None:
+        R_gt = quat_to_rot(cmp.q_gt)
+        out["ormse_deg"] = ormse_deg_by_segment(R_al, R_gt, masks)
+        if run.static_frame:
+            fit.gauge = initial_pose_alignment(R_est[0], cmp.p_est[0], R_gt[0], cmp.p_gt[0])
+        if (run.align == "none" or run.static_frame) and traj.cov is not None:
+            out.update(_pose_nees(traj, cmp, R_est, R_gt, fit.gauge, series))
+    out["matched_poses"] = int(len(cmp.t_ns))
+    return out, fit
+
+
+def _pose_nees(
+    traj: RunTrajectory,
+    cmp: Compared,
+    R_est: np.ndarray,
+    R_gt: np.ndarray,
+    gauge: Alignment | None,
+    series: dict | None,
+) -> dict:
+    """NEES of the body pose (the lever arm is zero for full-pose ground truth). In the static initialiser's
+    frame: after the alignment that is its gauge (yaw and position of the first pose set to the ground truth's;
+    the filter's covariance starts ~0 in them), not a fitted one (that would take out error the covariance
+    accounts for)."""
+    out: dict = {}
+    ga = Alignment()
+    if gauge is not None:
+        ga = gauge
+        out["nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
+    A = np.eye(6)
+    A[3:, 3:] = ga.R
+    cov = A @ traj.cov[cmp.assoc.idx] @ A.T
+    p_body = ga.apply_positions(traj.p[cmp.assoc.idx])
+    ne = pose_nees(ga.apply_rotations(R_est), p_body, cov, R_gt, cmp.p_gt)
+    out["nees_pose"] = summarize_nees(ne.pose, 6)
+    out["nees_orientation"] = summarize_nees(ne.orientation, 3)
+    out["nees_position"] = summarize_nees(ne.position, 3)
+    if series is not None:
+        series.update(
+            t_ns=cmp.t_ns, nees_pose=ne.pose, nees_orientation=ne.orientation, nees_position=ne.position
+        )
+    return out
+
+
+def _anchor_section(run: _Run, ref: AnchorReference | None, fit: _TrajectoryFit) -> tuple[dict, list[str]]:
+    """The anchors' part of metrics.json and its warnings: errors and NEES against the reference, the
+    initialiser's verdicts, the heights refinement regained, the range check."""
+    cfg = tomllib.loads((run.run_dir / "config.toml").read_text())  # parsed by run_recording_path already
+    run_anchors = read_run_anchors(run.run_dir, (cfg.get("uwb") or {}).get("init_method"))
     own_frame = run_anchors.estimates  # the frame of the run's trajectory, which the range check uses
+    out: dict = {}
     nees_states = None
     fitted_nees = None
-    if static_frame and al is not None and ref is not None and ref.kind == "simulated":
+    if run.static_frame and fit.alignment is not None and ref is not None and ref.kind == "simulated":
         # estimated in the static initialiser's frame: compared (and reported) after the trajectory's alignment;
         # their NEES in the filter's gauge, as the pose NEES (the fitted alignment's own error, the trajectory's
         # drift averaged over the flight, is not in the anchors' covariance)
-        if gauge is not None:
-            nees_states = aligned_anchors(run_anchors, gauge).states
-            metrics["anchor_nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
-        run_anchors = aligned_anchors(run_anchors, al)
-        metrics["anchor_alignment"] = f"{align} alignment of the trajectory (static initialiser's frame)"
+        if fit.gauge is not None:
+            nees_states = aligned_anchors(run_anchors, fit.gauge).states
+            out["anchor_nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
+        run_anchors = aligned_anchors(run_anchors, fit.alignment)
+        out["anchor_alignment"] = f"{run.align} alignment of the trajectory (static initialiser's frame)"
         if nees_states is not None:
             fitted_nees = anchor_metrics(run_anchors, ref)[1].get("nees_anchor_position")
-    if run_anchors.estimates or run_anchors.undetermined:
-        anchors, top, warns = anchor_metrics(run_anchors, ref, nees_states)
-        if fitted_nees is not None:
-            top["nees_anchor_position_fitted"] = fitted_nees
-        metrics.update(top)
-        metrics["warnings"].extend(warns)
-        metrics["warnings"].extend(range_quality(reader, traj, own_frame))
-        init_path = run_dir / "init.json"
-        if init_path.is_file():
-            init = read_json(init_path)
-            for aid, r in (init.get("methods") or {}).get(init.get("chosen"), {}).items():
-                if aid in anchors and isinstance(r, dict) and r.get("fim") is not None:
-                    anchors[aid]["fim"] = r["fim"]  # log det, condition number, weakest direction
-                if aid in anchors and r.get("verdict"):
-                    anchors[aid]["verdict"] = r["verdict"]
-                    anchors[aid]["join_s"] = r.get("join_s")
-                if aid in anchors and not anchors[aid].get("determined", True):
-                    metrics["warnings"].append(
-                        f"anchor {aid} not determined: {anchors[aid].get('reason', '')}"
-                    )
-        states_path = run_dir / "anchor_states.json"
-        if (
-            states_path.is_file()
-        ):  # heights flagged at init that refinement regained (pipeline/uwb/height_regain)
-            for aid, s in read_json(states_path).items():
-                if aid in anchors and isinstance(s, dict) and s.get("height_regained"):
-                    v = dict(anchors[aid].get("verdict") or {})
-                    v.update(height_observable=True, height_regained=s["height_regained"])
-                    v.pop("message", None)
-                    anchors[aid]["verdict"] = v
-        metrics["anchors"] = anchors
-        vals = [a["nees"] for a in anchors.values() if "nees" in a]
-        if vals:
-            metrics["nees_anchor"] = summarize_nees(np.asarray(vals), 5)
-    metrics["evaluate_s"] = time.perf_counter() - t0
-    return metrics
+    if not (run_anchors.estimates or run_anchors.undetermined):
+        return out, []
+    anchors, top, warnings = anchor_metrics(run_anchors, ref, nees_states)
+    if fitted_nees is not None:
+        top["nees_anchor_position_fitted"] = fitted_nees
+    out.update(top)
+    warnings.extend(range_quality(run.reader, run.traj, own_frame))
+    warnings.extend(_init_verdicts(run.run_dir, anchors))
+    _height_regains(run.run_dir, anchors)
+    out["anchors"] = anchors
+    vals = [a["nees"] for a in anchors.values() if "nees" in a]
+    if vals:
+        out["nees_anchor"] = summarize_nees(np.asarray(vals), 5)
+    return out, warnings
+
+
+def _init_verdicts(run_dir: Path, anchors: dict) -> list[str]:
+    """The chosen initialiser's FIM summary and verdict into each anchor's entry; a warning per anchor it could
+    not determine."""
+    init_path = run_dir / "init.json"
+    if not init_path.is_file():
+        return []
+    warnings = []
+    init = read_json(init_path)
+    for aid, r in (init.get("methods") or {}).get(init.get("chosen"), {}).items():
+        if aid in anchors and isinstance(r, dict) and r.get("fim") is not None:
+            anchors[aid]["fim"] = r["fim"]  # log det, condition number, weakest direction
+        if aid in anchors and r.get("verdict"):
+            anchors[aid]["verdict"] = r["verdict"]
+            anchors[aid]["join_s"] = r.get("join_s")
+        if aid in anchors and not anchors[aid].get("determined", True):
+            warnings.append(f"anchor {aid} not determined: {anchors[aid].get('reason', '')}")
+    return warnings
+
+
+def _height_regains(run_dir: Path, anchors: dict) -> None:
+    """Heights flagged at init that refinement regained (pipeline/uwb/height_regain) mark the anchor's verdict."""
+    states_path = run_dir / "anchor_states.json"
+    if not states_path.is_file():
+        return
+    for aid, s in read_json(states_path).items():
+        if aid in anchors and isinstance(s, dict) and s.get("height_regained"):
+            v = dict(anchors[aid].get("verdict") or {})
+            v.update(height_observable=True, height_regained=s["height_regained"])
+            v.pop("message", None)
+            anchors[aid]["verdict"] = v
 
 
 def metrics_tables(metrics: dict) -> tuple[pl.DataFrame, pl.DataFrame | None]:
