@@ -16,6 +16,7 @@ PINHOLE = {
     "distortion_model": "radtan",
     "distortion": [0, 0, 0, 0],
     "resolution": [W, H],
+    "T_imu_cam": [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]],
 }
 
 
