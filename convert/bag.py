@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from uwbcal.convert import uwb_msgs
+from uwbcal.convert.calibration import Calibration, load_calibration_yaml, parse_calibration
 from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
@@ -46,12 +47,15 @@ from uwbcal.convert.recording import (
 )
 from uwbcal.convert.sources import (
     MAX_RANGE_M,
+    Drop,
     Drops,
     Hasher,
+    StampCheck,
     anchors_note,
     clean_ranges,
     default_tags,
-    load_yaml,
+    id_problem,
+    id_text,
     parse_antennas,
     source_metadata,
     summary,
@@ -72,7 +76,6 @@ GT_POSE_TYPES = (
 )
 GT_POSITION_TYPES = ("geometry_msgs/msg/PointStamped",)
 GT_NAME_HINTS = ("groundtruth", "ground_truth", "gt", "vicon", "leica", "mocap", "optitrack", "qualisys")
-CALIBRATION_KEYS = ("imu", "cameras", "uwb", "groundtruth", "odometry")
 ROLES = ("imu", "cam0", "cam1", "uwb", "odometry", "groundtruth")
 
 
@@ -299,10 +302,6 @@ def detect_topics(topics: dict[str, tuple[str, int]], given: dict[str, Any] | No
 # ---------------------------------------------------------------------------------------------------------------
 # per-role writers (message object -> recording)
 # ---------------------------------------------------------------------------------------------------------------
-class Skip(Exception):
-    """Drop this message with the reason in the text (counted per bag topic)."""
-
-
 def _stamp(m: Any, bag_t: int) -> int:
     t = uwb_msgs.message_stamp(m)
     return t if t is not None else int(bag_t)
@@ -316,7 +315,7 @@ def _quat(q: Any) -> tuple[float, float, float, float]:
     out = np.array([q.x, q.y, q.z, q.w], float)
     n = np.linalg.norm(out)
     if not np.isfinite(n) or abs(n - 1.0) > 1e-2:
-        raise Skip(f"non-unit quaternion (|q| = {n:.4g})")
+        raise Drop(f"non-unit quaternion (|q| = {n:.4g})")
     return tuple((out / n).tolist())
 
 
@@ -327,7 +326,7 @@ def image_mono8(m: Any) -> np.ndarray:
     if hasattr(m, "format"):  # CompressedImage
         img = cv2.imdecode(np.asarray(m.data, np.uint8), cv2.IMREAD_GRAYSCALE)
         if img is None:
-            raise Skip(f"compressed image ({m.format!r}) does not decode")
+            raise Drop(f"compressed image ({m.format!r}) does not decode")
         return img
     h, w, enc, step = int(m.height), int(m.width), str(m.encoding), int(m.step)
     data = np.asarray(m.data, np.uint8)
@@ -335,9 +334,9 @@ def image_mono8(m: Any) -> np.ndarray:
         enc
     )
     if ch is None:
-        raise Skip(f"image encoding {enc!r} not supported")
+        raise Drop(f"image encoding {enc!r} not supported")
     if step < w * ch or data.size < h * step:
-        raise Skip(f"image data {data.size} bytes for {h}x{w} {enc} (step {step})")
+        raise Drop(f"image data {data.size} bytes for {h}x{w} {enc} (step {step})")
     rows = data[: h * step].reshape(h, step)[:, : w * ch]
     if ch == 2:
         px = rows.copy().view(">u2" if m.is_bigendian else "<u2").reshape(h, w)
@@ -388,28 +387,32 @@ class RangeBuffer:
 
 
 class Converter:
-    """Writes one decoded message of a role; raises Skip to drop it with a reason."""
+    """Writes one decoded message of a role; raises Drop to drop it with a reason."""
 
-    def __init__(self, writer: RecordingWriter) -> None:
+    def __init__(
+        self, writer: RecordingWriter, check_size: Callable[[str, tuple[int, int], str], None]
+    ) -> None:
         self.w = writer
+        self.check_size = check_size  # (role, (width, height), topic): raises InputError for a mismatch
         self.ranges = RangeBuffer()
-        self.last: dict[str, int] = {}
+        self._once = StampCheck()  # duplicates dropped, steps back counted, per recording topic
         self.stamp_sources: dict[str, Counter] = {}
         self.zero_cov = 0
+        self.image_sizes: dict[str, tuple[int, int]] = {}  # camera role -> (width, height) of its first image
+        self.imu_span: list[int] = []  # count, first and last stamp of the IMU samples written
 
-    def _once(self, topic: str, t: int) -> None:
-        if self.last.get(topic) == t:
-            raise Skip("duplicate stamp (kept the first)")
-        self.last[topic] = t
+    def imu_rate_hz(self) -> float | None:
+        n, t0, t1 = (self.imu_span + [0, 0, 0])[:3]
+        return (n - 1) / ((t1 - t0) * 1e-9) if n > 1 and t1 > t0 else None
 
     def __call__(self, role: str, bag_topic: str, msgtype: str, m: Any, bag_t: int) -> None:
         if role == "uwb":
             try:
                 r = uwb_msgs.decoder(msgtype)(m)
             except (uwb_msgs.Undecodable, AttributeError, TypeError, ValueError) as exc:
-                raise Skip(str(exc)) from None
+                raise Drop(str(exc)) from None
             if not r.distance:
-                raise Skip("frame without ranges (no nodes)")
+                raise Drop("frame without ranges (no nodes)")
             src = "header" if r.stamp_ns is not None else "bag time"
             self.stamp_sources.setdefault(bag_topic, Counter())[src] += 1
             self.ranges.add(r, bag_t)
@@ -419,12 +422,18 @@ class Converter:
             self._once(TOPIC_IMU, t)
             gyro, acc = _vec(m.angular_velocity), _vec(m.linear_acceleration)
             if not np.isfinite(gyro + acc).all():
-                raise Skip("non-finite IMU sample")
+                raise Drop("non-finite IMU sample")
             self.w.write_imu(t, gyro, acc, topic=TOPIC_IMU)
+            span = self.imu_span
+            self.imu_span = [span[0] + 1, span[1], t] if span else [1, t, t]
         elif role in ("cam0", "cam1"):
             topic = TOPIC_CAM0 if role == "cam0" else TOPIC_CAM1
             self._once(topic, t)
-            self.w.write_image(topic, t, image_mono8(m), frame_id=role)
+            img = image_mono8(m)
+            if role not in self.image_sizes:
+                self.image_sizes[role] = (img.shape[1], img.shape[0])
+                self.check_size(role, self.image_sizes[role], bag_topic)
+            self.w.write_image(topic, t, img, frame_id=role)
         elif role == "odometry":
             self._once(TOPIC_ODOM, t)
             p, q = _pose_of(m)
@@ -444,21 +453,36 @@ class Converter:
 # ---------------------------------------------------------------------------------------------------------------
 # calibration
 # ---------------------------------------------------------------------------------------------------------------
-def load_calibration(path: Path | None) -> dict:
-    """``--calibration``: a YAML mapping with any of imu, cameras, uwb, groundtruth, odometry."""
-    if path is None:
-        return {}
-    data = load_yaml(path, "calibration yaml")
-    unknown = sorted(set(data) - set(CALIBRATION_KEYS))
-    if unknown:
-        raise InputError(
-            f"{path}: unknown key(s) {', '.join(unknown)}; expected {', '.join(CALIBRATION_KEYS)} "
-            "(the layout of uwbcal.calibration)"
-        )
-    for k, v in data.items():
-        if not isinstance(v, dict):
-            raise InputError(f"{path}: '{k}' must be a mapping, got {type(v).__name__}")
-    return data
+def check_image_size(cal: Calibration, role: str, size: tuple[int, int], topic: str, source: str) -> None:
+    """The first image of camera ``role`` against the calibration's resolution (intrinsics are per image size)."""
+    c = cal.cameras.get(role)
+    if c is None or c.resolution is None or tuple(c.resolution) == tuple(size):
+        return
+    raise InputError(
+        f"{source}: cameras.{role}.resolution: {c.resolution[0]}x{c.resolution[1]}, but the images on {topic} "
+        f"are {size[0]}x{size[1]}; give the calibration of this camera at its image size (intrinsics scale with it)"
+    )
+
+
+def _final_calibration(data: dict, source: str, conv: Converter, counts: dict, drops: Drops) -> dict:
+    """The recording's calibration: validated; a resolution or IMU rate left out taken from the data, the other
+    defaults named in notes."""
+    cal = parse_calibration(data, source)
+    for role, size in conv.image_sizes.items():
+        c = cal.cameras.get(role)
+        if c is None:
+            drops.note(f"no calibration for {role} (cameras.{role}): uwbcal run cannot use its images (VIO)")
+        elif c.resolution is None:
+            c.resolution = list(size)
+            drops.note(f"cameras.{role}.resolution not given: {size[0]}x{size[1]}, the images' size")
+    if cal.imu is not None and cal.imu.rate_hz is None and conv.imu_rate_hz() is not None:
+        cal.imu.rate_hz = round(conv.imu_rate_hz(), 3)
+        drops.note(f"imu.rate_hz not given: {cal.imu.rate_hz:g} Hz, from the IMU stamps")
+    if cal.imu is None and TOPIC_IMU in counts and conv.image_sizes:
+        drops.note("no imu calibration (imu: noise densities): uwbcal run cannot use the IMU (VIO)")
+    for note in cal.defaults_used():
+        drops.note(note)
+    return cal.to_metadata()
 
 
 def _uwb_section(r: RangeData, antennas: Path | None, given: dict | None, drops: Drops) -> dict:
@@ -499,7 +523,11 @@ def convert_bag(
     ant = Path(antennas) if antennas is not None else None
     if ant is not None and not ant.is_file():
         raise InputError(f"{ant}: antenna yaml not found")
-    cal = load_calibration(Path(calibration) if calibration is not None else None)
+    cal_source = str(calibration) if calibration is not None else f"{path}: calibration"
+    given_cal = (
+        load_calibration_yaml(calibration) if calibration is not None else parse_calibration({}, cal_source)
+    )
+    cal = given_cal.to_metadata()
     drops = Drops()
     given = {"imu": imu, "cam0": cam0, "cam1": cam1, "uwb": list(uwb or []), "odometry": odometry}
     given["groundtruth"] = groundtruth
@@ -524,7 +552,9 @@ def convert_bag(
         files = [path] if path.is_file() else sorted(p for p in path.iterdir() if p.is_file())
         hasher = Hasher(files + ([ant] if ant else []) + ([Path(calibration)] if calibration else []))
         with RecordingWriter(output) as w:
-            conv = Converter(w)
+            conv = Converter(
+                w, lambda role, size, topic: check_image_size(given_cal, role, size, topic, cal_source)
+            )
             total = sum(c.msgcount for c in use)
             with progress(f"bag {path.name}", total) as advance:
                 for conn, bag_t, raw in bag.messages(use):
@@ -539,10 +569,12 @@ def convert_bag(
                     try:
                         m = dec(raw)
                         conv(role, conn.topic, norm_type(conn.msgtype), m, bag_t)
-                    except Skip as exc:
+                    except Drop as exc:
                         acc["dropped"] += 1
                         drops.add(conn.topic, str(exc), 1, f"bag t={bag_t}")
                         continue
+                    except InputError:
+                        raise
                     except Exception as exc:  # noqa: BLE001 (a corrupt message: drop it, say which)
                         acc["dropped"] += 1
                         drops.add(
@@ -551,6 +583,13 @@ def convert_bag(
                         continue
                     acc["converted"] += 1
             raw_ranges = conv.ranges.data()
+            bad = id_problem(
+                {"tag": raw_ranges.tag, "antenna": raw_ranges.antenna, "anchor": raw_ranges.anchor}
+            )
+            if bad is not None:
+                name, i = bad
+                value = int(getattr(raw_ranges, name)[i])
+                raise InputError(f"{path}: UWB range at t={raw_ranges.t_ns[i]} ns: {id_text(name, value)}")
             ranges = (
                 clean_ranges(raw_ranges, TOPIC_RANGE, drops, max_range) if len(raw_ranges) else raw_ranges
             )
@@ -569,8 +608,10 @@ def convert_bag(
                 calib["uwb"] = _uwb_section(ranges, ant, cal.get("uwb"), drops)
             if not cal and ({TOPIC_IMU, TOPIC_CAM0, TOPIC_CAM1} & set(counts)):
                 drops.note("no --calibration: IMU noise, camera intrinsics and extrinsics unknown")
+            conv._once.report(drops)
             for n in tmap.notes:
                 drops.note("topic " + n)
+            calib = _final_calibration(calib, cal_source, conv, counts, drops)
             w.set_metadata(META_CALIBRATION, calib)
             w.set_metadata(
                 META_SOURCE,

@@ -34,6 +34,7 @@ from uwbcal.convert.sources import (
     Drops,
     Hasher,
     PoseTable,
+    StampCheck,
     load_yaml,
     normalise_quaternions,
     order_and_dedup,
@@ -374,27 +375,6 @@ def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = No
 # ---------------------------------------------------------------------------------------------------------------
 # ROS1 bag
 # ---------------------------------------------------------------------------------------------------------------
-class StampCheck:
-    """Per output topic: drops exact duplicate stamps, counts backwards steps (the recording is time-indexed)."""
-
-    def __init__(self) -> None:
-        self.last: dict[str, int] = {}
-        self.back: dict[str, int] = {}
-
-    def __call__(self, topic: str, t: int) -> None:
-        last = self.last.get(topic)
-        if last is not None:
-            if t == last:
-                raise Drop("duplicate stamp (kept the first)")
-            if t < last:
-                self.back[topic] = self.back.get(topic, 0) + 1
-        self.last[topic] = t
-
-    def report(self, drops: Drops) -> None:
-        for topic, n in self.back.items():
-            drops.note(f"{topic}: {n} out-of-order stamps (the recording index orders them by stamp)")
-
-
 def header_time(raw, bag_t: int) -> int:
     t = ros1_header_stamp(raw)
     return t if t > 0 else int(bag_t)

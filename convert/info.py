@@ -7,8 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
+from uwbcal.convert.calibration import parse_calibration
 from uwbcal.convert.msgs import FEATURE_TRACKS, IMAGE, IMU, ODOMETRY, POINT_STAMPED, POSE_STAMPED, UWB_RANGE
 from uwbcal.convert.recording import RecordingReader, TopicInfo, schema_mismatches
+from uwbcal.pipeline.core.errors import InputError
 
 ABSURD = 1e6  # no position [m], rate, acceleration or range in a recording is this large
 GAP_FACTOR = 5.0  # a gap is a step longer than this many median periods
@@ -16,7 +18,7 @@ GAP_FACTOR = 5.0  # a gap is a step longer than this many median periods
 
 @dataclass(frozen=True)
 class Problem:
-    """One finding. ``kind``: gap, duplicate, out_of_order, nan, negative_range, truncated, damaged, schema, empty."""
+    """One finding. ``kind``: gap, duplicate, out_of_order, nan, negative_range, truncated, damaged, schema, empty, calibration."""
 
     kind: str
     topic: str
@@ -103,6 +105,8 @@ class InfoReport:
         cal = self.calibration
         if not cal:
             return ["", "calibration: none (no uwbcal.calibration metadata)"]
+        if "calibration" in self.kinds(""):
+            return ["", "calibration: invalid (see the problems below)"]
         lines = ["", "calibration"]
         if "imu" in cal:
             lines.append("  imu      " + ", ".join(f"{k}={v}" for k, v in cal["imu"].items()))
@@ -181,6 +185,27 @@ def stamp_problems(topic: str, t: np.ndarray) -> list[Problem]:
     return out
 
 
+def clock_jumps(topic: str, t: np.ndarray) -> list[Problem]:
+    """Stamps (in writing order) that step back by more than GAP_FACTOR median periods: a clock jump, after which
+    two stretches of the topic overlap in the recording's time index (what sorting cannot repair)."""
+    dt = np.diff(np.asarray(t, np.int64))
+    pos = dt[dt > 0]
+    if not len(pos) or dt.min() >= -GAP_FACTOR * float(np.median(pos)):
+        return []
+    i = int(np.argmin(dt))
+    n = int((dt < 0).sum())
+    return [
+        Problem(
+            "out_of_order",
+            topic,
+            n,
+            f"{topic}: stamps out of order, stepping back by {-dt[i] * 1e-9:.6g} s at {t[i + 1]} ns (after "
+            f"{t[i]} ns; {n} steps back in all): a clock jump, two stretches of the topic overlap in time — "
+            "convert from data with monotonic stamps, or cut the recording before the jump",
+        )
+    ]
+
+
 def nan_problems(topic: str, t: np.ndarray, *arrays: np.ndarray) -> list[Problem]:
     if len(t) == 0:
         return []
@@ -215,6 +240,34 @@ def _range_problems(topic: str, r) -> list[Problem]:
     return out
 
 
+def calibration_problems(r: RecordingReader, topics: dict[str, TopicInfo]) -> list[Problem]:
+    """The recording's calibration against `convert.calibration` and each camera's resolution against its first
+    image."""
+    try:
+        cal = parse_calibration(r.calibration, "uwbcal.calibration")
+    except InputError as exc:
+        return [
+            Problem("calibration", "", 1, f"{exc}; re-convert the recording with a corrected calibration")
+        ]
+    out = []
+    for name, c in cal.cameras.items():
+        topic = f"/{name}/image_raw"
+        if c.resolution is None or topic not in topics or topics[topic].msgtype != IMAGE:
+            continue
+        img = next((im for _, im in r.iter_images(topic)), None)
+        if img is not None and [img.shape[1], img.shape[0]] != list(c.resolution):
+            out.append(
+                Problem(
+                    "calibration",
+                    topic,
+                    1,
+                    f"uwbcal.calibration: cameras.{name}.resolution {c.resolution[0]}x{c.resolution[1]}, but the "
+                    f"images on {topic} are {img.shape[1]}x{img.shape[0]}; re-convert with this camera's calibration",
+                )
+            )
+    return out
+
+
 def recording_info(path: str | Path) -> InfoReport:
     """Topics, rates, time spans, calibration, drops and the problems found in a recording."""
     r = RecordingReader(path)
@@ -227,6 +280,7 @@ def recording_info(path: str | Path) -> InfoReport:
     else:
         start = end = 0
         problems.append(Problem("empty", "", 0, "the recording has no messages"))
+    problems += calibration_problems(r, topics)
     for topic, info in sorted(topics.items()):
         if any(p.kind == "schema" and p.topic == topic for p in problems):
             continue

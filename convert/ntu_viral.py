@@ -18,7 +18,7 @@ import numpy as np
 
 from uwbcal.convert import msgs
 from uwbcal.convert.anchor_truth import find_published_anchors, read_anchor_truth, truth_note, truth_record
-from uwbcal.convert.euroc import StampCheck, header_time, passthrough
+from uwbcal.convert.euroc import header_time, passthrough
 from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
@@ -37,6 +37,7 @@ from uwbcal.convert.sources import (
     Drop,
     Drops,
     Hasher,
+    StampCheck,
     anchors_note,
     clean_ranges,
     default_tags,

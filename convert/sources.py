@@ -371,6 +371,23 @@ RANGE_COLUMNS = ("stamp", "tag", "antenna", "anchor", "distance")
 ID_MAX = {"tag": 2**32 - 1, "antenna": 2**8 - 1, "anchor": 2**32 - 1}  # uwbcal_msgs/UwbRange field widths
 
 
+def id_problem(ids: dict[str, np.ndarray]) -> tuple[str, int] | None:
+    """(field, index) of the first tag / antenna / anchor id outside its field in the recording, or None."""
+    for name, v in ids.items():
+        bad = (np.asarray(v) < 0) | (np.asarray(v) > ID_MAX[name])
+        if bad.any():
+            return name, int(np.flatnonzero(bad)[0])
+    return None
+
+
+def id_text(name: str, value: int) -> str:
+    hi = ID_MAX[name]
+    return (
+        f"{name} id {value} is outside 0..{hi} (the recording stores {name} ids as uint{8 if hi == 255 else 32}); "
+        f"renumber the {name}s"
+    )
+
+
 def read_ranges_csv(path: str | Path) -> tuple[RangeData, str]:
     """``stamp,tag,antenna,anchor,distance`` (stamp in ns or s); returns the table and the detected unit."""
     path = Path(path)
@@ -379,15 +396,10 @@ def read_ranges_csv(path: str | Path) -> tuple[RangeData, str]:
         raise InputError(f"{path}: no range rows; expected columns {','.join(RANGE_COLUMNS)}")
     t, unit = to_stamps_ns(path, df, "stamp")
     ids = {name: to_int(path, df, name) for name in ("tag", "antenna", "anchor")}
-    for name, v in ids.items():
-        hi = ID_MAX[name]
-        bad = (v < 0) | (v > hi)
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise InputError(
-                f"{path}: line {i + 2}: column '{name}': {int(v[i])} is outside 0..{hi} (the recording stores "
-                f"{name} ids as uint{8 if hi == 255 else 32}); renumber the {name}s"
-            )
+    bad = id_problem(ids)
+    if bad is not None:
+        name, i = bad
+        raise InputError(f"{path}: line {i + 2}: column '{name}': {id_text(name, int(ids[name][i]))}")
     return RangeData(t, ids["tag"], ids["antenna"], ids["anchor"], to_float(path, df, "distance")), unit
 
 
@@ -453,6 +465,36 @@ def anchors_note(r: RangeData) -> str:
 # ---------------------------------------------------------------------------------------------------------------
 class Drop(Exception):
     """Raised by a bag handler to drop one message with a reason (counted, reported)."""
+
+
+class StampCheck:
+    """Per output topic, in the order a converter writes: drops exact duplicate stamps (`Drop`), and counts the
+    steps back in time, with the largest (a clock jump makes two stretches of a topic overlap in the recording's
+    time index, which `uwbcal run` then refuses for the pose source)."""
+
+    def __init__(self) -> None:
+        self.last: dict[str, int] = {}
+        self.back: dict[str, list[int]] = {}  # topic -> [count, largest step back ns, stamp after it]
+
+    def __call__(self, topic: str, t: int) -> None:
+        last = self.last.get(topic)
+        if last is not None:
+            if t == last:
+                raise Drop("duplicate stamp (kept the first)")
+            if t < last:
+                b = self.back.setdefault(topic, [0, 0, 0])
+                b[0] += 1
+                if last - t > b[1]:
+                    b[1], b[2] = last - t, last
+        self.last[topic] = t
+
+    def report(self, drops: Drops) -> None:
+        for topic, (n, step, after) in self.back.items():
+            drops.note(
+                f"{topic}: {n} out-of-order stamps (stamps step back by up to {step * 1e-9:.6g} s, after "
+                f"{after} ns): the recording orders them by stamp; a step back of more than a few sample "
+                "periods is a clock jump — check the sensor's clock"
+            )
 
 
 def ros1_header_stamp(raw: bytes | memoryview) -> int:

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from uwbcal.convert.euroc import EUROC_CAMERAS
 from uwbcal.convert.recording import META_CALIBRATION, RecordingReader, RecordingWriter
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import exp_so3
@@ -16,6 +17,7 @@ PINHOLE = {
     "distortion_model": "radtan",
     "distortion": [0, 0, 0, 0],
     "resolution": [W, H],
+    "T_imu_cam": [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]],
 }
 
 
@@ -173,12 +175,7 @@ def _euroc_png_frames(folder):
         yield int(f.stem), cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
 
 
-EUROC_CAM0 = {
-    "intrinsics": [458.654, 457.296, 367.215, 248.375],
-    "distortion_model": "radtan",
-    "distortion": [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05],
-    "resolution": [752, 480],
-}
+EUROC_CAM0 = EUROC_CAMERAS["cam0"]
 
 
 def test_real_euroc_excerpt_tracks_enough_features(data_dir):

@@ -673,14 +673,8 @@ def ekf_update(
     to S_ii / w_i (``robust`` scale ``c`` and ``robust_R`` may then be per-row arrays). With one row the result is
     that of the scalar update, bit for bit.
     """
-    r = np.asarray(r, float).reshape(-1)
+    r, R = _measurement(r, R)
     m = r.shape[0]
-    R = np.atleast_2d(np.asarray(R, float))
-    if R.shape == (1, 1) and m > 1:
-        R = np.eye(m) * R[0, 0]
-    elif R.ndim == 2 and R.shape[0] == 1 and R.shape[1] == m:
-        R = np.diag(R[0])
-    n = state.size
     idx, Hd = _stacked_jacobian(state, H, m)
     PHt = state.P[:, idx] @ Hd.T
     S = Hd @ PHt[idx, :]
@@ -691,53 +685,82 @@ def ekf_update(
         if not rows.row_accepted.any():
             return UpdateResult(False, float("nan"), 0, rows.gate, rows.row_nis, rows.row_accepted)
         m, chi2_gate, robust = int(r.shape[0]), None, None
-    # one row: the factor is the square root (what LAPACK's potrf computes), without numpy's wrapper
-    if m == 1:
-        if not S[0, 0] > 0.0:
-            raise FloatingPointError("innovation covariance not positive definite (1 rows)")
-        cho = np.sqrt(S)
-    else:
-        try:
-            cho = np.linalg.cholesky(S)
-        except np.linalg.LinAlgError as exc:
-            raise FloatingPointError(f"innovation covariance not positive definite ({m} rows)") from exc
+    cho = _cholesky(S, m)
     y = _lower_solve(cho, r)
     nis = float(y @ y)
     gate = chi2_ppf(chi2_gate, m) if chi2_gate is not None else None
     if gate is not None and nis > gate:
         return UpdateResult(False, nis, m, gate)
-    if robust is not None and m == 1:
-        kind, c = robust
-        e = float(np.sqrt(nis))
-        if robust_R is not None:
-            s_w = float(S[0, 0]) - float(R[0, 0]) + float(robust_R)
-            e = abs(float(r[0])) / np.sqrt(max(s_w, 1e-300))
-        if kind == "huber":
-            wt = 1.0 if e <= c else c / e
-        elif kind == "cauchy":
-            wt = 1.0 / (1.0 + (e / c) ** 2)
-        else:
-            raise ValueError(f"unknown robust update loss {kind!r} (huber or cauchy)")
+    inflated = robust is not None and m == 1
+    if inflated:
+        wt = _robust_weight(robust, nis, r, S, R, robust_R)
         if wt < 1.0:
             S = S / wt
             cho = cho / np.sqrt(wt)
-    schmidt = state.considered.union(schmidt)
     # P+ = P - P H^T S^-1 H P = P - W^T W with W = L^-1 (H P), S = L L^T (the Joseph form's value for this,
     # the optimal gain: K S K^T = K H P), dx = K r = W^T L^-1 r: one triangular solve and one symmetric product
     # (BLAS syrk) instead of the gain and three products with it.
     W = _lower_solve(cho, PHt.T)  # (m, n)
-    if robust is not None and m == 1:
+    if inflated:
         y = _lower_solve(cho, r)  # with the robust inflation
-    if not schmidt:
+    schmidt = state.considered.union(schmidt)
+    if schmidt:
+        _apply_schmidt(state, W, y, schmidt)
+    else:
         P = state.P - W.T @ W
         np.multiply(P + P.T, 0.5, out=state.P)  # symmetric, written into the state's buffer
         state.boxplus(W.T @ y)
-        return _result(nis, m, gate, rows)
-    # Schmidt: the gain rows of the considered variables are zero, so only the rows and columns e of the
-    # estimated ones change, by A = W_e^T W (P_ee - K_e S K_e^T, P_ec - K_e H P_:c); the considered block stays
-    # as it is. The new rows e, symmetrised (P is symmetric only up to rounding, so both of its halves enter):
-    # 0.5 (P_e: + (P_:e)^T) - A, and the block ee of that symmetrised again; one gather and one scatter of the
-    # columns e.
+    return _result(nis, m, gate, rows)
+
+
+def _measurement(r: np.ndarray, R: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """The residual as a vector and its covariance as an (m, m) matrix (from a scalar, a row of variances or a
+    matrix)."""
+    r = np.asarray(r, float).reshape(-1)
+    m = r.shape[0]
+    R = np.atleast_2d(np.asarray(R, float))
+    if R.shape == (1, 1) and m > 1:
+        R = np.eye(m) * R[0, 0]
+    elif R.ndim == 2 and R.shape[0] == 1 and R.shape[1] == m:
+        R = np.diag(R[0])
+    return r, R
+
+
+def _cholesky(S: np.ndarray, m: int) -> np.ndarray:
+    """The lower Cholesky factor of S; one row: the square root (what LAPACK's potrf computes), without numpy's
+    wrapper."""
+    if m == 1:
+        if not S[0, 0] > 0.0:
+            raise FloatingPointError("innovation covariance not positive definite (1 rows)")
+        return np.sqrt(S)
+    try:
+        return np.linalg.cholesky(S)
+    except np.linalg.LinAlgError as exc:
+        raise FloatingPointError(f"innovation covariance not positive definite ({m} rows)") from exc
+
+
+def _robust_weight(
+    robust: tuple[str, float], nis: float, r: np.ndarray, S: np.ndarray, R: np.ndarray, robust_R
+) -> float:
+    """IRLS weight of a one-row innovation whitened by S (or by S with ``robust_R`` in place of R)."""
+    kind, c = robust
+    e = float(np.sqrt(nis))
+    if robust_R is not None:
+        s_w = float(S[0, 0]) - float(R[0, 0]) + float(robust_R)
+        e = abs(float(r[0])) / np.sqrt(max(s_w, 1e-300))
+    if kind == "huber":
+        return 1.0 if e <= c else c / e
+    if kind == "cauchy":
+        return 1.0 / (1.0 + (e / c) ** 2)
+    raise ValueError(f"unknown robust update loss {kind!r} (huber or cauchy)")
+
+
+def _apply_schmidt(state: State, W: np.ndarray, y: np.ndarray, schmidt: set[str]) -> None:
+    """Schmidt: the gain rows of the considered variables are zero, so only the rows and columns e of the
+    estimated ones change, by A = W_e^T W (P_ee - K_e S K_e^T, P_ec - K_e H P_:c); the considered block stays
+    as it is. The new rows e, symmetrised (P is symmetric only up to rounding, so both of its halves enter):
+    0.5 (P_e: + (P_:e)^T) - A, and the block ee of that symmetrised again; one gather and one scatter of the
+    columns e."""
     e = state.estimated_rows(schmidt)
     W_e = np.asfortranarray(W[:, e])  # the layout of a column gather (BLAS' rounding depends on it)
     P = state.P
@@ -749,10 +772,9 @@ def ekf_update(
     F[:, e] = 0.5 * (X + X.T)
     P[e, :] = F
     P[:, e] = F.T
-    dx = np.zeros(n)
+    dx = np.zeros(state.size)
     dx[e] = W_e.T @ y
     state.boxplus(dx)
-    return _result(nis, m, gate, rows)
 
 
 def schmidt_update(

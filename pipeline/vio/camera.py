@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from uwbcal.convert.calibration import parse_calibration
 from uwbcal.pipeline.core.errors import InputError
 
 
@@ -30,33 +31,19 @@ class Camera:
 
     @classmethod
     def from_calibration(cls, calib: dict, name: str = "cam0", source: str = "recording") -> Camera:
-        try:
-            c = calib["cameras"][name]
-            fu, fv, cu, cv = (float(x) for x in c["intrinsics"])
-            model = c.get("distortion_model", "radtan")
-            dist = [float(x) for x in c.get("distortion", [0, 0, 0, 0])]
-            T = np.asarray(c.get("T_imu_cam", np.eye(4)), float).reshape(4, 4)
-            res = c.get("resolution", [0, 0])
-        except (KeyError, TypeError, ValueError) as exc:
+        """Camera ``name`` of a ``uwbcal.calibration`` mapping (validated by `convert.calibration`)."""
+        c = parse_calibration(calib, f"{source}: uwbcal.calibration").cameras.get(name)
+        if c is None:
             raise InputError(
-                f"{source}: uwbcal.calibration: cameras.{name} missing or malformed ({exc}); "
-                "re-convert the recording with its camera calibration"
-            ) from None
-        if model not in ("radtan", "none") or len(dist) < 4:
-            raise InputError(
-                f"{source}: uwbcal.calibration: cameras.{name}: distortion model {model!r} with "
-                f"{len(dist)} coefficients is not supported; use radtan [k1, k2, p1, p2]"
+                f"{source}: uwbcal.calibration: cameras.{name}: missing; re-convert the recording with its camera "
+                "calibration (uwbcal convert bag --calibration)"
             )
+        fu, fv, cu, cv = c.intrinsics
+        T = c.T
+        w, h = c.resolution or (0, 0)
+        dist = c.distortion if c.distortion is not None and c.distortion_model == "radtan" else [0.0] * 4
         return cls(
-            fu,
-            fv,
-            cu,
-            cv,
-            *dist[:4],
-            R_imu_cam=T[:3, :3].copy(),
-            p_imu_cam=T[:3, 3].copy(),
-            width=int(res[0]),
-            height=int(res[1]),
+            fu, fv, cu, cv, *dist, R_imu_cam=T[:3, :3].copy(), p_imu_cam=T[:3, 3].copy(), width=w, height=h
         )
 
     @property

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uwbcal.convert.calibration import parse_calibration
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import I3, exp_jr_so3, log_so3, skew
 from uwbcal.pipeline.core.state import ImuState
@@ -50,26 +51,20 @@ class ImuNoise:
 
     @classmethod
     def from_calibration(cls, calib: dict, source: str = "recording", inflate: float = 1.0) -> ImuNoise:
-        try:
-            c = calib["imu"]
-            vals = [
-                float(c[k])
-                for k in (
-                    "gyroscope_noise_density",
-                    "accelerometer_noise_density",
-                    "gyroscope_random_walk",
-                    "accelerometer_random_walk",
-                )
-            ]
-            rate = float(c.get("rate_hz", 200.0))
-        except (KeyError, TypeError, ValueError) as exc:
+        """The IMU noise of a ``uwbcal.calibration`` mapping (validated by `convert.calibration`)."""
+        c = parse_calibration(calib, f"{source}: uwbcal.calibration").imu
+        if c is None:
             raise InputError(
-                f"{source}: uwbcal.calibration: imu noise densities missing or malformed ({exc}); "
-                "re-convert the recording with the IMU calibration"
-            ) from None
-        if not all(np.isfinite(vals)) or min(vals) <= 0:
-            raise InputError(f"{source}: uwbcal.calibration: imu noise densities must be positive: {vals}")
-        return cls(*(v * inflate for v in vals), rate_hz=rate)
+                f"{source}: uwbcal.calibration: imu: missing; re-convert the recording with the IMU calibration "
+                "(noise densities and random walks, e.g. uwbcal convert bag --calibration)"
+            )
+        vals = (
+            c.gyroscope_noise_density,
+            c.accelerometer_noise_density,
+            c.gyroscope_random_walk,
+            c.accelerometer_random_walk,
+        )
+        return cls(*(v * inflate for v in vals), rate_hz=c.rate_hz or 200.0)
 
 
 @dataclass

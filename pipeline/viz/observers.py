@@ -81,7 +81,7 @@ def log_uwb_updates(log: RunLog | None, updater: UwbUpdater) -> None:
         if rej.any():
             log.series_static_style(rl.uwb(a, "rejected"), ["rejected"], [rl.COLORS["rejected"]], points=True)
         gate = float(np.sqrt(chi2_ppf(quantile, 1))) if quantile is not None else 3.0
-        log.residual_band(a, t, arr["residual"], arr["nis"], n_sigma=gate)
+        _log_residual_band(log, a, t, arr["residual"], arr["nis"], n_sigma=gate)
         log.scalars(rl.anchor_param(a, "beta"), t, arr["x"][:, 3])
         log.scalars(rl.anchor_param(a, "gamma"), t, arr["x"][:, 4])
     _log_nis_average(log, arrays)
@@ -103,4 +103,21 @@ def _log_nis_average(log: RunLog, arrays: dict[int, dict[str, np.ndarray]]) -> N
     if arrs:
         keep = ~np.concatenate([arr["rejected"] for arr in arrs]).astype(bool)
         t_all = np.concatenate([arr["t_ns"] for arr in arrs])
-        log.nis_average(rl.NIS_UWB, t_all[keep], np.concatenate([arr["nis"] for arr in arrs])[keep])
+        nis = np.concatenate([arr["nis"] for arr in arrs])[keep]
+        t, avg, lo, hi = rl.moving_nis(t_all[keep], nis, 1, 50)
+        if len(t):
+            log.scalars(rl.NIS_UWB, t, avg, names=["NIS avg of 50"])
+            log.constant(f"{rl.NIS_UWB}_bounds", t, [lo, hi], names=["χ² 2.5 %", "χ² 97.5 %"])
+
+
+def _log_residual_band(log: RunLog, anchor: object, t_ns, residual, nis, n_sigma: float) -> None:
+    """±n·σ of the range innovation beside the residual: σ = |r| / sqrt(NIS) (NIS = r²/S), at `uwb/<id>/band`;
+    with n = sqrt(the chi2 gate) a range is rejected exactly when its residual leaves the band."""
+    r = np.asarray(residual, dtype=np.float64).reshape(-1)
+    nis = np.asarray(nis, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(r) & np.isfinite(nis) & (nis > 0)
+    t = np.asarray(t_ns, dtype=np.int64).reshape(-1)[ok]
+    sig = n_sigma * np.abs(r[ok]) / np.sqrt(nis[ok])
+    entity = rl.uwb(anchor, "band")
+    log.scalars(entity, t, np.c_[sig, -sig])
+    log.series_static_style(entity, [f"+{n_sigma:.3g}σ", f"-{n_sigma:.3g}σ"], [rl.COLORS["gate"]] * 2)

@@ -621,30 +621,6 @@ class RunLog:
             LEGEND, self._rr.TextDocument(legend_markdown(methods), media_type="text/markdown"), static=True
         )
 
-    def residual_band(self, anchor: object, t_ns: Any, residual: Any, nis: Any, n_sigma: float = 3.0) -> None:
-        """±n·σ of the range innovation beside the residual: σ = |r| / sqrt(NIS) (NIS = r²/S), at `uwb/<id>/band`;
-        with n = sqrt(the χ² gate) a range is rejected exactly when its residual leaves the band."""
-        if self._rec is None:
-            return
-        r = np.asarray(residual, dtype=np.float64).reshape(-1)
-        nis = np.asarray(nis, dtype=np.float64).reshape(-1)
-        ok = np.isfinite(r) & np.isfinite(nis) & (nis > 0)
-        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)[ok]
-        sig = n_sigma * np.abs(r[ok]) / np.sqrt(nis[ok])
-        entity = uwb(anchor, "band")
-        self.scalars(entity, t, np.c_[sig, -sig])
-        self.series_static_style(entity, [f"+{n_sigma:.3g}σ", f"-{n_sigma:.3g}σ"], [COLORS["gate"]] * 2)
-
-    def nis_average(self, entity: str, t_ns: Any, nis: Any, dof: int = 1, window: int = 50) -> None:
-        """Moving average of NIS over `window` updates with the two-sided 95 % χ² bounds of that average."""
-        if self._rec is None:
-            return
-        t, avg, lo, hi = moving_nis(t_ns, nis, dof, window)
-        if len(t) == 0:
-            return
-        self.scalars(entity, t, avg, names=[f"NIS avg of {window}"])
-        self.constant(f"{entity}_bounds", t, [lo, hi], names=["χ² 2.5 %", "χ² 97.5 %"])
-
     # -- blueprint -------------------------------------------------------------------------------------------------
     def anchors(self) -> list[str]:
         return list(self._anchors)
@@ -671,6 +647,29 @@ def make_blueprint(
     import rerun.blueprint as rrb
 
     has = functools.partial(_present, present)
+    rows: list = [rrb.Tabs(*_anchor_views(rrb, anchors), name="UWB residuals")]
+    row_shares = [3]
+    checks = _consistency_views(rrb, has)
+    if checks:
+        rows.append(rrb.Horizontal(*checks) if len(checks) > 1 else checks[0])
+        row_shares.append(2)
+    series = _series_views(rrb, has, present, anchors)
+    if series:
+        rows.append(rrb.Tabs(*series, name="σ, β, γ"))
+        row_shares.append(2)
+    rows.append(rrb.TextLogView(origin=LOG, name="log"))
+    row_shares.append(1)
+    right = rrb.Vertical(*rows, row_shares=row_shares)
+    return rrb.Blueprint(
+        rrb.Horizontal(_left_column(rrb, has, camera), right, column_shares=[3, 2]),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline=T_SENSOR),
+    )
+
+
+def _left_column(rrb, has, camera: bool):
+    """The 3-D world, the camera (when there is one) and the marker legend."""
     left: list = [rrb.Spatial3DView(origin=WORLD, name="world: trajectories, anchors, 3σ ellipsoids")]
     shares = [6]
     if camera:
@@ -679,7 +678,12 @@ def make_blueprint(
     if has(LEGEND):
         left.append(rrb.TextDocumentView(origin=LEGEND, name="legend"))
         shares.append(3)
-    per_anchor = [
+    return rrb.Vertical(*left, row_shares=shares) if len(left) > 1 else left[0]
+
+
+def _anchor_views(rrb, anchors: Sequence[str]) -> list:
+    """Per anchor: its range residuals inside the gate band, and its NIS against the gate."""
+    views = [
         rrb.Vertical(
             rrb.TimeSeriesView(
                 origin=f"uwb/{a}",
@@ -693,8 +697,11 @@ def make_blueprint(
         )
         for a in anchors
     ]
-    if not per_anchor:
-        per_anchor = [rrb.TimeSeriesView(origin="uwb", name="uwb")]
+    return views or [rrb.TimeSeriesView(origin="uwb", name="uwb")]
+
+
+def _consistency_views(rrb, has) -> list:
+    """NEES of the pose (and of position / orientation) and the NIS of the UWB updates, with their chi2 bands."""
     nees = []
     if has(NEES_POSE):
         nees.append(
@@ -705,14 +712,11 @@ def make_blueprint(
             )
         )
     if has(f"{FILTER}/nees_position"):
+        parts = ("nees_position", "nees_position_bounds", "nees_orientation")
         nees.append(
             rrb.TimeSeriesView(
                 origin=FILTER,
-                contents=[
-                    f"+ {FILTER}/nees_position/**",
-                    f"+ {FILTER}/nees_position_bounds/**",
-                    f"+ {FILTER}/nees_orientation/**",
-                ],
+                contents=[f"+ {FILTER}/{p}/**" for p in parts],
                 name="NEES position, orientation (3 dof)",
             )
         )
@@ -727,8 +731,13 @@ def make_blueprint(
                 name="NIS of the UWB updates",
             )
         )
+    return checks
+
+
+def _series_views(rrb, has, present: set[str] | None, anchors: Sequence[str]) -> list:
+    """σ (metres and degrees on their own axes), β and γ per anchor, the VIO updates, the initialisers."""
     series = []
-    if has(SIGMA):  # metres and degrees on their own axes
+    if has(SIGMA):
         rot = sorted(
             {e for e in (present or ()) if e.startswith(SIGMA + "/") and ("deg" in e or "theta" in e)}
         )
@@ -744,36 +753,14 @@ def make_blueprint(
                 )
             )
     if anchors:
-        series += [
-            rrb.TimeSeriesView(
-                origin="anchors", contents=[f"+ anchors/{a}/beta/**" for a in anchors], name="β"
-            ),
-            rrb.TimeSeriesView(
-                origin="anchors", contents=[f"+ anchors/{a}/gamma/**" for a in anchors], name="γ [m]"
-            ),
-        ]
+        for param, name in (("beta", "β"), ("gamma", "γ [m]")):
+            contents = [f"+ anchors/{a}/{param}/**" for a in anchors]
+            series.append(rrb.TimeSeriesView(origin="anchors", contents=contents, name=name))
     if has(VIO_NIS):
         series.append(rrb.TimeSeriesView(origin=VIO_NIS, name="VIO updates"))
     if has("init"):
         series.append(rrb.TimeSeriesView(origin="init", name="init cost / FIM"))
-    rows: list = [rrb.Tabs(*per_anchor, name="UWB residuals")]
-    row_shares = [3]
-    if checks:
-        rows.append(rrb.Horizontal(*checks) if len(checks) > 1 else checks[0])
-        row_shares.append(2)
-    if series:
-        rows.append(rrb.Tabs(*series, name="σ, β, γ"))
-        row_shares.append(2)
-    rows.append(rrb.TextLogView(origin=LOG, name="log"))
-    row_shares.append(1)
-    right = rrb.Vertical(*rows, row_shares=row_shares)
-    left_col = rrb.Vertical(*left, row_shares=shares) if len(left) > 1 else left[0]
-    return rrb.Blueprint(
-        rrb.Horizontal(left_col, right, column_shares=[3, 2]),
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="collapsed", timeline=T_SENSOR),
-    )
+    return series
 
 
 def merge_run_logs(

@@ -13,7 +13,8 @@ import logging
 import time
 from pathlib import Path
 
-from uwbcal.convert.info import nan_problems
+from uwbcal.convert.calibration import parse_calibration
+from uwbcal.convert.info import clock_jumps, nan_problems
 from uwbcal.convert.recording import TOPIC_IMU, TOPIC_ODOM, TOPIC_RANGE, RecordingReader
 from uwbcal.pipeline.core.atomic import sweep_stale
 from uwbcal.pipeline.core.errors import InputError
@@ -62,6 +63,7 @@ class Pipeline:
                 names = ", ".join(p.name for p in removed[:3]) + (" ..." if len(removed) > 3 else "")
                 progress(f"note: removed {len(removed)} temporary file(s) of an interrupted run ({names})")
             ctx.reader.check_schemas()
+            parse_calibration(ctx.reader.calibration, f"{ctx.recording}: uwbcal.calibration")
             for w in ctx.reader.warnings:  # once here; the results table leaves them out (run_cli)
                 progress(f"warning: {w}")
                 self.shown_warnings.add(f"warning: {w}")
@@ -114,9 +116,10 @@ def check_values(ctx: StageContext) -> None:
     if ctx.pose_source() == "odometry" and TOPIC_ODOM in topics:
         o = reader.read_odometry()
         problems += nan_problems(TOPIC_ODOM, o.t_ns, o.p, o.q_xyzw)
+        problems += clock_jumps(TOPIC_ODOM, reader.read_odometry(file_order=True).t_ns)
     elif TOPIC_IMU in topics:
-        m = reader.read_imu()
-        problems += nan_problems(TOPIC_IMU, m.t_ns, m.gyro, m.acc)
+        m = reader.read_imu(file_order=True)
+        problems += nan_problems(TOPIC_IMU, m.t_ns, m.gyro, m.acc) + clock_jumps(TOPIC_IMU, m.t_ns)
     if problems:
         raise InputError(
             f"{ctx.recording}: {problems[0].text}; re-convert the data (uwbcal convert drops such records)"
