@@ -286,7 +286,7 @@ def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = No
     drops.add(TOPIC_IMU, "non-finite IMU value", int((~keep).sum()))
     idx = np.flatnonzero(keep)
     imu = ImuTable(imu.t_ns[idx], imu.gyro[idx], imu.acc[idx])
-    o = order_and_dedup(imu.t_ns, None, TOPIC_IMU, drops)
+    o = order_and_dedup(imu.t_ns, None, TOPIC_IMU, drops, imu_dir / "data.csv")
     imu = ImuTable(imu.t_ns[o], imu.gyro[o], imu.acc[o])
 
     cameras, cam_lists = {}, {}
@@ -314,7 +314,7 @@ def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = No
         q, ok = normalise_quaternions(gt.q_xyzw, TOPIC_GT_POSE, drops)
         ok &= np.isfinite(gt.p).all(1)
         gt = PoseTable(gt.t_ns[ok], gt.p[ok], q[ok])
-        o = order_and_dedup(gt.t_ns, None, TOPIC_GT_POSE, drops)
+        o = order_and_dedup(gt.t_ns, None, TOPIC_GT_POSE, drops, gt_file)
         gt = PoseTable(gt.t_ns[o], gt.p[o], gt.q_xyzw[o])
         if not np.allclose(
             T_B_imu, np.eye(4)
@@ -547,7 +547,7 @@ def convert_bag(path: Path, output: str | Path, groundtruth: Path | None = None)
         gt = read_groundtruth(Path(groundtruth))
         q, ok = normalise_quaternions(gt.q_xyzw, TOPIC_GT_POSE, drops)
         gt = PoseTable(gt.t_ns[ok], gt.p[ok], q[ok])
-        o = order_and_dedup(gt.t_ns, None, TOPIC_GT_POSE, drops)
+        o = order_and_dedup(gt.t_ns, None, TOPIC_GT_POSE, drops, Path(groundtruth))
         gt = PoseTable(gt.t_ns[o], gt.p[o], gt.q_xyzw[o])
         routes.pop(BAG_VICON)
         routes.pop(BAG_LEICA)

@@ -316,7 +316,7 @@ def convert_folder(
         ok &= np.isfinite(p).all(1)
         drops.add(TOPIC_ODOM, "non-finite position", int((~np.isfinite(p).all(1)).sum()))
         idx = np.flatnonzero(ok)
-        o = idx[order_and_dedup(t[idx], None, TOPIC_ODOM, drops)]
+        o = idx[order_and_dedup(t[idx], None, TOPIC_ODOM, drops, odom_file)]
         odom = (t[o], p[o], q[o])
         files.append(odom_file)
     else:
@@ -328,7 +328,7 @@ def convert_folder(
         ok = np.isfinite(p).all(1)
         drops.add(TOPIC_GT_POSITION, "non-finite position", int((~ok).sum()))
         idx = np.flatnonzero(ok)
-        o = idx[order_and_dedup(t[idx], None, TOPIC_GT_POSITION, drops)]
+        o = idx[order_and_dedup(t[idx], None, TOPIC_GT_POSITION, drops, leica_file)]
         gt = (t[o], p[o])
         files.append(leica_file)
     antenna_file = find_antennas(path, antennas)

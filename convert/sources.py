@@ -5,8 +5,11 @@ readers, range cleaning and the streamed ROS1-bag loop. One implementation used 
 from __future__ import annotations
 
 import contextlib
+import csv
 import gc
 import hashlib
+import io
+import re
 import struct
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -151,6 +154,9 @@ def read_csv_strings(path: str | Path, columns: Sequence[str] | int, *, what: st
     try:
         df = pl.read_csv(path, has_header=True, infer_schema_length=0, truncate_ragged_lines=False)
     except (pl.exceptions.ComputeError, pl.exceptions.NoDataError, OSError) as exc:
+        ragged = _ragged_line(path)
+        if ragged:
+            raise InputError(f"{path}: {ragged}") from None
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InputError(f"{path}: unreadable CSV ({first}); expected columns {_fmt_cols(columns)}") from None
     found = [c.strip().lstrip("\ufeff") for c in df.columns]  # a UTF-8 BOM is not part of the name
@@ -170,6 +176,25 @@ def read_csv_strings(path: str | Path, columns: Sequence[str] | int, *, what: st
     return df.select(list(columns))
 
 
+def _ragged_line(path: Path) -> str | None:
+    """The first line whose field count is not the header's, and why when it can tell (a decimal comma)."""
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except (OSError, UnicodeDecodeError):
+        return None
+    rows = csv.reader(io.StringIO(text))
+    header = next(rows, [])
+    for i, row in enumerate(rows, start=2):
+        if row and len(row) != len(header):
+            fix = "quote or remove the extra fields"
+            if len(header) == 1 and ";" in header[0]:
+                fix = "the fields are separated by ';' (a decimal-comma export): save it with ',' between fields and '.' as the decimal point"
+            elif len(row) > len(header) and any(f.strip().isdigit() for f in row[len(header) - 1 :]):
+                fix = "a decimal comma? write numbers with '.' as the decimal point (4.05, not 4,05)"
+            return f"line {i}: {len(row)} fields, the header has {len(header)}; {fix}"
+    return None
+
+
 def _fmt_cols(columns: Sequence[str] | int) -> str:
     return f"{columns} numeric columns" if isinstance(columns, int) else ",".join(columns)
 
@@ -177,9 +202,12 @@ def _fmt_cols(columns: Sequence[str] | int) -> str:
 def _bad_row(path: Path, name: str, raw: pl.Series, parsed: pl.Series, what: str) -> InputError:
     bad = (parsed.is_null() & raw.is_not_null()) | raw.is_null()
     i = int(np.flatnonzero(bad.to_numpy())[0])
-    return InputError(
-        f"{path}: line {i + 2}: column '{name}': {raw[i]!r} is not {what}; fix or remove the row"
-    )
+    text = raw[i]
+    if isinstance(text, str) and re.fullmatch(r"[-+]?\d+,\d+", text):
+        fix = f"a decimal comma: write {text.replace(',', '.')!r}"
+    else:
+        fix = "fix or remove the row"
+    return InputError(f"{path}: line {i + 2}: column '{name}': {text!r} is not {what}; {fix}")
 
 
 def to_float(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
@@ -403,15 +431,35 @@ def read_ranges_csv(path: str | Path) -> tuple[RangeData, str]:
     return RangeData(t, ids["tag"], ids["antenna"], ids["anchor"], to_float(path, df, "distance")), unit
 
 
-def order_and_dedup(t_ns: np.ndarray, key: np.ndarray | None, topic: str, drops: Drops) -> np.ndarray:
+JUMP_PERIODS = 10  # a step back of more sample periods than this in one sensor's series is a clock jump
+
+
+def order_and_dedup(
+    t_ns: np.ndarray, key: np.ndarray | None, topic: str, drops: Drops, series: Path | None = None
+) -> np.ndarray:
     """Indices that sort by (time, key) without exact duplicates of (t, key). Out-of-order input is sorted and
-    noted; duplicates are dropped (counted, the first kept)."""
+    noted; duplicates are dropped (counted, the first kept). ``series``: the file of one sensor's samples (IMU,
+    poses), where a step back of more than `JUMP_PERIODS` sample periods is a clock jump — refused, since sorting
+    would interleave the two stretches it overlaps."""
     n = len(t_ns)
     if n == 0:
         return np.zeros(0, np.int64)
-    back = int((np.diff(t_ns) < 0).sum()) if n > 1 else 0
+    dt = np.diff(t_ns) if n > 1 else np.zeros(0, np.int64)
+    back = int((dt < 0).sum())
     if back:
-        drops.note(f"{topic}: {back} out-of-order stamps; sorted by stamp")
+        i = int(np.argmin(dt))
+        step = -int(dt[i])
+        fwd = dt[dt > 0]
+        period = float(np.median(fwd)) if len(fwd) else 0.0
+        if series is not None and period > 0 and step > JUMP_PERIODS * period:
+            raise InputError(
+                f"{series}: {topic}: stamps step back by {step * 1e-9:.6g} s ({step / period:.0f} sample "
+                f"periods) after t={int(t_ns[i])} ns: a clock jump, not reordering (sorting would interleave two "
+                "stretches); cut the data at the jump or fix the stamps"
+            )
+        drops.note(
+            f"{topic}: {back} out-of-order stamps (stepping back by up to {step * 1e-9:.6g} s); sorted by stamp"
+        )
     if key is None:
         order = np.argsort(t_ns, kind="stable")
     else:

@@ -89,7 +89,7 @@ def convert_tabular(
             f"{poses}: none of the {len(pt.t_ns)} poses is usable (non-finite, absurd or non-unit quaternion); "
             "fix the trajectory"
         )
-    o = idx[order_and_dedup(pt.t_ns[idx], None, TOPIC_ODOM, drops)]
+    o = idx[order_and_dedup(pt.t_ns[idx], None, TOPIC_ODOM, drops, Path(poses))]
     t_pose, p, q = pt.t_ns[o], pt.p[o], q[o]
 
     raw, unit = read_ranges_csv(ranges)

@@ -23,7 +23,6 @@ are reported.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -35,7 +34,7 @@ from uwbcal.convert.recording import RecordingReader
 from uwbcal.evaluate.consistency import anchor_nees, chi2_bounds
 from uwbcal.evaluate.metrics import anchor_errors, inter_anchor_distance_errors
 from uwbcal.pipeline.core.errors import InputError
-from uwbcal.pipeline.run.rundir import corrupt, read_json
+from uwbcal.pipeline.run import artefacts
 
 
 @dataclass
@@ -85,9 +84,6 @@ class RunAnchors:
     states: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # id -> (x, P), p_a first
 
 
-ANCHOR_COLUMNS = ("anchor", "method", "stage", "x", "y", "z", "beta", "gamma")
-
-
 def _number(text: str | None, where: str = "") -> float:
     """A number of anchors.csv: empty = not determined (NaN); anything else that is not a number is damage."""
     if text in (None, ""):
@@ -98,23 +94,6 @@ def _number(text: str | None, where: str = "") -> float:
         raise InputError(
             f"{where}: {text!r} is not a number; the run directory is damaged — re-run init/refine"
         ) from None
-
-
-def _read_anchor_rows(path: Path) -> list[dict]:
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            missing = [c for c in ANCHOR_COLUMNS if c not in (reader.fieldnames or [])]
-            if missing:
-                raise InputError(
-                    f"{path}: header: missing column(s) {', '.join(missing)}; the run directory is damaged — "
-                    "re-run the init and refine stages"
-                )
-            return [dict(r, _line=str(i)) for i, r in enumerate(reader, start=2)]
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: byte {exc.start}: not UTF-8 text; the run directory is damaged") from None
-    except csv.Error as exc:
-        raise InputError(f"{path}: not a CSV ({exc}); the run directory is damaged") from None
 
 
 def _key(s: str) -> tuple[int, str]:
@@ -129,14 +108,12 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
     path = run_dir / "anchors.csv"
     rows = []
     if path.is_file():
-        rows = _read_anchor_rows(path)
+        rows = artefacts.read_anchor_rows(path)
     refine = [r for r in rows if r.get("stage") == "refine"]
     init = [r for r in rows if r.get("stage") == "init" and r.get("method") == init_method]
     init_json = run_dir / "init.json"
-    init_info = read_json(init_json) if init_json.is_file() else {}
+    init_info = artefacts.read_json(init_json, artefacts.INIT) if init_json.exists() else {}
     chosen = (init_info.get("methods") or {}).get(init_info.get("chosen", init_method)) or {}
-    if not isinstance(chosen, dict) or not all(isinstance(v, dict) for v in chosen.values()):
-        raise corrupt(init_json, "unexpected layout")
     for r in (refine or init) + (init if refine else []):
         aid = str(r["anchor"])
         if aid in out.estimates or aid in out.undetermined:
@@ -173,7 +150,7 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
                 "; ".join(p for p in [head, *extra] if p) or "not determined (no reason given by the run)"
             )
     states_path = run_dir / "anchor_states.json"
-    states = read_json(states_path) if states_path.is_file() else {}
+    states = artefacts.read_json(states_path, artefacts.ANCHOR_STATES) if states_path.exists() else {}
     for aid in out.estimates:
         s = states.get(aid) if refine else None
         if s is None and not refine and aid in chosen and chosen[aid].get("cov") is not None:

@@ -16,7 +16,6 @@ pair per link when the run estimated per-link biases (names from the entry's ``n
 from __future__ import annotations
 
 import json
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +24,7 @@ import yaml
 
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run import artefacts
 
 STATES = "anchor_states.json"
 MODEL = "d = beta * |p_anchor - p_tag| + gamma (+ noise)"
@@ -88,12 +88,9 @@ def _anchor_record(aid: str, entry: dict, where: str) -> dict:
 
 def _config(run_dir: Path) -> dict:
     p = run_dir / "config.toml"
-    if not p.is_file():
+    if not p.exists():
         raise InputError(f"{p}: missing; is {run_dir} a run directory?")
-    try:
-        return tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"{p}: invalid TOML ({exc})") from None
+    return artefacts.read_toml(p)
 
 
 def load_anchors(run_dir: str | Path) -> dict:
@@ -103,17 +100,12 @@ def load_anchors(run_dir: str | Path) -> dict:
     init_m, refine_m = uwb.get("init_method", "?"), uwb.get("refine_method", "?")
     states_path = run_dir / STATES
     if states_path.is_file():
-        try:
-            states = json.loads(states_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(f"{states_path}: not valid JSON ({exc}); re-run the refine stage") from None
+        states = artefacts.read_json(states_path, artefacts.ANCHOR_STATES)
         anchors = {str(a): _anchor_record(str(a), e, str(states_path)) for a, e in states.items()}
         stage, method = "refine", f"{init_m}+{refine_m}"
     elif (run_dir / "init.pkl").is_file():
-        import pickle
-
-        with open(run_dir / "init.pkl", "rb") as f:
-            results = pickle.load(f).get(init_m, {})
+        results = artefacts.read_pickle(run_dir / "init.pkl")
+        results = results.get(init_m, {}) if isinstance(results, dict) else {}
         anchors = {
             str(a): _anchor_record(str(a), {"x": r.x, "P": r.cov}, str(run_dir / "init.pkl"))
             for a, r in results.items()

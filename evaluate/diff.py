@@ -22,13 +22,13 @@ Rules, per flattened key:
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run import artefacts
 
 ATOL = 1e-9
 ERROR_WORDS = ("rmse", "error", "err", "deviation")
@@ -59,20 +59,7 @@ def _is_num(v: Any) -> bool:
 
 def _read_json(path: Path) -> dict:
     """A JSON object (metrics are always one); anything else is an input error naming the file."""
-    try:
-        data = json.loads(path.read_bytes().decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: byte {exc.start}: not UTF-8 text; pass a metrics JSON file") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(
-            f"{path}: line {exc.lineno}: not valid JSON ({exc.msg}); regenerate the file"
-        ) from None
-    if not isinstance(data, dict):
-        raise InputError(
-            f"{path}: a JSON {type(data).__name__}, expected an object of metrics; pass a metrics.json or "
-            "summary.json"
-        )
-    return data
+    return artefacts.read_json(path, dict, fix="pass a metrics.json or summary.json")
 
 
 def load_metrics(path: str | Path) -> dict[str, Any]:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import time
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,8 +42,8 @@ from uwbcal.evaluate.tables import render
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import quat_to_rot
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run.resolve import imu_is_real
-from uwbcal.pipeline.run.rundir import read_json
 from uwbcal.pipeline.viz import runlog as rl
 
 if TYPE_CHECKING:
@@ -124,9 +123,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
 def _run_notes(run_dir: Path, reader: RecordingReader, traj: RunTrajectory) -> dict:
     """The warnings of the recording (truncation, damage) and of the stages, the stages' wall time, the span."""
     summary_path = run_dir / "stages.json"
-    stages = read_json(summary_path) if summary_path.is_file() else {}
-    if not all(isinstance(st, dict) for st in stages.values()):
-        raise InputError(f"{summary_path}: expected an object per stage; the run directory is damaged")
+    stages = artefacts.read_json(summary_path, artefacts.STAGES) if summary_path.exists() else {}
     warnings: list[str] = []
     warnings.extend(w for w in reader.verify() if w not in warnings)  # truncation, damage
     for st in stages.values():
@@ -197,7 +194,7 @@ def _pose_nees(
 def _anchor_section(run: _Run, ref: AnchorReference | None, fit: _TrajectoryFit) -> tuple[dict, list[str]]:
     """The anchors' part of metrics.json and its warnings: errors and NEES against the reference, the
     initialiser's verdicts, the heights refinement regained, the range check."""
-    cfg = tomllib.loads((run.run_dir / "config.toml").read_text())  # parsed by run_recording_path already
+    cfg = artefacts.read_toml(run.run_dir / "config.toml")
     run_anchors = read_run_anchors(run.run_dir, (cfg.get("uwb") or {}).get("init_method"))
     own_frame = run_anchors.estimates  # the frame of the run's trajectory, which the range check uses
     out: dict = {}
@@ -237,7 +234,7 @@ def _init_verdicts(run_dir: Path, anchors: dict) -> list[str]:
     if not init_path.is_file():
         return []
     warnings = []
-    init = read_json(init_path)
+    init = artefacts.read_json(init_path, artefacts.INIT)
     for aid, r in (init.get("methods") or {}).get(init.get("chosen"), {}).items():
         if aid in anchors and isinstance(r, dict) and r.get("fim") is not None:
             anchors[aid]["fim"] = r["fim"]  # log det, condition number, weakest direction
@@ -254,7 +251,7 @@ def _height_regains(run_dir: Path, anchors: dict) -> None:
     states_path = run_dir / "anchor_states.json"
     if not states_path.is_file():
         return
-    for aid, s in read_json(states_path).items():
+    for aid, s in artefacts.read_json(states_path, artefacts.ANCHOR_STATES).items():
         if aid in anchors and isinstance(s, dict) and s.get("height_regained"):
             v = dict(anchors[aid].get("verdict") or {})
             v.update(height_observable=True, height_regained=s["height_regained"])

@@ -9,8 +9,6 @@ written with the identity orientation (it has none). Lines: ``t x y z qx qy qz q
 
 from __future__ import annotations
 
-import tomllib
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +19,7 @@ from uwbcal.evaluate.anchors_export import export_anchors
 from uwbcal.evaluate.association import Association, associate, lever_point
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run.provenance import check_recording
 from uwbcal.pipeline.run.rundir import RunDir
 
@@ -59,46 +58,25 @@ def load_run_trajectory(run_dir: str | Path) -> RunTrajectory:
     path = Path(run_dir) / TRAJECTORY
     if not path.is_file() and (Path(run_dir) / VIO_TRAJECTORY).is_file():
         path = Path(run_dir) / VIO_TRAJECTORY
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"{path}: missing; run the pipeline first (uwbcal run REC -o {run_dir})")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arr = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
-        raise InputError(
-            f"{path}: unreadable ({type(exc).__name__}: {exc}); the file is damaged — re-run the stage that wrote it"
-        ) from None
-    for k in ("t_ns", "p", "q_xyzw"):
-        if k not in arr:
-            raise InputError(f"{path}: no '{k}' array (has {sorted(arr)}); re-run the pipeline")
-    n = len(arr["t_ns"])
-    try:
-        tr = RunTrajectory(
-            t_ns=arr["t_ns"].astype(np.int64).reshape(-1),
-            p=arr["p"].astype(float).reshape(n, 3),
-            q_xyzw=arr["q_xyzw"].astype(float).reshape(n, 4),
-            cov=arr["cov"].astype(float).reshape(n, 6, 6) if "cov" in arr else None,
-            segment=arr["segment"].astype(np.int64).reshape(n) if "segment" in arr else None,
-        )
-    except (ValueError, TypeError) as exc:
-        raise InputError(f"{path}: arrays of inconsistent shapes ({exc}); re-run the pipeline") from None
-    return tr
+    arr = artefacts.read_npz(path, artefacts.TRAJECTORY_ARRAYS, artefacts.TRAJECTORY_REQUIRED)
+    return RunTrajectory(
+        t_ns=arr["t_ns"].astype(np.int64),
+        p=arr["p"].astype(float),
+        q_xyzw=arr["q_xyzw"].astype(float),
+        cov=arr["cov"].astype(float) if "cov" in arr else None,
+        segment=arr["segment"].astype(np.int64) if "segment" in arr else None,
+    )
 
 
 def run_recording_path(run_dir: str | Path) -> Path:
     """The recording of a run: ``[run] recording`` in ``run_dir/config.toml`` (relative paths tried against the
     working directory, then the run directory), which every stage recorded must have run on."""
     cfg_path = Path(run_dir) / CONFIG
-    if not cfg_path.is_file():
+    if not cfg_path.exists():
         raise InputError(f"{cfg_path}: missing; is {run_dir} a run directory?")
-    try:
-        cfg = tomllib.loads(cfg_path.read_bytes().decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise InputError(
-            f"{cfg_path}: byte {exc.start}: not UTF-8 text; the run directory is damaged"
-        ) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"{cfg_path}: invalid TOML ({exc})") from None
+    cfg = artefacts.read_toml(cfg_path)
     run = cfg.get("run")
     rec = run.get("recording") if isinstance(run, dict) else None
     if not isinstance(rec, str) or not rec:

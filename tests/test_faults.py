@@ -28,7 +28,9 @@ from uwbcal.cli import app
 from uwbcal.convert.msgs import POSE_STAMPED
 from uwbcal.convert.recording import TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE, RecordingReader, RecordingWriter
 from uwbcal.convert.simulator import SimConfig, simulate_to_file
+from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.run import provenance, rundir
+from uwbcal.pipeline.run.config import load_config
 
 runner = CliRunner()
 ROOT = Path(__file__).resolve().parents[1]
@@ -954,6 +956,8 @@ def corrupt(name: str, data: bytes | Callable[[bytes], bytes], cmd: str = "evalu
             return ["evaluate", str(run)]
         if cmd == "export":
             return ["export", str(run), "-o", str(c.p("tum"))]
+        if cmd == "export-anchors":
+            return ["export", str(run), "-o", str(c.p("tum")), "--format", "anchors-json"]
         return ["run", str(c.shared.rec), "-o", str(run), "--no-log", "--stages", cmd, *extra]
 
     return build
@@ -1274,6 +1278,185 @@ case(
 )
 
 
+# -- clock jumps, decimal commas, config typos: named with the fix (variants, not one file) ------------------------
+def tum_jump(at: int, back_s: float):
+    """The poses from line ``at`` on stamped ``back_s`` earlier (a clock jump overlapping the first stretch)."""
+
+    def f(lines):
+        for i in range(at, len(lines)):
+            t, rest = lines[i].split(" ", 1)
+            ns = int(t.replace(".", "")) - int(round(back_s * 1e9))
+            lines[i] = f"{ns // 10**9}.{ns % 10**9:09d} {rest}"
+        return lines
+
+    return tum_lines(f)
+
+
+for back in (2.0, 5.0, 10.0):  # 20-100 sample periods of the 10 Hz poses
+    case(
+        f"tum-clock-jump-back-{back:g}s",
+        [0],
+        "out-of-order stamps",
+        tab(tum=tum_jump(N_POSES // 2, back)),
+        names=named("poses.tum"),
+    )
+for cid, edit in (
+    ("adjacent-swap", lambda ls: [*ls[:10], ls[11], ls[10], *ls[12:]]),
+    ("pairs-swapped", lambda ls: [x for i in range(0, len(ls) - 1, 2) for x in (ls[i + 1], ls[i])]),
+):
+    case(
+        f"tum-reordered-{cid}",
+        [0],
+        "out-of-order stamps",
+        tab(tum=tum_lines(edit)),
+        "ok",
+        check=rec_check(stdout="out-of-order"),
+    )
+
+
+def decimal_comma(kind: str):
+    def make(rows):
+        text = fi.csv_text(rows)
+        lines = text.splitlines()
+        if kind == "semicolon":
+            return "\n".join(ln.replace(",", ";").replace(".", ",") for ln in lines) + "\n"
+        fields, (whole, frac) = lines[6].rsplit(",", 1)[0], lines[6].rsplit(",", 1)[1].split(".")
+        lines[6] = f'{fields},"{whole},{frac}"' if kind == "quoted" else f"{fields},{whole},{frac}"
+        return "\n".join(lines) + "\n"
+
+    return make
+
+
+for kind, line in (("quoted", 7), ("unquoted", 7), ("semicolon", 2)):
+    case(
+        f"tab-csv-decimal-comma-{kind}",
+        [0],
+        "CSV",
+        lambda c, k=kind: tab(csv_bytes=decimal_comma(k)(fi.ranges_rows()).encode())(c),
+        names=lambda c, n=line: f"{c.p('ranges.csv')}: line {n}",
+    )
+for cid, text in (
+    ("key-typo", "[uwb]\nsigma_rang = 0.1\n"),
+    ("section-typo", "[uwbb]\nsigma_range = 0.1\n"),
+    ("choice-typo", '[uwb]\ninit_method = "rii"\n'),
+    ("below-range", "[uwb]\nsigma_range = -1.0\n"),
+    ("above-range", "[uwb]\nchi2_quantile = 1.5\n"),
+):
+    case(f"config-{cid}-fix", [0], "TOML", with_config(text), names=named("cfg.toml"))
+
+
+@pytest.mark.parametrize(
+    "text, fix",
+    [
+        ("[uwb]\nsigma_rang = 0.1\n", "did you mean 'uwb.sigma_range'?"),
+        ("[uwb]\nsigmarange = 0.1\n", "did you mean 'uwb.sigma_range'?"),
+        ("[vio]\nmin_parallax = 0.2\n", "did you mean 'vio.min_parallax_deg'?"),
+        ("[uwbb]\nx = 1\n", "did you mean 'uwb'?"),
+        ("zzz = 1\n", "valid here: frontend, odometry, run, uwb, vio"),
+        ('[uwb]\ninit_method = "rii"\n', "did you mean 'ri'?"),
+        ('[uwb]\nrefine_method = "skff"\n', "did you mean 'skf'?"),
+        ("[uwb]\nsigma_range = -1.0\n", "uwb.sigma_range = -1.0: must be greater than 0"),
+        ("[uwb]\nchi2_quantile = 1.5\n", "uwb.chi2_quantile = 1.5: must be less than 1"),
+    ],
+)
+def test_config_error_names_the_fix(tmp_path: Path, text: str, fix: str) -> None:
+    (tmp_path / "c.toml").write_text(text)
+    res = runner.invoke(
+        app, ["run", "nothing.mcap", "-o", str(tmp_path / "r"), "--config", str(tmp_path / "c.toml")]
+    )
+    assert res.exit_code == 2, res.output
+    with pytest.raises(InputError) as e:
+        load_config(tmp_path / "c.toml")
+    assert str(e.value).startswith(f"{tmp_path / 'c.toml'}: ") and fix in str(e.value), str(e.value)
+
+
+# -- every artefact through one validated reader: shape, type, encoding (variants per artefact x reader) ----------
+def npz_edit(edit: Callable[[dict], dict]) -> Callable[[bytes], bytes]:
+    """An .npz artefact with its arrays edited."""
+
+    def f(data: bytes) -> bytes:
+        import io
+
+        with np.load(io.BytesIO(data)) as z:
+            arrays = edit({k: z[k] for k in z.files})
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        return buf.getvalue()
+
+    return f
+
+
+def json_edit(edit: Callable[[dict], object]) -> Callable[[bytes], bytes]:
+    return lambda data: json.dumps(edit(json.loads(data))).encode()
+
+
+def _first(d: dict) -> dict:
+    return d[next(iter(d))]
+
+
+SHAPES = {
+    "anchor_states.json": {
+        "not-anchors": b'{"anchors": 5}',
+        "array": b"[]",
+        "x-short": json_edit(lambda d: {a: dict(s, x=s["x"][:2]) for a, s in d.items()}),
+        "x-text": json_edit(lambda d: {a: dict(s, x="1,2,3,4,5") for a, s in d.items()}),
+        "P-ragged": json_edit(lambda d: {a: dict(s, P=[[1.0, 0.0], [1.0]]) for a, s in d.items()}),
+        "P-missing": json_edit(lambda d: {a: {k: v for k, v in s.items() if k != "P"} for a, s in d.items()}),
+        "binary": fi.junk(64, seed=3),
+        "utf16": lambda data: data.decode().encode("utf-16"),
+    },
+    "init.json": {
+        "methods-int": json_edit(lambda d: dict(d, methods=5)),
+        "anchor-int": json_edit(lambda d: dict(d, methods={m: {"0": 3} for m in d["methods"]})),
+        "status-missing": json_edit(
+            lambda d: dict(d, methods={m: {a: {} for a in v} for m, v in d["methods"].items()})
+        ),
+        "binary": b"\xff\xfe\x00{",
+    },
+    "stages.json": {
+        "wall-text": json_edit(lambda d: {k: dict(v, wall_s="fast") for k, v in d.items()}),
+        "warnings-int": json_edit(lambda d: {k: dict(v, warnings=5) for k, v in d.items()}),
+        "binary": b"\x80\x81",
+    },
+    "trajectory.npz": {
+        "p-2-columns": npz_edit(lambda z: dict(z, p=z["p"][:, :2])),
+        "q-missing": npz_edit(lambda z: {k: v for k, v in z.items() if k != "q_xyzw"}),
+        "t-text": npz_edit(lambda z: dict(z, t_ns=z["t_ns"].astype(str))),
+        "cov-3x3": npz_edit(lambda z: dict(z, cov=z["cov"][:, :3, :3])),
+        "segment-short": npz_edit(lambda z: dict(z, segment=z["segment"][:-1])),
+    },
+    "config.toml": {"binary": b"\xff[run]\n", "utf16": lambda data: data.decode().encode("utf-16")},
+    "anchors.csv": {"binary": b"\xff\xfeanchor", "no-stage-column": b"anchor,x\n0,1\n"},
+}
+READERS = {  # who reads each artefact
+    "anchor_states.json": ("evaluate", "export-anchors", "localize"),
+    "init.json": ("evaluate",),
+    "stages.json": ("evaluate", "export"),
+    "trajectory.npz": ("evaluate", "export"),
+    "config.toml": ("evaluate", "export", "export-anchors"),
+    "anchors.csv": ("evaluate", "init"),
+}
+for name, variants in SHAPES.items():
+    for variant, data in variants.items():
+        for cmd in READERS[name]:
+            case(
+                f"artefact-{name}-{variant}-{cmd}",
+                [0],
+                "artefact shapes",
+                corrupt(name, data, cmd),
+                names=lambda c, n=name: str(c.p("run") / n),
+                new_ok=RUN_FILES,
+            )
+for variant, data in (("array", b"[1, 2]"), ("binary", b"\xff\x00"), ("utf16", '{"a": 1}'.encode("utf-16"))):
+    case(
+        f"diff-metrics-{variant}",
+        [11],
+        "diff abuse",
+        diff(data, GOOD),
+        names=named("base.json"),
+    )
+
+
 # -- one recording per run directory -------------------------------------------------------------------------------
 def run_into(make_dir: Callable[[Ctx], Path], rec: str = "rec60", *extra: str):
     def build(c: Ctx) -> list[str]:
@@ -1290,7 +1473,7 @@ def holds_only(rec: str):
         stages = json.loads((run / "stages.json").read_text())
         assert {s["recording"]["id"] for s in stages.values()} == {want}, stages
         assert str(getattr(c.shared, rec).resolve()) in (run / "config.toml").read_text()
-        assert set(rundir.artefacts(run)) == {p.name for p in run.iterdir()} - {"notes.txt"}
+        assert set(rundir.present_artefacts(run)) == {p.name for p in run.iterdir()} - {"notes.txt"}
         assert "removed" in res.stdout and "artefact(s) of another recording" in res.stdout, res.stdout
 
     return check
@@ -1536,6 +1719,7 @@ def test_fault_table_covers_the_issue() -> None:
         "corrupt run directory",
         "diff abuse",
         ONE_REC,
+        "artefact shapes",
     ):
         assert want in cats, want
 

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import difflib
 import math
-import tomllib
+import re
 from pathlib import Path
 from typing import Any, Literal
 
@@ -13,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.names import STAGES
 from uwbcal.pipeline.core.noise import OdometryFilterConfig
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.uwb.config import UwbConfig
 from uwbcal.pipeline.vio.config import FrontendConfig, VioConfig
 
@@ -123,15 +125,7 @@ def check_numbers(data: Any, src: str, where: str = "") -> None:
 
 def read_toml(path: Path) -> dict:
     """A TOML file as a dict; InputError naming the file on anything unreadable."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: config file not found")
-    try:
-        return tomllib.loads(path.read_bytes().decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: byte {exc.start}: not UTF-8 text; save the config as UTF-8") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"{path}: not valid TOML ({exc})") from None
+    return artefacts.read_toml(path, fix="give a UTF-8 TOML config (uwbcal config prints the defaults)")
 
 
 def load_config(path: Path | None = None, overrides: dict | None = None) -> PipelineConfig:
@@ -153,6 +147,35 @@ def _validate(data: dict, src: str) -> PipelineConfig:
     try:
         return PipelineConfig.model_validate(data, strict=True)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(x) for x in err["loc"])
-        raise InputError(f"{src}: {where}: {err['msg']} ({len(exc.errors())} problem(s) in total)") from None
+        n = len(exc.errors())
+        more = f" ({n} problems in total)" if n > 1 else ""
+        raise InputError(f"{src}: {config_problem(exc.errors()[0])}{more}") from None
+
+
+def config_problem(err: dict) -> str:
+    """One validation error of the config as ``key = value: problem; fix`` (a near key or choice named)."""
+    loc = [str(x) for x in err["loc"]]
+    where = ".".join(loc)
+    msg = err["msg"].removeprefix("Value error, ")
+    msg = (msg[0].lower() + msg[1:]).replace("input should be", "must be")
+    if err["type"] == "extra_forbidden":
+        known = _keys_at(loc[:-1])
+        near = difflib.get_close_matches(loc[-1], known, n=1, cutoff=0.6)
+        hint = f"did you mean '{'.'.join(loc[:-1] + near)}'?" if near else f"valid here: {', '.join(known)}"
+        return f"{where}: unknown key; {hint} (uwbcal config --reference lists every key)"
+    got = err.get("input")
+    shown = f"{where} = {got!r}" if isinstance(got, (str, int, float, bool)) else where
+    if err["type"] == "literal_error":
+        near = difflib.get_close_matches(str(got), re.findall(r"'([^']*)'", msg), n=1, cutoff=0.5)
+        return f"{shown}: {msg}" + (f"; did you mean '{near[0]}'?" if near else "")
+    return f"{shown}: {msg}; fix the value (uwbcal config --reference: each key's type and range)"
+
+
+def _keys_at(path: list[str]) -> list[str]:
+    """The keys the config model accepts under ``path`` (a section)."""
+    model: Any = PipelineConfig
+    for part in path:
+        field = getattr(model, "model_fields", {}).get(part)
+        model = field.annotation if field is not None else None
+    fields = getattr(model, "model_fields", None)
+    return sorted(fields) if isinstance(fields, dict) else []

@@ -23,6 +23,7 @@ from typing import Any
 
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.names import STAGES
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.config import PipelineConfig
 
@@ -55,10 +56,7 @@ def differing_keys(a: dict, b: dict) -> list[str]:
 def load_stages(run: rd.RunDir) -> dict[str, dict]:
     if not run.exists(rd.STAGES_JSON):
         return {}
-    data = run.load_json(rd.STAGES_JSON)
-    if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
-        raise run.corrupt(run.file(rd.STAGES_JSON), "not an object of stages")
-    return data
+    return run.load_json(rd.STAGES_JSON, schema=artefacts.STAGES)
 
 
 def record_stage(
@@ -135,7 +133,7 @@ def claim(run: rd.RunDir, recording: dict, stages: list[str], overwrite: bool) -
     """Make ``run`` a directory of ``recording`` before any stage writes: nothing to do when it holds no
     artefacts or only this recording's; else refused, or with ``overwrite`` (and a run that starts from the VIO)
     the stale artefacts removed. Returns the names removed."""
-    present = rd.artefacts(run.path)
+    present = rd.present_artefacts(run.path)
     if not present:
         return []
     held = _held(run) if run.exists(rd.STAGES_JSON) else {}

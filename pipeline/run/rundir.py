@@ -10,7 +10,6 @@ import io
 import json
 import os
 import pickle
-import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,6 +20,7 @@ from uwbcal.convert.recording import TOPIC_VIO, RecordingWriter, json_default
 from uwbcal.pipeline.core.atomic import FILE_MODE, atomic_path, pid_alive, write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.names import SEGMENT_IDS
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.viz.runlog import merge_run_logs
 
 if TYPE_CHECKING:
@@ -67,7 +67,7 @@ ARTEFACTS = (
 )
 
 
-def artefacts(path: Path) -> list[str]:
+def present_artefacts(path: Path) -> list[str]:
     """The artefacts present in a run directory, in `ARTEFACTS` order (other files are not the run's)."""
     return [n for n in ARTEFACTS if os.path.lexists(Path(path) / n)]
 
@@ -95,11 +95,12 @@ class RunDir:
     def save_json(self, name: str, data: Any) -> None:
         write_text_atomic(self.path / name, json.dumps(data, indent=2, default=json_default) + "\n")
 
-    def load_json(self, name: str, stage: str = "this stage") -> Any:
-        return read_json(self.require(name, stage), object)
+    def load_json(self, name: str, stage: str = "this stage", schema=dict) -> Any:
+        """A JSON artefact checked against ``schema`` (`artefacts.read_json`)."""
+        return artefacts.read_json(self.require(name, stage), schema)
 
     def corrupt(self, p: Path, problem: str) -> InputError:
-        return corrupt(p, problem)
+        return artefacts.corrupt(p, problem)
 
     def save_npz(self, name: str, **arrays: np.ndarray) -> None:
         with atomic_path(self.path / name) as tmp:
@@ -107,12 +108,9 @@ class RunDir:
                 np.savez_compressed(f, **arrays)
 
     def load_npz(self, name: str, stage: str) -> dict[str, np.ndarray]:
-        p = self.require(name, stage)
-        try:
-            with np.load(p, allow_pickle=False) as z:
-                return {k: z[k] for k in z.files}
-        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
-            raise self.corrupt(p, f"unreadable array file ({type(exc).__name__})") from None
+        return artefacts.read_npz(
+            self.require(name, stage), artefacts.TRAJECTORY_ARRAYS, artefacts.TRAJECTORY_REQUIRED
+        )
 
     def save_pickle(self, name: str, obj: Any) -> None:
         with atomic_path(self.path / name) as tmp:
@@ -120,12 +118,7 @@ class RunDir:
                 pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
 
     def load_pickle(self, name: str, stage: str) -> Any:
-        p = self.require(name, stage)
-        try:
-            with open(p, "rb") as f:
-                return pickle.load(f)
-        except Exception as exc:  # noqa: BLE001 - a damaged pickle can fail in any way
-            raise self.corrupt(p, f"unreadable checkpoint ({type(exc).__name__})") from None
+        return artefacts.read_pickle(self.require(name, stage))
 
     # -- rerun logs --------------------------------------------------------------------------------------------
     def stage_rrd(self, order: int, stage: str) -> Path:
@@ -151,25 +144,6 @@ class RunDir:
 
 def write_text(path: Path, text: str) -> None:
     write_text_atomic(path, text)
-
-
-def corrupt(p: Path, problem: str) -> InputError:
-    """The error for a damaged artefact of a run directory."""
-    return InputError(
-        f"{p}: {problem}; the run directory is damaged — re-run the stage that writes it "
-        f"(uwbcal run REC -o {p.parent} --stages ...)"
-    )
-
-
-def read_json(path: Path, kind: type = dict) -> Any:
-    """A JSON artefact of a run directory (of type ``kind``); InputError naming it when damaged."""
-    try:
-        data = json.loads(Path(path).read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise corrupt(path, f"not valid JSON ({exc})") from None
-    if not isinstance(data, kind):
-        raise corrupt(path, f"a JSON {type(data).__name__}, expected a JSON {kind.__name__}")
-    return data
 
 
 _HELD: dict[Path, int] = {}  # run directories this process has locked -> nesting depth
@@ -239,7 +213,7 @@ def run_lock(path: Path) -> Iterator[int | None]:
 
 
 # -- artefacts the stages share ----------------------------------------------------------------------------------
-ANCHOR_COLUMNS = ["anchor", "method", "stage", "x", "y", "z", "beta", "gamma"]
+ANCHOR_COLUMNS = artefacts.ANCHOR_COLUMNS
 
 
 def anchor_key(a):
@@ -299,18 +273,11 @@ def undetermined_row(anchor, method: str, stage: str) -> dict:
 def write_anchors(run_dir: RunDir, rows: list[dict], replace_stage: str) -> None:
     """anchors.csv: this stage's rows replace the stage's earlier rows; other stages' rows stay."""
     path = run_dir.file(ANCHORS)
-    old = []
-    if path.exists():
-        try:
-            with open(path, newline="", encoding="utf-8") as f:
-                reader = csv.DictReader(f)
-                if "stage" not in (reader.fieldnames or []):
-                    raise corrupt(path, "no 'stage' column")
-                old = [r for r in reader if r["stage"] != replace_stage]
-        except (UnicodeDecodeError, csv.Error) as exc:
-            raise corrupt(path, f"unreadable ({type(exc).__name__})") from None
+    old = (
+        [r for r in artefacts.read_anchor_rows(path) if r["stage"] != replace_stage] if path.exists() else []
+    )
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=ANCHOR_COLUMNS, lineterminator="\n")
+    w = csv.DictWriter(buf, fieldnames=ANCHOR_COLUMNS, lineterminator="\n", extrasaction="ignore")
     w.writeheader()
     for r in old + rows:
         w.writerow(r)

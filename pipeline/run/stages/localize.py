@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.context import StageContext, StageResult, filter_warnings
 from uwbcal.pipeline.run.driver import run_estimator
@@ -17,7 +18,7 @@ def run(ctx: StageContext) -> StageResult:
     if win.refine_end_ns >= win.end_ns:
         return StageResult("localize", "no data left after refinement; skipped")
     est = ctx.dir.load_pickle("checkpoint_refine.pkl", "localize")
-    states = ctx.dir.load_json("anchor_states.json")
+    states = ctx.dir.load_json("anchor_states.json", "localize", artefacts.ANCHOR_STATES)
     anchors = {rd.anchor_key(a): np.asarray(s["x"]) for a, s in states.items()}
     inflation = {rd.anchor_key(a): float(s.get("noise_inflation", 1.0)) for a, s in states.items()}
     updater = UwbUpdater.from_config(
