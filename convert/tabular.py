@@ -56,13 +56,15 @@ TYPICAL_LINK_INTERVAL_S = (
 
 @dataclass
 class RangeStampUnit:
-    """Chooses the unit of the range stamps (given, or detected) and says why (``reason``, after the call)."""
+    """Chooses the unit of the range stamps (given, or detected) and says why (``reason``, after the call; and
+    ``warning`` when the ranges miss the poses' time span in that unit)."""
 
     path: Path
     pose_span_ns: tuple[int, int]
     given: str | None = None
     offset_ns: int = 0
     reason: str = ""
+    warning: str = ""
 
     def __call__(self, stamps: RawStamps, link: np.ndarray) -> str:
         units = [u for u in STAMP_UNITS if stamps.fits(u)]
@@ -110,10 +112,11 @@ class RangeStampUnit:
     def _check_overlap(self, stamps: RawStamps, unit: str) -> None:
         (a, b), (c, d) = self._span(stamps, unit), self.pose_span_ns
         if b < c or a > d:
-            raise InputError(
-                f"{self.path}: the ranges (stamps in {unit}) span {a * 1e-9:.3f}..{b * 1e-9:.3f} s, the poses "
-                f"{c * 1e-9:.3f}..{d * 1e-9:.3f} s: no overlap, the clocks differ. If both start with the "
-                f"recording, give --time-offset {_seconds(c - a + self.offset_ns)}; or check --stamp-unit"
+            self.warning = (
+                f"the ranges (stamps in {unit}) span {a * 1e-9:.3f}..{b * 1e-9:.3f} s, the poses "
+                f"{c * 1e-9:.3f}..{d * 1e-9:.3f} s: no overlap, the clocks differ (nothing to calibrate). If both "
+                f"start with the recording, give --time-offset {_seconds(c - a + self.offset_ns)}; or check "
+                "--stamp-unit"
             )
 
 
@@ -187,6 +190,8 @@ def convert_tabular(
             f"{ranges}: all {n_rows} range rows dropped ({why}); nothing to calibrate — fix the file"
         )
     drops.note(f"{ranges.name}: {n_rows} rows, {chooser.reason}; " + anchors_note(r))
+    if chooser.warning:
+        drops.note(chooser.warning)
     antenna_file = None
     if antennas is not None:
         antenna_file = find_antennas(ranges, Path(antennas))
