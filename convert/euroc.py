@@ -1,4 +1,4 @@
-"""EuRoC MAV -> recording: ASL folder (``mav0/...``) or ROS1 bag (DESIGN §3, §8).
+"""EuRoC MAV -> recording: ASL folder (``mav0/...``) or ROS1 bag.
 
 Folder: ``imu0/data.csv`` -> /imu, ``cam{0,1}/data.csv`` + PNGs -> /cam{0,1}/image_raw (pixels as in the PNG),
 ``state_groundtruth_estimate0/data.csv`` (or ``--groundtruth`` EuRoC CSV / TUM) -> /groundtruth/pose (and, from a

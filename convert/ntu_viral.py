@@ -1,4 +1,4 @@
-"""NTU-VIRAL -> recording: ROS1 bag or a sequence folder of CSVs (DESIGN §3, §8, §9).
+"""NTU-VIRAL -> recording: ROS1 bag or a sequence folder of CSVs.
 
 Bag: /imu/imu -> /imu, /left/image_raw -> /cam0/image_raw, /right/image_raw -> /cam1/image_raw (CDR pass-through),
 /uwb_endorange_info (uwb_driver/UwbRange) -> /uwb/range, /leica/pose/relative (prism) -> /groundtruth/position.

@@ -1,4 +1,4 @@
-"""Generic input -> recording: any odometry as a TUM file plus UWB ranges as CSV (DESIGN §9).
+"""Generic input -> recording: any odometry as a TUM file plus UWB ranges as CSV.
 
 ``--poses`` TUM ``t[s] x y z qx qy qz qw`` -> /odometry (with a configured pose covariance), ``--ranges``
 ``stamp,tag,antenna,anchor,distance`` (stamps in ns or s, detected by magnitude) -> /uwb/range, optional antenna
