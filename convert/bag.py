@@ -57,8 +57,10 @@ from uwbcal.convert.sources import (
     id_problem,
     id_text,
     parse_antennas,
+    shift_ranges,
     source_metadata,
     summary,
+    time_offset_ns,
     uwb_calibration,
     write_ranges,
 )
@@ -517,9 +519,12 @@ def convert_bag(
     antennas: str | Path | None = None,
     calibration: str | Path | None = None,
     max_range: float = MAX_RANGE_M,
+    time_offset: float = 0.0,
 ) -> str:
-    """Convert a ROS 1 / ROS 2 bag into one recording; returns a human summary."""
+    """Convert a ROS 1 / ROS 2 bag into one recording; returns a human summary. ``time_offset`` [s] is added to
+    every range stamp (a known range-to-pose clock offset)."""
     path = Path(path)
+    time_offset_ns(time_offset)
     ant = Path(antennas) if antennas is not None else None
     if ant is not None and not ant.is_file():
         raise InputError(f"{ant}: antenna yaml not found")
@@ -590,6 +595,7 @@ def convert_bag(
                 name, i = bad
                 value = int(getattr(raw_ranges, name)[i])
                 raise InputError(f"{path}: UWB range at t={raw_ranges.t_ns[i]} ns: {id_text(name, value)}")
+            raw_ranges = shift_ranges(raw_ranges, time_offset, drops)
             ranges = (
                 clean_ranges(raw_ranges, TOPIC_RANGE, drops, max_range) if len(raw_ranges) else raw_ranges
             )
