@@ -485,21 +485,24 @@ def order_and_dedup(
     n = len(t_ns)
     if n == 0:
         return np.zeros(0, np.int64)
-    dt = np.diff(t_ns) if n > 1 else np.zeros(0, np.int64)
-    back = int((dt < 0).sum())
+    back = int((np.diff(t_ns) < 0).sum()) if n > 1 else 0
     if back:
-        i = int(np.argmin(dt))
-        step = -int(dt[i])
+        # the steps back among the stamps first seen (a re-sent earlier sample is a duplicate, not a jump)
+        t1 = t_ns[np.sort(np.unique(t_ns, return_index=True)[1])]
+        dt = np.diff(t1)
+        i = int(np.argmin(dt)) if len(dt) else 0
+        step = -int(dt[i]) if len(dt) else 0
         fwd = dt[dt > 0]
         period = float(np.median(fwd)) if len(fwd) else 0.0
         if series is not None and period > 0 and step > JUMP_PERIODS * period:
             raise InputError(
                 f"{series}: {topic}: stamps step back by {step * 1e-9:.6g} s ({step / period:.0f} sample "
-                f"periods) after t={int(t_ns[i])} ns: a clock jump, not reordering (sorting would interleave two "
+                f"periods) after t={int(t1[i])} ns: a clock jump, not reordering (sorting would interleave two "
                 "stretches); cut the data at the jump or fix the stamps"
             )
         drops.note(
-            f"{topic}: {back} out-of-order stamps (stepping back by up to {step * 1e-9:.6g} s); sorted by stamp"
+            f"{topic}: {back} out-of-order stamps (stepping back by up to {-int(np.diff(t_ns).min()) * 1e-9:.6g} "
+            "s); sorted by stamp"
         )
     if key is None:
         order = np.argsort(t_ns, kind="stable")

@@ -1293,7 +1293,7 @@ def tum_jump(at: int, back_s: float):
     return tum_lines(f)
 
 
-for back in (2.0, 5.0, 10.0):  # 20-100 sample periods of the 10 Hz poses
+for back in (2.05, 5.03, 10.01):  # 20-100 sample periods of the 10 Hz poses, off their grid
     case(
         f"tum-clock-jump-back-{back:g}s",
         [0],
