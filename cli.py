@@ -436,8 +436,11 @@ def run(
     refine: Annotated[RefineMethod | None, typer.Option(help="Refinement.")] = None,
     stages: Annotated[str | None, typer.Option(help="Comma-separated subset of stages.")] = None,
     no_log: Annotated[bool, typer.Option("--no-log", help="Do not write run.rrd.")] = False,
+    overwrite: Annotated[
+        bool, typer.Option(help="Replace the artefacts of another recording in the output directory.")
+    ] = False,
 ) -> None:
-    """Run the pipeline stages on a recording into a run directory."""
+    """Run the pipeline stages on a recording into a run directory (one recording per directory)."""
     from uwbcal.evaluate.evaluation import evaluate_stage
     from uwbcal.pipeline.run.stages.pipeline import run_cli
 
@@ -451,6 +454,7 @@ def run(
             stages=stages,
             log=not no_log,
             evaluator=evaluate_stage,
+            overwrite=overwrite,
         )
     )
 
