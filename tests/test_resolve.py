@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from uwbcal.pipeline.core.topics import TOPIC_FEATURES, TOPIC_IMU, TOPIC_ODOM, TOPIC_RANGE
+from uwbcal.pipeline.core.topics import TOPIC_CAM0, TOPIC_FEATURES, TOPIC_IMU, TOPIC_ODOM, TOPIC_RANGE
 from uwbcal.pipeline.run.config import load_config
 from uwbcal.pipeline.run.resolve import ALLAN_NOISE_INFLATION, imu_is_real, resolve
 
@@ -78,6 +78,16 @@ def test_real_imu_noise_is_taken_as_given_unless_declared_a_static_figure():
     told = load_config(None, {"run": {"recording": "stub.mcap"}, "vio": {"imu_noise_inflation": 2.0}})
     res = resolve(told, StubReader([TOPIC_IMU, TOPIC_FEATURES, TOPIC_RANGE], "bag", {}))
     assert res.config.vio.imu_noise_inflation == 2.0
+
+
+def test_a_slow_camera_gets_the_descriptor_tracker_with_its_reason():
+    cfg = load_config(None, {"run": {"recording": "stub.mcap"}})
+    res = resolve(cfg, StubReader([TOPIC_IMU, TOPIC_CAM0, TOPIC_RANGE], "bag", {}))  # 100 frames over 90 s
+    choice = next(c for c in res.choices if c.key == "frontend.tracker")
+    assert choice.value == "descriptor" and "descriptor_below_hz" in choice.reason
+    told = load_config(None, {"run": {"recording": "stub.mcap"}, "frontend": {"tracker": "klt"}})
+    res = resolve(told, StubReader([TOPIC_IMU, TOPIC_CAM0, TOPIC_RANGE], "bag", {}))
+    assert res.config.frontend.tracker == "klt" and not any(c.key == "frontend.tracker" for c in res.choices)
 
 
 def test_odometry_takes_the_declared_noise_and_error_model():

@@ -17,6 +17,12 @@ class VioConfig(BaseModel):
     min_track_length: int = Field(3, ge=2, description="frames a track needs before it updates the MSCKF")
     max_features_per_update: int = Field(150, ge=1, description="longest tracks first")
     init_from_groundtruth: bool = Field(True, description="initial R, p, v (and biases) from ground truth")
+    init_max_disparity_px: float | None = Field(
+        2.0,
+        gt=0,
+        description="static initialisation: the rest ends before the first frame whose tracks moved more than this "
+        "since the first one (median) [px] (OpenVINS' init_max_disparity); unset: the IMU alone decides",
+    )
     sigma_theta0: float = Field(1e-3, gt=0, description="initial orientation sigma [rad]")
     sigma_p0: float = Field(1e-3, gt=0, description="initial position sigma [m]")
     sigma_v0: float = Field(1e-2, gt=0, description="initial velocity sigma [m/s]")
