@@ -95,16 +95,34 @@ def _guard(fn):
         finally:
             if previous is not None:
                 signal.signal(signal.SIGTERM, previous)
-            seen = set()
-            for w in caught:
-                if not issubclass(w.category, (UserWarning, RuntimeWarning, FutureWarning)):
-                    continue
-                text = " ".join(str(w.message).split())
-                if text not in seen:
-                    seen.add(text)
-                    typer.echo(f"warning: {text}", err=True)
+            _show_warnings(caught)
 
     return wrapper
+
+
+_NUMERIC = ("encountered in", "Mean of empty slice", "Degrees of freedom <= 0", "All-NaN slice")
+
+
+def _show_warnings(caught: list) -> None:
+    """Each warning once, as one line; a library's numerical RuntimeWarning (numpy's 'invalid value encountered
+    in divide') becomes a note naming where it arose, not the library's raw text."""
+    seen = set()
+    for w in caught:
+        if not issubclass(w.category, (UserWarning, RuntimeWarning, FutureWarning)):
+            continue
+        text = " ".join(str(w.message).split())
+        if issubclass(w.category, RuntimeWarning) and any(k in text for k in _NUMERIC):
+            where = Path(w.filename)
+            where = "/".join(where.parts[-3:]) if where.parts else "?"
+            text = (
+                f"note: a numerical step produced NaN/inf ({text}, at {where}:{w.lineno}); the run went on — "
+                "if a result looks wrong, rerun with --debug and report it"
+            )
+        else:
+            text = f"warning: {text}"
+        if text not in seen:
+            seen.add(text)
+            typer.echo(text, err=True)
 
 
 def _output_file(path: Path) -> None:
@@ -140,6 +158,13 @@ class Experiment(str, Enum):
 
 
 Output = Annotated[Path, typer.Option("-o", "--output", help="Output path.")]
+StampUnit = Enum("StampUnit", {u: u for u in ("s", "ms", "us", "ns")}, type=str)
+TimeOffset = Annotated[
+    float,
+    typer.Option(
+        help="Seconds added to every range stamp: a known range-to-pose clock offset (ranges 0.2 s late: -0.2)."
+    ),
+]
 
 
 @app.command()
@@ -303,6 +328,11 @@ def convert_tabular(
             "or drift (dead-reckoning odometry whose error grows).",
         ),
     ] = "bounded",
+    stamp_unit: Annotated[
+        StampUnit | None,
+        typer.Option(help="Unit of the range stamps (default: detected, and the summary says how)."),
+    ] = None,
+    time_offset: TimeOffset = 0.0,
 ) -> None:
     """Convert any odometry (TUM) plus UWB ranges (CSV)."""
     from uwbcal.convert.tabular import convert_tabular as run
@@ -310,7 +340,16 @@ def convert_tabular(
     _output_file(output)
 
     typer.echo(
-        run(poses, ranges, output, antennas=antennas, anchors_truth=anchors_truth, pose_error=pose_error)
+        run(
+            poses,
+            ranges,
+            output,
+            antennas=antennas,
+            anchors_truth=anchors_truth,
+            pose_error=pose_error,
+            stamp_unit=stamp_unit and stamp_unit.value,
+            time_offset=time_offset,
+        )
     )
 
 
@@ -346,6 +385,7 @@ def convert_bag(
         float | None,
         typer.Option(min=0.0, help="Keep messages before this many seconds after the bag's start."),
     ] = None,
+    time_offset: TimeOffset = 0.0,
 ) -> None:
     """Convert any ROS 1 / ROS 2 bag (topics found by message type unless given)."""
     from uwbcal.convert.bag import convert_bag as run
@@ -365,6 +405,7 @@ def convert_bag(
             anchors_truth=anchors_truth,
             start_s=start,
             end_s=end,
+            time_offset=time_offset,
         )
     )
 

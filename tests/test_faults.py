@@ -159,6 +159,14 @@ def rec_check(**want) -> Callable[[Ctx, object], None]:
 N_ROWS = len(fi.ranges_rows())
 N_POSES = len(fi.circle_poses()[0])
 case(
+    "tab-csv-stamps-in-ms",
+    [0],
+    "CSV",
+    tab(lambda rows: [[r[0] // 10**6] + r[1:] for r in rows]),
+    "ok",
+    check=rec_check(n_ranges=N_ROWS, stdout="stamps read as ms: the unit that puts the ranges on the poses'"),
+)
+case(
     "tab-ok",
     [0],
     "tabular",
@@ -271,13 +279,6 @@ case(
     tab(csv_bytes=fi.csv_text(fi.ranges_rows()).replace("\n", "\r\n").encode()),
     "ok",
     check=rec_check(n_ranges=N_ROWS),
-)
-case(
-    "tab-csv-stamps-in-ms",
-    [0],
-    "CSV",
-    tab(lambda rows: [[r[0] // 10**6] + r[1:] for r in rows]),
-    names=named("ranges.csv"),
 )
 case("tab-csv-text-in-distance", [0], "CSV", tab(set_col(4, "far")), names=named("ranges.csv"))
 case(
