@@ -374,6 +374,21 @@ def convert_bag(
     calibration: Annotated[
         Path | None, typer.Option(help="Calibration yaml (imu, cameras, uwb, groundtruth, odometry).")
     ] = None,
+    anchors_truth: Annotated[
+        Path | None,
+        typer.Option(
+            help="Surveyed anchors CSV anchor,x,y,z (the ground truth's frame) -> uwbcal.truth; "
+            "uwbcal evaluate then reports anchor errors against it."
+        ),
+    ] = None,
+    start: Annotated[
+        float | None,
+        typer.Option(min=0.0, help="Keep messages from this many seconds after the bag's start."),
+    ] = None,
+    end: Annotated[
+        float | None,
+        typer.Option(min=0.0, help="Keep messages before this many seconds after the bag's start."),
+    ] = None,
     time_offset: TimeOffset = 0.0,
 ) -> None:
     """Convert any ROS 1 / ROS 2 bag (topics found by message type unless given)."""
@@ -391,6 +406,9 @@ def convert_bag(
             groundtruth=groundtruth,
             antennas=antennas,
             calibration=calibration,
+            anchors_truth=anchors_truth,
+            start_s=start,
+            end_s=end,
             time_offset=time_offset,
         )
     )
