@@ -29,10 +29,12 @@ from typing import Any
 import numpy as np
 
 from uwbcal.convert import uwb_msgs
+from uwbcal.convert.anchor_truth import read_anchor_truth, truth_note, truth_record
 from uwbcal.convert.calibration import Calibration, load_calibration_yaml, parse_calibration
 from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
+    META_TRUTH,
     TOPIC_CAM0,
     TOPIC_CAM1,
     TOPIC_GT_POSE,
@@ -57,8 +59,10 @@ from uwbcal.convert.sources import (
     id_problem,
     id_text,
     parse_antennas,
+    shift_ranges,
     source_metadata,
     summary,
+    time_offset_ns,
     uwb_calibration,
     write_ranges,
 )
@@ -189,9 +193,18 @@ class BagReader:
         self._decoders[conn.id] = dec
         return dec
 
-    def messages(self, connections):
+    def span_ns(self, start_s: float | None, end_s: float | None) -> tuple[int | None, int | None]:
+        """Bag-time bounds [start, stop) for the seconds ``start_s`` / ``end_s`` after the bag's start."""
+        t0 = int(self.reader.start_time)
+        lo = None if start_s is None else t0 + int(round(start_s * 1e9))
+        hi = None if end_s is None else t0 + int(round(end_s * 1e9))
+        if lo is not None and hi is not None and hi <= lo:
+            raise InputError(f"{self.path}: --end {end_s:g} s is not after --start {start_s:g} s")
+        return lo, hi
+
+    def messages(self, connections, start: int | None = None, stop: int | None = None):
         try:
-            yield from self.reader.messages(connections=connections)
+            yield from self.reader.messages(connections=connections, start=start, stop=stop)
         except Exception as exc:  # noqa: BLE001
             raise _bag_error(self.path, exc) from None
 
@@ -504,6 +517,38 @@ def _uwb_section(r: RangeData, antennas: Path | None, given: dict | None, drops:
 # ---------------------------------------------------------------------------------------------------------------
 # conversion
 # ---------------------------------------------------------------------------------------------------------------
+def _surveyed_truth(path: str | Path | None) -> dict | None:
+    """``--anchors-truth``: the surveyed anchors in the ground truth's (world) frame."""
+    if path is None:
+        return None
+    return truth_record(read_anchor_truth(path), "surveyed", path, frame="world")
+
+
+def _account_trim(accounts: dict, drops: Drops, start_s: float | None, end_s: float | None) -> None:
+    """Messages of mapped topics outside ``--start``/``--end`` were not read: count them as dropped."""
+    if start_s is None and end_s is None:
+        return
+    span = f"outside --start {start_s or 0:g} s / --end {'end' if end_s is None else f'{end_s:g} s'}"
+    for t, acc in accounts.items():
+        left = acc["count"] - acc["converted"] - acc["dropped"]
+        if acc["role"] is not None and left > 0:
+            acc["dropped"] += left
+            drops.add(t, span, left)
+
+
+@dataclass
+class _BagRun:
+    """One conversion's inputs and running accounts (what the steps of `convert_bag` share)."""
+
+    path: Path
+    antennas: Path | None
+    cal: dict  # the given calibration as metadata
+    cal_source: str
+    roles: dict[str, str]  # topic -> role
+    accounts: dict[str, dict]  # topic -> type, count, role, converted, dropped
+    drops: Drops
+
+
 def convert_bag(
     path: str | Path,
     output: str | Path,
@@ -516,10 +561,18 @@ def convert_bag(
     groundtruth: str | None = None,
     antennas: str | Path | None = None,
     calibration: str | Path | None = None,
+    anchors_truth: str | Path | None = None,
+    start_s: float | None = None,
+    end_s: float | None = None,
     max_range: float = MAX_RANGE_M,
+    time_offset: float = 0.0,
 ) -> str:
-    """Convert a ROS 1 / ROS 2 bag into one recording; returns a human summary."""
+    """Convert a ROS 1 / ROS 2 bag into one recording; returns a human summary. ``time_offset`` [s] is added to
+    every range stamp (a known range-to-pose clock offset); ``anchors_truth``: a surveyed ``anchor,x,y,z`` CSV in
+    the ground truth's frame (``uwbcal.truth``); ``start_s`` / ``end_s``: keep the messages from / before these
+    seconds after the bag's start."""
     path = Path(path)
+    time_offset_ns(time_offset)
     ant = Path(antennas) if antennas is not None else None
     if ant is not None and not ant.is_file():
         raise InputError(f"{ant}: antenna yaml not found")
@@ -529,6 +582,7 @@ def convert_bag(
     )
     cal = given_cal.to_metadata()
     drops = Drops()
+    truth = _surveyed_truth(anchors_truth)
     given = {"imu": imu, "cam0": cam0, "cam1": cam1, "uwb": list(uwb or []), "odometry": odometry}
     given["groundtruth"] = groundtruth
     with BagReader(path) as bag:
@@ -540,79 +594,26 @@ def convert_bag(
             raise InputError(
                 f"{path}: no topic of a known type (found: {have}); name them with --imu/--uwb/..."
             )
-        accounts = {
-            t: {"type": ty, "count": n, "role": roles.get(t), "converted": 0, "dropped": 0}
-            for t, (ty, n) in topics.items()
-        }
-        for t, (ty, n) in sorted(topics.items()):
-            if t not in roles:
-                drops.add(t, f"topic not mapped (type {ty})", n)
-                accounts[t]["dropped"] = n
+        run = _BagRun(path, ant, cal, cal_source, roles, _accounts(topics, roles, drops), drops)
         use = [c for c in bag.connections if c.topic in roles]
+        lo, hi = bag.span_ns(start_s, end_s)
         files = [path] if path.is_file() else sorted(p for p in path.iterdir() if p.is_file())
-        hasher = Hasher(files + ([ant] if ant else []) + ([Path(calibration)] if calibration else []))
+        hasher = Hasher(files + [Path(f) for f in (ant, calibration, anchors_truth) if f is not None])
         with RecordingWriter(output) as w:
             conv = Converter(
                 w, lambda role, size, topic: check_image_size(given_cal, role, size, topic, cal_source)
             )
-            total = sum(c.msgcount for c in use)
-            with progress(f"bag {path.name}", total) as advance:
-                for conn, bag_t, raw in bag.messages(use):
-                    acc = accounts[conn.topic]
-                    role = roles[conn.topic]
-                    advance(1)
-                    dec = bag.decoder_for(conn, raw)
-                    if isinstance(dec, str):
-                        acc["dropped"] += 1
-                        drops.add(conn.topic, f"undecodable: {norm_type(conn.msgtype)} {dec}", 1)
-                        continue
-                    try:
-                        m = dec(raw)
-                        conv(role, conn.topic, norm_type(conn.msgtype), m, bag_t)
-                    except Drop as exc:
-                        acc["dropped"] += 1
-                        drops.add(conn.topic, str(exc), 1, f"bag t={bag_t}")
-                        continue
-                    except InputError:
-                        raise
-                    except Exception as exc:  # noqa: BLE001 (a corrupt message: drop it, say which)
-                        acc["dropped"] += 1
-                        drops.add(
-                            conn.topic, f"undecodable message ({type(exc).__name__})", 1, f"bag t={bag_t}"
-                        )
-                        continue
-                    acc["converted"] += 1
-            raw_ranges = conv.ranges.data()
-            bad = id_problem(
-                {"tag": raw_ranges.tag, "antenna": raw_ranges.antenna, "anchor": raw_ranges.anchor}
-            )
-            if bad is not None:
-                name, i = bad
-                value = int(getattr(raw_ranges, name)[i])
-                raise InputError(f"{path}: UWB range at t={raw_ranges.t_ns[i]} ns: {id_text(name, value)}")
-            ranges = (
-                clean_ranges(raw_ranges, TOPIC_RANGE, drops, max_range) if len(raw_ranges) else raw_ranges
-            )
-            write_ranges(w, ranges, TOPIC_RANGE)
-            if len(ranges):
-                drops.note(f"{len(raw_ranges)} ranges decoded; " + anchors_note(ranges))
-            for t, c in conv.stamp_sources.items():
-                drops.note(f"{t}: stamps from " + ", ".join(f"{k} ({v})" for k, v in sorted(c.items())))
-            if conv.zero_cov:
-                drops.note(f"{TOPIC_ODOM}: {conv.zero_cov} messages with an all-zero pose covariance")
+            _convert_messages(bag, use, conv, run, lo, hi)
+            _account_trim(run.accounts, drops, start_s, end_s)
+            raw_ranges, ranges = _write_bag_ranges(w, conv, run, max_range, time_offset)
             counts = dict(w.counts)
             if not counts:
                 raise InputError(f"{path}: nothing converted ({', '.join(roles)} had no usable message)")
-            calib = {k: v for k, v in cal.items() if k != "uwb"}
-            if len(raw_ranges) or cal.get("uwb") is not None:
-                calib["uwb"] = _uwb_section(ranges, ant, cal.get("uwb"), drops)
-            if not cal and ({TOPIC_IMU, TOPIC_CAM0, TOPIC_CAM1} & set(counts)):
-                drops.note("no --calibration: IMU noise, camera intrinsics and extrinsics unknown")
-            conv._once.report(drops)
-            for n in tmap.notes:
-                drops.note("topic " + n)
-            calib = _final_calibration(calib, cal_source, conv, counts, drops)
+            calib = _bag_calibration(run, conv, counts, raw_ranges, ranges, tmap.notes)
             w.set_metadata(META_CALIBRATION, calib)
+            if truth is not None:
+                drops.note(truth_note(truth["anchors"], ranges.anchor, Path(anchors_truth)))
+                w.set_metadata(META_TRUTH, truth)
             w.set_metadata(
                 META_SOURCE,
                 source_metadata(
@@ -622,11 +623,102 @@ def convert_bag(
                     drops,
                     format=bag.format,
                     topic_map={t: r for t, r in sorted(roles.items())},
-                    messages=accounts,
+                    messages=run.accounts,
                     ranges={"decoded": len(raw_ranges), "written": len(ranges)},
                 ),
             )
     return summary(output, counts, drops, f"{bag.format} {path.name}")
+
+
+def _accounts(topics: dict[str, tuple[str, int]], roles: dict[str, str], drops: Drops) -> dict[str, dict]:
+    """Per topic: its type, message count, role and (so far) converted / dropped; unmapped topics dropped."""
+    accounts = {
+        t: {"type": ty, "count": n, "role": roles.get(t), "converted": 0, "dropped": 0}
+        for t, (ty, n) in topics.items()
+    }
+    for t, (ty, n) in sorted(topics.items()):
+        if t not in roles:
+            drops.add(t, f"topic not mapped (type {ty})", n)
+            accounts[t]["dropped"] = n
+    return accounts
+
+
+def _convert_messages(
+    bag: BagReader,
+    use: list,
+    conv: Converter,
+    run: _BagRun,
+    start: int | None = None,
+    stop: int | None = None,
+) -> None:
+    """Decode and convert every message of the connections ``use``; a message that does not decode or convert
+    is dropped and counted (an `InputError` stops the conversion)."""
+    drops = run.drops
+    total = sum(c.msgcount for c in use)
+    with progress(f"bag {run.path.name}", total) as advance:
+        for conn, bag_t, raw in bag.messages(use, start, stop):
+            acc = run.accounts[conn.topic]
+            role = run.roles[conn.topic]
+            advance(1)
+            dec = bag.decoder_for(conn, raw)
+            if isinstance(dec, str):
+                acc["dropped"] += 1
+                drops.add(conn.topic, f"undecodable: {norm_type(conn.msgtype)} {dec}", 1)
+                continue
+            try:
+                m = dec(raw)
+                conv(role, conn.topic, norm_type(conn.msgtype), m, bag_t)
+            except Drop as exc:
+                acc["dropped"] += 1
+                drops.add(conn.topic, str(exc), 1, f"bag t={bag_t}")
+                continue
+            except InputError:
+                raise
+            except Exception as exc:  # noqa: BLE001 (a corrupt message: drop it, say which)
+                acc["dropped"] += 1
+                drops.add(conn.topic, f"undecodable message ({type(exc).__name__})", 1, f"bag t={bag_t}")
+                continue
+            acc["converted"] += 1
+
+
+def _write_bag_ranges(
+    w: RecordingWriter, conv: Converter, run: _BagRun, max_range: float, time_offset: float
+) -> tuple[RangeData, RangeData]:
+    """The decoded ranges (ids checked, shifted by ``time_offset``) and the cleaned ones, written."""
+    drops = run.drops
+    raw_ranges = conv.ranges.data()
+    bad = id_problem({"tag": raw_ranges.tag, "antenna": raw_ranges.antenna, "anchor": raw_ranges.anchor})
+    if bad is not None:
+        name, i = bad
+        value = int(getattr(raw_ranges, name)[i])
+        raise InputError(f"{run.path}: UWB range at t={raw_ranges.t_ns[i]} ns: {id_text(name, value)}")
+    raw_ranges = shift_ranges(raw_ranges, time_offset, drops)
+    ranges = clean_ranges(raw_ranges, TOPIC_RANGE, drops, max_range) if len(raw_ranges) else raw_ranges
+    write_ranges(w, ranges, TOPIC_RANGE)
+    if len(ranges):
+        drops.note(f"{len(raw_ranges)} ranges decoded; " + anchors_note(ranges))
+    for t, c in conv.stamp_sources.items():
+        drops.note(f"{t}: stamps from " + ", ".join(f"{k} ({v})" for k, v in sorted(c.items())))
+    if conv.zero_cov:
+        drops.note(f"{TOPIC_ODOM}: {conv.zero_cov} messages with an all-zero pose covariance")
+    return raw_ranges, ranges
+
+
+def _bag_calibration(
+    run: _BagRun, conv: Converter, counts: dict, raw_ranges: RangeData, ranges: RangeData, notes: list[str]
+) -> dict:
+    """The recording's calibration metadata: the given one, its uwb section from the ranges and antennas, and
+    what the conversion found (`_final_calibration`); the notes on what is missing."""
+    cal, drops = run.cal, run.drops
+    calib = {k: v for k, v in cal.items() if k != "uwb"}
+    if len(raw_ranges) or cal.get("uwb") is not None:
+        calib["uwb"] = _uwb_section(ranges, run.antennas, cal.get("uwb"), drops)
+    if not cal and ({TOPIC_IMU, TOPIC_CAM0, TOPIC_CAM1} & set(counts)):
+        drops.note("no --calibration: IMU noise, camera intrinsics and extrinsics unknown")
+    conv._once.report(drops)
+    for n in notes:
+        drops.note("topic " + n)
+    return _final_calibration(calib, run.cal_source, conv, counts, drops)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -202,38 +202,70 @@ def to_int(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
     return parsed.to_numpy()
 
 
-def to_stamps_ns(path: Path, df: pl.DataFrame, name: str) -> tuple[np.ndarray, str]:
-    """Exact int64 nanoseconds from integer ns or decimal seconds (no float rounding); returns (t_ns, unit)."""
+STAMP_UNITS = {"s": 9, "ms": 6, "us": 3, "ns": 0}  # unit -> decimal digits to nanoseconds
+
+
+@dataclass(frozen=True)
+class RawStamps:
+    """A stamp column as written (integer part, first nine decimals, sign), before its unit is known."""
+
+    whole: np.ndarray  # int64, |integer part|
+    frac9: np.ndarray  # int64, the fraction's first nine decimals
+    sign: np.ndarray  # +1 / -1
+    decimal: bool  # some stamp has a decimal point
+
+    def fits(self, unit: str) -> bool:
+        """The stamps, read in ``unit``, fit int64 nanoseconds."""
+        return not len(self.whole) or int(self.whole.max()) < (2**63 - 1) // 10 ** STAMP_UNITS[unit] - 1
+
+    def ns(self, unit: str) -> np.ndarray:
+        """Exact int64 nanoseconds (no float rounding; decimals below 1 ns dropped)."""
+        k = STAMP_UNITS[unit]
+        return self.sign * (self.whole * 10**k + self.frac9 // 10 ** (9 - k))
+
+    def magnitude_unit(self) -> str | None:
+        """The unit by magnitude alone: integers below 1e11 or decimals -> s, integers from 1e17 -> ns."""
+        top = int(self.whole.max()) if len(self.whole) else 0
+        if self.decimal:
+            return "s" if top < 10**11 else None
+        return "s" if top < 10**11 else "ns" if top >= 10**17 else None
+
+
+def parse_stamps(path: Path, df: pl.DataFrame, name: str) -> RawStamps:
     import polars as pl
 
     raw = df[name].str.strip_chars()
-    as_int = raw.cast(pl.Int64, strict=False)
-    if as_int.null_count() == 0:
-        t = as_int.to_numpy()
-        if len(t) and np.abs(t).max() < 10**11:
-            return t * 1_000_000_000, "s"
-        if len(t) and np.abs(t).max() < 10**17 and np.abs(t).max() >= 10**11:
-            raise InputError(
-                f"{path}: column '{name}': integer stamps like {t[0]} are neither seconds nor "
-                "nanoseconds (ms/us?); give stamps in ns or s"
-            )
-        return t, "ns"
-    parts = raw.str.split_exact(".", 1).struct.unnest()
+    unsigned = raw.str.strip_prefix("-")
+    parts = unsigned.str.split_exact(".", 1).struct.unnest()
     whole = parts["field_0"].cast(pl.Int64, strict=False)
-    frac = parts["field_1"].fill_null("0").str.pad_end(9, "0").str.slice(0, 9).cast(pl.Int64, strict=False)
-    ok = whole.is_not_null() & frac.is_not_null()
+    frac = parts["field_1"].fill_null("0").str.pad_end(9, "0").str.slice(0, 9)
+    frac_ok = frac.str.contains(r"^[0-9]{9}$")
+    frac = frac.cast(pl.Int64, strict=False)
+    ok = whole.is_not_null() & frac.is_not_null() & frac_ok.fill_null(False) & (whole >= 0).fill_null(False)
     if not ok.all():
         raise _bad_row(
             path, name, raw, whole.zip_with(ok, pl.Series([None] * len(raw), dtype=pl.Int64)), "a time stamp"
         )
-    w = whole.to_numpy()
-    if len(w) and np.abs(w).max() >= 10**11:
-        raise InputError(
-            f"{path}: column '{name}': decimal stamps like {raw[0]} are too large for seconds; "
-            "give stamps in ns (integer) or s"
-        )
     sign = np.where(raw.str.starts_with("-").to_numpy(), -1, 1)
-    return sign * (np.abs(w) * 1_000_000_000 + frac.to_numpy()), "s"
+    return RawStamps(whole.to_numpy(), frac.to_numpy(), sign, bool(raw.str.contains(".", literal=True).any()))
+
+
+def to_stamps_ns(path: Path, df: pl.DataFrame, name: str) -> tuple[np.ndarray, str]:
+    """Exact int64 nanoseconds from integer ns or decimal seconds (no float rounding); returns (t_ns, unit)."""
+    stamps = parse_stamps(path, df, name)
+    unit = magnitude_unit(path, name, stamps)
+    return stamps.ns(unit), unit
+
+
+def magnitude_unit(path: Path, name: str, stamps: RawStamps) -> str:
+    unit = stamps.magnitude_unit()
+    if unit is None:
+        first = int(stamps.sign[0] * stamps.whole[0])
+        raise InputError(
+            f"{path}: column '{name}': stamps like {first} are neither seconds nor nanoseconds by their "
+            "magnitude; give stamps in ns or s"
+        )
+    return unit
 
 
 @dataclass
@@ -388,18 +420,27 @@ def id_text(name: str, value: int) -> str:
     )
 
 
-def read_ranges_csv(path: str | Path) -> tuple[RangeData, str]:
-    """``stamp,tag,antenna,anchor,distance`` (stamp in ns or s); returns the table and the detected unit."""
+def read_ranges_csv(
+    path: str | Path, unit_of: Callable[[RawStamps, np.ndarray], str] | None = None
+) -> tuple[RangeData, str]:
+    """``stamp,tag,antenna,anchor,distance``; returns the table and the stamps' unit: ``unit_of(stamps, link)``
+    (``link``: an index per row of its tag, antenna, anchor), by default by magnitude (ns or s)."""
     path = Path(path)
     df = read_csv_strings(path, RANGE_COLUMNS, what="UWB range CSV")
     if df.height == 0:
         raise InputError(f"{path}: no range rows; expected columns {','.join(RANGE_COLUMNS)}")
-    t, unit = to_stamps_ns(path, df, "stamp")
+    stamps = parse_stamps(path, df, "stamp")
     ids = {name: to_int(path, df, name) for name in ("tag", "antenna", "anchor")}
     bad = id_problem(ids)
     if bad is not None:
         name, i = bad
         raise InputError(f"{path}: line {i + 2}: column '{name}': {id_text(name, int(ids[name][i]))}")
+    if unit_of is None:
+        unit = magnitude_unit(path, "stamp", stamps)
+    else:
+        link = np.unique(np.column_stack(list(ids.values())), axis=0, return_inverse=True)[1].ravel()
+        unit = unit_of(stamps, link)
+    t = stamps.ns(unit)
     return RangeData(t, ids["tag"], ids["antenna"], ids["anchor"], to_float(path, df, "distance")), unit
 
 
@@ -447,6 +488,20 @@ def clean_ranges(r: RangeData, topic: str, drops: Drops, max_range: float = MAX_
     kept = r.select(np.flatnonzero(~(bad_nan | bad_neg | bad_big)))
     key = np.column_stack([kept.tag, kept.antenna, kept.anchor])
     return kept.select(order_and_dedup(kept.t_ns, key, topic, drops))
+
+
+def time_offset_ns(offset_s: float) -> int:
+    if not np.isfinite(offset_s) or abs(offset_s) > 1e10:
+        raise InputError(f"--time-offset {offset_s}: expected a finite number of seconds")
+    return round(offset_s * 1e9)
+
+
+def shift_ranges(r: RangeData, offset_s: float, drops: Drops) -> RangeData:
+    """The ranges with ``offset_s`` added to their stamps (a known range-to-pose clock offset), noted."""
+    if offset_s == 0.0:
+        return r
+    drops.note(f"ranges: {offset_s:+.6g} s added to every range stamp (--time-offset)")
+    return RangeData(r.t_ns + time_offset_ns(offset_s), r.tag, r.antenna, r.anchor, r.distance)
 
 
 def anchors_note(r: RangeData) -> str:

@@ -204,3 +204,23 @@ def test_bench(tmp_path):
     assert doc["quick"] and [r["case"] for r in doc["results"]] == ["calibration"] and doc["results"][0]["ok"]
     assert "calibration" in res.output
     _bad(["bench", "--quick", "--cases", "nope"], "nope")
+
+
+def test_numerical_warnings_become_a_note(capsys):
+    """A numpy RuntimeWarning inside a command reaches the user as one note naming where it arose, not raw."""
+    import typer
+
+    from uwbcal.cli import _guard
+
+    @_guard
+    def noisy() -> None:
+        np.array([0.0]) / np.array([0.0])
+        np.array([1.0]) / np.array([0.0])
+
+    try:
+        noisy()
+    except typer.Exit:
+        pass
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and all(e.startswith("note: a numerical step produced NaN/inf (") for e in err)
+    assert "tests/test_cli.py:" in err[0] and "RuntimeWarning" not in "".join(err)

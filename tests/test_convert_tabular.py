@@ -42,7 +42,7 @@ def test_roundtrip_and_units(tmp_path, seconds):
     _ranges(tmp_path / "r.csv", seconds)
     out = tmp_path / "o.mcap"
     text = convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", out)
-    assert ("seconds" if seconds else "nanoseconds") in text
+    assert f"stamps read as {'s' if seconds else 'ns'}: the unit that puts the ranges on the poses'" in text
     rec = RecordingReader(out)
     r = rec.read_ranges()
     np.testing.assert_array_equal(
@@ -101,8 +101,8 @@ def test_errors(tmp_path):
     with pytest.raises(InputError, match=r"bad.tum: record 1: 3 fields, expected 8"):
         convert_tabular(tmp_path / "bad.tum", tmp_path / "r.csv", tmp_path / "o.mcap")
     (tmp_path / "ms.csv").write_text("stamp,tag,antenna,anchor,distance\n1609059013000,200,0,100,5.0\n")
-    with pytest.raises(InputError, match="neither seconds nor nanoseconds"):
-        convert_tabular(tmp_path / "p.tum", tmp_path / "ms.csv", tmp_path / "o.mcap")
+    text = convert_tabular(tmp_path / "p.tum", tmp_path / "ms.csv", tmp_path / "ms.mcap")
+    assert "stamps read as ms" in text and "no overlap, the clocks differ" in text
     (tmp_path / "a.yaml").write_text("antenna_offset: [200, 2, 0.0, 0.1]\n")
     with pytest.raises(InputError, match=r"a.yaml: antenna_offset"):
         parse_antennas(tmp_path / "a.yaml")
@@ -131,3 +131,57 @@ def test_tum_exact_stamps(tmp_path):
     (tmp_path / "x.tum").write_text("1403715274.30214 0 0 0 0 0 0 1\n-0.5 0 0 0 0 0 0 1\n12 0 0 0 0 0 0 1\n")
     p = read_tum(tmp_path / "x.tum")
     np.testing.assert_array_equal(p.t_ns, [1403715274302140000, -500000000, 12_000_000_000])
+
+
+def _relative(path: Path, scale: int, offset_s: float = 0.0) -> None:
+    """30 s of ranges at 5 Hz per link (two links) on a clock that starts at 0, in units of 1e-9 * scale s."""
+    rows = []
+    for k in range(300):
+        t_ns = k * 100_000_000 + 3_000_000 + round(offset_s * 1e9)
+        rows.append(f"{t_ns // scale},1,0,{k % 2},{5 + 0.01 * (k % 7)}")
+    path.write_text("stamp,tag,antenna,anchor,distance\n" + "\n".join(rows) + "\n")
+
+
+@pytest.mark.parametrize("unit,scale", [("s", 10**9), ("ms", 10**6), ("us", 10**3), ("ns", 1)])
+def test_stamp_units_on_a_relative_clock(tmp_path, unit, scale):
+    """Integer stamps of every unit from a clock that starts at 0 (poses relative too): the unit is the one that
+    puts the ranges on the poses' span, and the summary says so; --stamp-unit gives the same."""
+    poses = [f"{k * 0.05:.2f} {k * 0.01} 0 1 0 0 0 1" for k in range(640)]
+    (tmp_path / "p.tum").write_text("\n".join(poses) + "\n")
+    _relative(tmp_path / "r.csv", scale)
+    if unit == "s":  # decimal seconds (integer seconds cannot carry 10 Hz)
+        rows = [f"{k * 0.1 + 0.003:.3f},1,0,{k % 2},5.0" for k in range(300)]
+        (tmp_path / "r.csv").write_text("stamp,tag,antenna,anchor,distance\n" + "\n".join(rows) + "\n")
+    text = convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", tmp_path / "o.mcap")
+    assert f"stamps read as {unit}: the unit that puts the ranges on the poses' time span" in text
+    r = RecordingReader(tmp_path / "o.mcap").read_ranges()
+    assert r.t_ns[0] == 3_000_000 and r.t_ns[-1] == 299 * 100_000_000 + 3_000_000
+    text = convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", tmp_path / "o2.mcap", stamp_unit=unit)
+    assert f"stamps in {unit} (--stamp-unit)" in text
+    np.testing.assert_array_equal(RecordingReader(tmp_path / "o2.mcap").read_ranges().t_ns, r.t_ns)
+
+
+def test_stamp_unit_by_rate_and_time_offset(tmp_path):
+    """Ranges on their own relative clock (microseconds) against poses on an epoch clock: no unit overlaps, so
+    the detection reads the link rate and warns with the offset that would align the starts; given that offset,
+    the ranges land on the poses' clock."""
+    t0 = 1_700_000_000
+    poses = [f"{t0 + k * 0.05:.2f} {k * 0.01} 0 1 0 0 0 1" for k in range(640)]
+    (tmp_path / "p.tum").write_text("\n".join(poses) + "\n")
+    _relative(tmp_path / "r.csv", 10**3)
+    text = convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", tmp_path / "o.mcap")
+    assert "per-link median interval 0.2 s (5 Hz)" in text
+    assert (
+        "the ranges (stamps in us) span 0.003..29.903 s" in text
+        and "give --time-offset 1699999999.997;" in text
+    )
+    text = convert_tabular(
+        tmp_path / "p.tum", tmp_path / "r.csv", tmp_path / "o.mcap", time_offset=t0 - 0.2, stamp_unit="us"
+    )
+    assert "-0.2" not in text and "added to every range stamp (--time-offset)" in text
+    r = RecordingReader(tmp_path / "o.mcap").read_ranges()
+    assert r.t_ns[0] == t0 * 10**9 - 200_000_000 + 3_000_000
+    with pytest.raises(InputError, match="--stamp-unit 'h'"):
+        convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", tmp_path / "o.mcap", stamp_unit="h")
+    with pytest.raises(InputError, match="--time-offset nan"):
+        convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", tmp_path / "o.mcap", time_offset=float("nan"))
