@@ -480,8 +480,9 @@ def order_and_dedup(
 ) -> np.ndarray:
     """Indices that sort by (time, key) without exact duplicates of (t, key). Out-of-order input is sorted and
     noted; duplicates are dropped (counted, the first kept). ``series``: the file of one sensor's samples (IMU,
-    poses), where a step back of more than `JUMP_PERIODS` sample periods is a clock jump — refused, since sorting
-    would interleave the two stretches it overlaps."""
+    poses), where a step back of more than `JUMP_PERIODS` sample periods followed by more than `JUMP_PERIODS`
+    samples inside the span already covered is a clock jump — refused, since sorting would interleave the two
+    stretches it overlaps (a single late sample is sorted)."""
     n = len(t_ns)
     if n == 0:
         return np.zeros(0, np.int64)
@@ -494,7 +495,9 @@ def order_and_dedup(
         step = -int(dt[i]) if len(dt) else 0
         fwd = dt[dt > 0]
         period = float(np.median(fwd)) if len(fwd) else 0.0
-        if series is not None and period > 0 and step > JUMP_PERIODS * period:
+        # a jump moves a stretch of samples back into the span already covered; one late sample is reordering
+        inside = int((t1[i + 1 :] < t1[: i + 1].max()).sum())
+        if series is not None and period > 0 and step > JUMP_PERIODS * period and inside > JUMP_PERIODS:
             raise InputError(
                 f"{series}: {topic}: stamps step back by {step * 1e-9:.6g} s ({step / period:.0f} sample "
                 f"periods) after t={int(t1[i])} ns: a clock jump, not reordering (sorting would interleave two "
