@@ -407,6 +407,24 @@ def info(
     typer.echo(recording_info(recording).render())
 
 
+@app.command()
+@_guard
+def check(
+    recording: Annotated[Path, typer.Argument(help="A .mcap recording")],
+    anchors_truth: Annotated[
+        Path | None,
+        typer.Option(
+            help="Surveyed anchors CSV anchor,x,y,z in the poses' frame (default: the recording's truth, if any)."
+        ),
+    ] = None,
+) -> None:
+    """A recording's own consistency before calibrating: range statistics, stamps, pose excitation; with truth
+    the anchor ids, lever arms and range-to-pose clock offset. Ends in one verdict line per problem."""
+    from uwbcal.evaluate.check import check_recording
+
+    typer.echo(check_recording(recording, anchors_truth).render())
+
+
 @app.command("config")
 @_guard
 def config_cmd(
