@@ -29,10 +29,12 @@ from typing import Any
 import numpy as np
 
 from uwbcal.convert import uwb_msgs
+from uwbcal.convert.anchor_truth import read_anchor_truth, truth_note, truth_record
 from uwbcal.convert.calibration import Calibration, load_calibration_yaml, parse_calibration
 from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
+    META_TRUTH,
     TOPIC_CAM0,
     TOPIC_CAM1,
     TOPIC_GT_POSE,
@@ -520,11 +522,15 @@ def convert_bag(
     calibration: str | Path | None = None,
     max_range: float = MAX_RANGE_M,
     time_offset: float = 0.0,
+    anchors_truth: str | Path | None = None,
 ) -> str:
     """Convert a ROS 1 / ROS 2 bag into one recording; returns a human summary. ``time_offset`` [s] is added to
-    every range stamp (a known range-to-pose clock offset)."""
+    every range stamp (a known range-to-pose clock offset). ``anchors_truth``: surveyed ``anchor,x,y,z`` in the
+    ground truth's frame -> ``uwbcal.truth`` (frame ``groundtruth``: compared frame-free, by inter-anchor
+    distances, as the run's world is the estimator's)."""
     path = Path(path)
     time_offset_ns(time_offset)
+    truth_anchors = read_anchor_truth(anchors_truth) if anchors_truth is not None else None
     ant = Path(antennas) if antennas is not None else None
     if ant is not None and not ant.is_file():
         raise InputError(f"{ant}: antenna yaml not found")
@@ -619,6 +625,10 @@ def convert_bag(
                 drops.note("topic " + n)
             calib = _final_calibration(calib, cal_source, conv, counts, drops)
             w.set_metadata(META_CALIBRATION, calib)
+            if truth_anchors is not None:
+                truth = truth_record(truth_anchors, "surveyed", anchors_truth, "groundtruth")
+                drops.note(truth_note(truth["anchors"], ranges.anchor, Path(anchors_truth)))
+                w.set_metadata(META_TRUTH, truth)
             w.set_metadata(
                 META_SOURCE,
                 source_metadata(

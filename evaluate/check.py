@@ -17,6 +17,7 @@ import numpy as np
 
 from uwbcal.evaluate import check_truth as ct
 from uwbcal.evaluate.check_data import CheckData, load_check_data
+from uwbcal.pipeline.uwb.initializer import multilateration
 
 OUTLIER_M = 0.5  # a range this far (and 4 MAD) from its link's running median is an outlier
 OUTLIER_WINDOW = 9
@@ -164,8 +165,6 @@ def _information(x: np.ndarray, a: np.ndarray, sigma: float) -> tuple[np.ndarray
 
 
 def excitation_lines(data: CheckData, rep: CheckReport) -> None:
-    from uwbcal.pipeline.uwb.initializer import multilateration
-
     if data.poses is None:
         return
     r = data.ranges
