@@ -102,7 +102,8 @@ def convert_input(inp: CalibrateInput, out: Path) -> Conversion:
     notes: list[str] = []
     if kind == "recording":
         return Conversion(kind, inp.path, notes)
-    folder = inp.path if inp.path is not None and inp.path.is_dir() else (inp.path or inp.ranges).parent
+    data = inp.path or inp.ranges
+    folder = data if data.is_dir() and kind != "bag" else data.parent  # a ROS 2 bag folder: beside it
     truth = _beside(folder, ("anchors_truth.csv",), inp.anchors_truth, notes, "anchor truth")
     if kind == "tabular":
         poses, ranges = inp.poses or folder / "poses.tum", inp.ranges or folder / "ranges.csv"

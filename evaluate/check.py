@@ -245,7 +245,8 @@ def id_lines(data: CheckData, rep: CheckReport) -> CheckData:
 def _finding(c: ct.LeverCheck) -> str | None:
     """The lever-arm hypothesis the ranges name instead of the given one, if any."""
     best = c.best
-    if best == "given" or not ct.significant(c.scatter["given"], c.scatter[best]):
+    ratio = ct.FITTED_BETTER if best == "fitted" else ct.BETTER
+    if best == "given" or not ct.significant(c.scatter["given"], c.scatter[best], ratio):
         return None
     if best == "fitted" and np.linalg.norm(c.fitted - c.given) < LEVER_TOL_M:
         return None
@@ -264,7 +265,7 @@ def corrected_levers(data: CheckData, checks: list[ct.LeverCheck]) -> dict:
 
 def lever_lines(rep: CheckReport, checks: list[ct.LeverCheck], shift_s: float) -> None:
     if not checks:
-        rep.lines.append("lever arms: not tested (the poses have no attitude)")
+        rep.lines.append("lever arms: not tested (the poses carry no attitude)")
         return
     at = f", poses shifted {shift_s:+.3f} s as the clock scan found" if shift_s else ""
     rep.lines.append(f"lever arms (scatter [m] of the ranges with each{at}):")

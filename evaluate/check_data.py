@@ -91,6 +91,8 @@ def _poses(reader: RecordingReader, frame: str | None) -> tuple[Poses | None, st
             d = reader.read_positions()
             return Poses(topic, d.t_ns, d.p, None), ""
         d = reader.read_odometry() if topic == TOPIC_ODOM else reader.read_poses()
+        if np.ptp(d.q_xyzw, axis=0).max() < 1e-9:  # one attitude throughout: positions written as poses
+            return Poses(topic, d.t_ns, d.p, None), f"{topic}: one attitude throughout (positions only)"
         return Poses(topic, d.t_ns, d.p, d.q_xyzw), ""
     return None, "no poses in the recording (no ground truth or odometry): the pose checks need a VIO run"
 

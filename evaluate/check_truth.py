@@ -19,6 +19,7 @@ CLOCK_SCAN_S = 1.0  # offsets scanned: +-1 s
 CLOCK_STEP_S = 0.02
 BETTER = 1.05  # a hypothesis is named when the one given scatters this much more (and by > MIN_GAIN_M)
 MIN_GAIN_M = 0.003
+FITTED_BETTER = 1.25  # a fitted lever arm (3 free parameters) must gain more to be named
 SWAP_RATIO = 0.5  # an anchor's ranges fit another anchor's truth with under half the scatter
 
 
