@@ -50,7 +50,7 @@ def _child_command(name: str, quick: bool, tree: Path | None, tmp: Path) -> tupl
     env.setdefault("OPENBLAS_NUM_THREADS", "1")  # many small matrices: BLAS threads only cost
     if tree is None:
         return [sys.executable, "-m", "uwbcal.benchmarks.cases", name, *flags], env
-    env.setdefault("UWBCAL_DATA", str(data_root()))  # the other tree's ../shared/data may not exist
+    env.setdefault("UWBCAL_DATA", str(data_root()))  # the other tree may have no data folder beside it
     if (tree / "__init__.py").is_file():
         (tmp / "uwbcal").symlink_to(tree, target_is_directory=True)
         path, module = tmp, "uwbcal.benchmarks.cases"

@@ -21,9 +21,8 @@ from scipy.stats import chi2
 from uwbcal.convert.recording import RecordingReader
 from uwbcal.convert.simulator import SimConfig, simulate_to_file
 from uwbcal.pipeline.core.geometry import log_so3, quat_slerp, quat_to_rot
-from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.run.driver import msckf_from_recording, run_estimator
 from uwbcal.pipeline.vio.config import VioConfig
-from uwbcal.pipeline.vio.msckf import MsckfEstimator
 
 
 def simulate(path: Path, seed: int, duration: float | None) -> str:
@@ -53,7 +52,7 @@ def run_one(args: tuple[int, bool, float | None, str]) -> dict:
     if not path.exists():
         sim = simulate(path, seed, duration)
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig(fej=fej))
+    est = msckf_from_recording(reader, VioConfig(fej=fej))
     t0 = time.perf_counter()
     run_estimator(est, reader, None, None)
     wall = time.perf_counter() - t0

@@ -4,7 +4,7 @@ Input: a CSV ``anchor,x,y,z`` (metres, in the frame of the recording's poses), o
 (NTU-VIRAL's ``published_anchors.csv``: ``site,anchor,x,y,z``; the rows of one site are taken). Anchor ids are
 integers (as in the ranges). Bad files raise `InputError` naming the file, the line and what to fix.
 
-The record (additive to DESIGN §3's simulation-only ``uwbcal.truth``)::
+The record (beside the simulator's ``uwbcal.truth``)::
 
     {"kind": "surveyed" | "published" | "simulated",
      "anchors": {"<id>": {"position": [x, y, z]}},          # no beta/gamma: unknown on real data

@@ -1,4 +1,4 @@
-"""Attitude sanity check for a carrier that moves in a plane (issue #14: planar trolley with antenna lever arms).
+"""Attitude sanity check for a carrier that moves in a plane (a planar trolley with antenna lever arms).
 
 A ground robot's antennas stay at a fixed height over its motion plane: rotating a body-frame lever arm by the
 pose attitude must keep it in that plane. If it swings out of the plane by much more than the carrier itself

@@ -508,6 +508,19 @@ def _uwb_section(r: RangeData, antennas: Path | None, given: dict | None, drops:
 # ---------------------------------------------------------------------------------------------------------------
 # conversion
 # ---------------------------------------------------------------------------------------------------------------
+@dataclass
+class _BagRun:
+    """One conversion's inputs and running accounts (what the steps of `convert_bag` share)."""
+
+    path: Path
+    antennas: Path | None
+    cal: dict  # the given calibration as metadata
+    cal_source: str
+    roles: dict[str, str]  # topic -> role
+    accounts: dict[str, dict]  # topic -> type, count, role, converted, dropped
+    drops: Drops
+
+
 def convert_bag(
     path: str | Path,
     output: str | Path,
@@ -551,14 +564,7 @@ def convert_bag(
             raise InputError(
                 f"{path}: no topic of a known type (found: {have}); name them with --imu/--uwb/..."
             )
-        accounts = {
-            t: {"type": ty, "count": n, "role": roles.get(t), "converted": 0, "dropped": 0}
-            for t, (ty, n) in topics.items()
-        }
-        for t, (ty, n) in sorted(topics.items()):
-            if t not in roles:
-                drops.add(t, f"topic not mapped (type {ty})", n)
-                accounts[t]["dropped"] = n
+        run = _BagRun(path, ant, cal, cal_source, roles, _accounts(topics, roles, drops), drops)
         use = [c for c in bag.connections if c.topic in roles]
         files = [path] if path.is_file() else sorted(p for p in path.iterdir() if p.is_file())
         hasher = Hasher(files + ([ant] if ant else []) + ([Path(calibration)] if calibration else []))
@@ -566,64 +572,12 @@ def convert_bag(
             conv = Converter(
                 w, lambda role, size, topic: check_image_size(given_cal, role, size, topic, cal_source)
             )
-            total = sum(c.msgcount for c in use)
-            with progress(f"bag {path.name}", total) as advance:
-                for conn, bag_t, raw in bag.messages(use):
-                    acc = accounts[conn.topic]
-                    role = roles[conn.topic]
-                    advance(1)
-                    dec = bag.decoder_for(conn, raw)
-                    if isinstance(dec, str):
-                        acc["dropped"] += 1
-                        drops.add(conn.topic, f"undecodable: {norm_type(conn.msgtype)} {dec}", 1)
-                        continue
-                    try:
-                        m = dec(raw)
-                        conv(role, conn.topic, norm_type(conn.msgtype), m, bag_t)
-                    except Drop as exc:
-                        acc["dropped"] += 1
-                        drops.add(conn.topic, str(exc), 1, f"bag t={bag_t}")
-                        continue
-                    except InputError:
-                        raise
-                    except Exception as exc:  # noqa: BLE001 (a corrupt message: drop it, say which)
-                        acc["dropped"] += 1
-                        drops.add(
-                            conn.topic, f"undecodable message ({type(exc).__name__})", 1, f"bag t={bag_t}"
-                        )
-                        continue
-                    acc["converted"] += 1
-            raw_ranges = conv.ranges.data()
-            bad = id_problem(
-                {"tag": raw_ranges.tag, "antenna": raw_ranges.antenna, "anchor": raw_ranges.anchor}
-            )
-            if bad is not None:
-                name, i = bad
-                value = int(getattr(raw_ranges, name)[i])
-                raise InputError(f"{path}: UWB range at t={raw_ranges.t_ns[i]} ns: {id_text(name, value)}")
-            raw_ranges = shift_ranges(raw_ranges, time_offset, drops)
-            ranges = (
-                clean_ranges(raw_ranges, TOPIC_RANGE, drops, max_range) if len(raw_ranges) else raw_ranges
-            )
-            write_ranges(w, ranges, TOPIC_RANGE)
-            if len(ranges):
-                drops.note(f"{len(raw_ranges)} ranges decoded; " + anchors_note(ranges))
-            for t, c in conv.stamp_sources.items():
-                drops.note(f"{t}: stamps from " + ", ".join(f"{k} ({v})" for k, v in sorted(c.items())))
-            if conv.zero_cov:
-                drops.note(f"{TOPIC_ODOM}: {conv.zero_cov} messages with an all-zero pose covariance")
+            _convert_messages(bag, use, conv, run)
+            raw_ranges, ranges = _write_bag_ranges(w, conv, run, max_range, time_offset)
             counts = dict(w.counts)
             if not counts:
                 raise InputError(f"{path}: nothing converted ({', '.join(roles)} had no usable message)")
-            calib = {k: v for k, v in cal.items() if k != "uwb"}
-            if len(raw_ranges) or cal.get("uwb") is not None:
-                calib["uwb"] = _uwb_section(ranges, ant, cal.get("uwb"), drops)
-            if not cal and ({TOPIC_IMU, TOPIC_CAM0, TOPIC_CAM1} & set(counts)):
-                drops.note("no --calibration: IMU noise, camera intrinsics and extrinsics unknown")
-            conv._once.report(drops)
-            for n in tmap.notes:
-                drops.note("topic " + n)
-            calib = _final_calibration(calib, cal_source, conv, counts, drops)
+            calib = _bag_calibration(run, conv, counts, raw_ranges, ranges, tmap.notes)
             w.set_metadata(META_CALIBRATION, calib)
             if truth_anchors is not None:
                 truth = truth_record(truth_anchors, "surveyed", anchors_truth, "groundtruth")
@@ -638,11 +592,95 @@ def convert_bag(
                     drops,
                     format=bag.format,
                     topic_map={t: r for t, r in sorted(roles.items())},
-                    messages=accounts,
+                    messages=run.accounts,
                     ranges={"decoded": len(raw_ranges), "written": len(ranges)},
                 ),
             )
     return summary(output, counts, drops, f"{bag.format} {path.name}")
+
+
+def _accounts(topics: dict[str, tuple[str, int]], roles: dict[str, str], drops: Drops) -> dict[str, dict]:
+    """Per topic: its type, message count, role and (so far) converted / dropped; unmapped topics dropped."""
+    accounts = {
+        t: {"type": ty, "count": n, "role": roles.get(t), "converted": 0, "dropped": 0}
+        for t, (ty, n) in topics.items()
+    }
+    for t, (ty, n) in sorted(topics.items()):
+        if t not in roles:
+            drops.add(t, f"topic not mapped (type {ty})", n)
+            accounts[t]["dropped"] = n
+    return accounts
+
+
+def _convert_messages(bag: BagReader, use: list, conv: Converter, run: _BagRun) -> None:
+    """Decode and convert every message of the connections ``use``; a message that does not decode or convert
+    is dropped and counted (an `InputError` stops the conversion)."""
+    drops = run.drops
+    total = sum(c.msgcount for c in use)
+    with progress(f"bag {run.path.name}", total) as advance:
+        for conn, bag_t, raw in bag.messages(use):
+            acc = run.accounts[conn.topic]
+            role = run.roles[conn.topic]
+            advance(1)
+            dec = bag.decoder_for(conn, raw)
+            if isinstance(dec, str):
+                acc["dropped"] += 1
+                drops.add(conn.topic, f"undecodable: {norm_type(conn.msgtype)} {dec}", 1)
+                continue
+            try:
+                m = dec(raw)
+                conv(role, conn.topic, norm_type(conn.msgtype), m, bag_t)
+            except Drop as exc:
+                acc["dropped"] += 1
+                drops.add(conn.topic, str(exc), 1, f"bag t={bag_t}")
+                continue
+            except InputError:
+                raise
+            except Exception as exc:  # noqa: BLE001 (a corrupt message: drop it, say which)
+                acc["dropped"] += 1
+                drops.add(conn.topic, f"undecodable message ({type(exc).__name__})", 1, f"bag t={bag_t}")
+                continue
+            acc["converted"] += 1
+
+
+def _write_bag_ranges(
+    w: RecordingWriter, conv: Converter, run: _BagRun, max_range: float, time_offset: float
+) -> tuple[RangeData, RangeData]:
+    """The decoded ranges (ids checked, shifted by ``time_offset``) and the cleaned ones, written."""
+    drops = run.drops
+    raw_ranges = conv.ranges.data()
+    bad = id_problem({"tag": raw_ranges.tag, "antenna": raw_ranges.antenna, "anchor": raw_ranges.anchor})
+    if bad is not None:
+        name, i = bad
+        value = int(getattr(raw_ranges, name)[i])
+        raise InputError(f"{run.path}: UWB range at t={raw_ranges.t_ns[i]} ns: {id_text(name, value)}")
+    raw_ranges = shift_ranges(raw_ranges, time_offset, drops)
+    ranges = clean_ranges(raw_ranges, TOPIC_RANGE, drops, max_range) if len(raw_ranges) else raw_ranges
+    write_ranges(w, ranges, TOPIC_RANGE)
+    if len(ranges):
+        drops.note(f"{len(raw_ranges)} ranges decoded; " + anchors_note(ranges))
+    for t, c in conv.stamp_sources.items():
+        drops.note(f"{t}: stamps from " + ", ".join(f"{k} ({v})" for k, v in sorted(c.items())))
+    if conv.zero_cov:
+        drops.note(f"{TOPIC_ODOM}: {conv.zero_cov} messages with an all-zero pose covariance")
+    return raw_ranges, ranges
+
+
+def _bag_calibration(
+    run: _BagRun, conv: Converter, counts: dict, raw_ranges: RangeData, ranges: RangeData, notes: list[str]
+) -> dict:
+    """The recording's calibration metadata: the given one, its uwb section from the ranges and antennas, and
+    what the conversion found (`_final_calibration`); the notes on what is missing."""
+    cal, drops = run.cal, run.drops
+    calib = {k: v for k, v in cal.items() if k != "uwb"}
+    if len(raw_ranges) or cal.get("uwb") is not None:
+        calib["uwb"] = _uwb_section(ranges, run.antennas, cal.get("uwb"), drops)
+    if not cal and ({TOPIC_IMU, TOPIC_CAM0, TOPIC_CAM1} & set(counts)):
+        drops.note("no --calibration: IMU noise, camera intrinsics and extrinsics unknown")
+    conv._once.report(drops)
+    for n in notes:
+        drops.note("topic " + n)
+    return _final_calibration(calib, run.cal_source, conv, counts, drops)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Where the real data lives: ``$UWBCAL_DATA`` or ``../shared/data`` beside the repository."""
+"""Where the real data lives: ``$UWBCAL_DATA``, else a ``shared/data`` folder beside the checkout (as CI lays it out)."""
 
 from __future__ import annotations
 

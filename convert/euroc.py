@@ -1,4 +1,4 @@
-"""EuRoC MAV -> recording: ASL folder (``mav0/...``) or ROS1 bag (DESIGN §3, §8).
+"""EuRoC MAV -> recording: ASL folder (``mav0/...``) or ROS1 bag.
 
 Folder: ``imu0/data.csv`` -> /imu, ``cam{0,1}/data.csv`` + PNGs -> /cam{0,1}/image_raw (pixels as in the PNG),
 ``state_groundtruth_estimate0/data.csv`` (or ``--groundtruth`` EuRoC CSV / TUM) -> /groundtruth/pose (and, from a
@@ -272,12 +272,8 @@ def _write_image_file(
     writer.write_image(topic, t, img, frame_id=cam)
 
 
-def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = None) -> str:
-    mav0 = find_mav0(path)
-    sequence = (mav0.parent if mav0.name == "mav0" else mav0).name
-    drops = Drops()
-    files: list[Path] = []
-
+def _euroc_imu(mav0: Path, drops: Drops, files: list[Path]) -> tuple[dict, np.ndarray, ImuTable]:
+    """imu0: its calibration, T_BS, and its samples (finite, in time order, no duplicates); files read appended."""
     imu_dir = mav0 / "imu0"
     imu_cal, T_B_imu = imu_calibration(imu_dir / "sensor.yaml")
     files += [imu_dir / "sensor.yaml", imu_dir / "data.csv"]
@@ -288,7 +284,13 @@ def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = No
     imu = ImuTable(imu.t_ns[idx], imu.gyro[idx], imu.acc[idx])
     o = order_and_dedup(imu.t_ns, None, TOPIC_IMU, drops)
     imu = ImuTable(imu.t_ns[o], imu.gyro[o], imu.acc[o])
+    return imu_cal, T_B_imu, imu
 
+
+def _euroc_cameras(
+    mav0: Path, T_B_imu: np.ndarray, drops: Drops, files: list[Path]
+) -> tuple[dict, dict[str, tuple[np.ndarray, list[str]]]]:
+    """cam0 (required) and cam1: calibrations and image lists (stamps, file names) in time order."""
     cameras, cam_lists = {}, {}
     for cam in ("cam0", "cam1"):
         d = mav0 / cam
@@ -301,7 +303,13 @@ def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = No
         t, names = read_image_list(d / "data.csv")
         o = order_and_dedup(t, None, CAM_TOPICS[cam], drops)
         cam_lists[cam] = (t[o], [names[i] for i in o])
+    return cameras, cam_lists
 
+
+def _euroc_groundtruth(
+    mav0: Path, groundtruth: Path | None, T_B_imu: np.ndarray, drops: Drops, files: list[Path]
+) -> tuple[PoseTable | None, Path | None]:
+    """The ground truth (``groundtruth`` or state_groundtruth_estimate0) in imu0's frame, and its file."""
     gt, gt_file = None, None
     if groundtruth is not None:
         gt_file = Path(groundtruth)
@@ -322,6 +330,18 @@ def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = No
             gt = groundtruth_in_imu_frame(gt, T_B_imu)
             drops.note("ground truth moved from the body frame to imu0's (imu0/sensor.yaml T_BS)")
         files.append(gt_file)
+    return gt, gt_file
+
+
+def convert_folder(path: Path, output: str | Path, groundtruth: Path | None = None) -> str:
+    mav0 = find_mav0(path)
+    sequence = (mav0.parent if mav0.name == "mav0" else mav0).name
+    drops = Drops()
+    files: list[Path] = []
+
+    imu_cal, T_B_imu, imu = _euroc_imu(mav0, drops, files)
+    cameras, cam_lists = _euroc_cameras(mav0, T_B_imu, drops, files)
+    gt, gt_file = _euroc_groundtruth(mav0, groundtruth, T_B_imu, drops, files)
     gt_bias = read_groundtruth_biases(gt_file) if gt_file is not None else None
 
     hasher = Hasher(files)

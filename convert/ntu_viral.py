@@ -1,4 +1,4 @@
-"""NTU-VIRAL -> recording: ROS1 bag or a sequence folder of CSVs (DESIGN §3, §8, §9).
+"""NTU-VIRAL -> recording: ROS1 bag or a sequence folder of CSVs.
 
 Bag: /imu/imu -> /imu, /left/image_raw -> /cam0/image_raw, /right/image_raw -> /cam1/image_raw (CDR pass-through),
 /uwb_endorange_info (uwb_driver/UwbRange) -> /uwb/range, /leica/pose/relative (prism) -> /groundtruth/position.
@@ -284,6 +284,41 @@ def read_leica_csv(path: Path):
     return t, np.column_stack([to_float(path, df, c) for c in LEICA_COLUMNS[1:]])
 
 
+def _slict_odometry(
+    path: Path, drops: Drops, files: list[Path]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """slict_odometry.csv's usable poses (stamps, positions, quaternions) in time order, or None without it."""
+    odom = None
+    odom_file = path / "slict_odometry.csv"
+    if odom_file.is_file():
+        t, p, q = read_odometry_csv(odom_file)
+        q, ok = normalise_quaternions(q, TOPIC_ODOM, drops)
+        ok &= np.isfinite(p).all(1)
+        drops.add(TOPIC_ODOM, "non-finite position", int((~np.isfinite(p).all(1)).sum()))
+        idx = np.flatnonzero(ok)
+        o = idx[order_and_dedup(t[idx], None, TOPIC_ODOM, drops)]
+        odom = (t[o], p[o], q[o])
+        files.append(odom_file)
+    else:
+        drops.note("no slict_odometry.csv: no /odometry")
+    return odom
+
+
+def _leica_positions(path: Path, drops: Drops, files: list[Path]) -> tuple[np.ndarray, np.ndarray] | None:
+    """leica_prism.csv's finite positions (stamps, positions) in time order, or None without it."""
+    gt = None
+    leica_file = path / "leica_prism.csv"
+    if leica_file.is_file():
+        t, p = read_leica_csv(leica_file)
+        ok = np.isfinite(p).all(1)
+        drops.add(TOPIC_GT_POSITION, "non-finite position", int((~ok).sum()))
+        idx = np.flatnonzero(ok)
+        o = idx[order_and_dedup(t[idx], None, TOPIC_GT_POSITION, drops)]
+        gt = (t[o], p[o])
+        files.append(leica_file)
+    return gt
+
+
 def convert_folder(
     path: Path,
     output: str | Path,
@@ -308,29 +343,8 @@ def convert_folder(
     ranges = clean_ranges(raw_ranges, TOPIC_RANGE, drops, max_range)
     drops.note(f"{ranges_file.name}: {n_rows} rows, stamps in {unit}; " + anchors_note(ranges))
 
-    odom = None
-    odom_file = path / "slict_odometry.csv"
-    if odom_file.is_file():
-        t, p, q = read_odometry_csv(odom_file)
-        q, ok = normalise_quaternions(q, TOPIC_ODOM, drops)
-        ok &= np.isfinite(p).all(1)
-        drops.add(TOPIC_ODOM, "non-finite position", int((~np.isfinite(p).all(1)).sum()))
-        idx = np.flatnonzero(ok)
-        o = idx[order_and_dedup(t[idx], None, TOPIC_ODOM, drops)]
-        odom = (t[o], p[o], q[o])
-        files.append(odom_file)
-    else:
-        drops.note("no slict_odometry.csv: no /odometry")
-    gt = None
-    leica_file = path / "leica_prism.csv"
-    if leica_file.is_file():
-        t, p = read_leica_csv(leica_file)
-        ok = np.isfinite(p).all(1)
-        drops.add(TOPIC_GT_POSITION, "non-finite position", int((~ok).sum()))
-        idx = np.flatnonzero(ok)
-        o = idx[order_and_dedup(t[idx], None, TOPIC_GT_POSITION, drops)]
-        gt = (t[o], p[o])
-        files.append(leica_file)
+    odom = _slict_odometry(path, drops, files)
+    gt = _leica_positions(path, drops, files)
     antenna_file = find_antennas(path, antennas)
     if antenna_file is not None:
         files.append(antenna_file)

@@ -1,4 +1,4 @@
-"""The normalised recording: one MCAP file, ros2msg schemas, CDR messages, zstd chunks (DESIGN §3).
+"""The normalised recording: one MCAP file, ros2msg schemas, CDR messages, zstd chunks.
 
 `RecordingWriter` is the only writer and `RecordingReader` the only reader of recordings. The hot fixed-layout
 types (Imu, UwbRange, PoseStamped, PointStamped, Odometry) are packed and unpacked as numpy columns; the

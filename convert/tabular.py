@@ -1,4 +1,4 @@
-"""Generic input -> recording: any odometry as a TUM file plus UWB ranges as CSV (DESIGN §9).
+"""Generic input -> recording: any odometry as a TUM file plus UWB ranges as CSV.
 
 ``--poses`` TUM ``t[s] x y z qx qy qz qw`` -> /odometry (with a configured pose covariance), ``--ranges``
 ``stamp,tag,antenna,anchor,distance`` (stamps in s, ms, us or ns: given, or the unit that puts them on the poses'
@@ -23,6 +23,7 @@ from uwbcal.convert.recording import (
     META_TRUTH,
     TOPIC_ODOM,
     TOPIC_RANGE,
+    RangeData,
     RecordingWriter,
 )
 from uwbcal.convert.sources import (
@@ -124,6 +125,72 @@ def _seconds(t_ns: int) -> str:
     return f"{t_ns * 1e-9:.6f}".rstrip("0").rstrip(".")
 
 
+def _usable_poses(poses: Path, drops: Drops) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The TUM trajectory's usable poses (finite, plausible, unit quaternion) in time order without duplicates:
+    stamps, positions, quaternions; the others dropped and counted."""
+    pt = read_tum(poses)
+    q, ok = normalise_quaternions(pt.q_xyzw, TOPIC_ODOM, drops)
+    fin = np.isfinite(pt.p).all(1)
+    drops.add(TOPIC_ODOM, "non-finite position", int((~fin).sum()))
+    with np.errstate(invalid="ignore"):
+        absurd = fin & ~(np.abs(pt.p) <= MAX_POSITION_M).all(1)
+    if absurd.any():
+        i = int(np.flatnonzero(absurd)[0])
+        drops.add(
+            TOPIC_ODOM, f"implausible position (> {MAX_POSITION_M:g} m)", int(absurd.sum()), f"record {i + 1}"
+        )
+    idx = np.flatnonzero(ok & fin & ~absurd)
+    if len(idx) == 0:
+        raise InputError(
+            f"{poses}: none of the {len(pt.t_ns)} poses is usable (non-finite, absurd or non-unit quaternion); "
+            "fix the trajectory"
+        )
+    o = idx[order_and_dedup(pt.t_ns[idx], None, TOPIC_ODOM, drops)]
+    return pt.t_ns[o], pt.p[o], q[o]
+
+
+def _usable_ranges(
+    ranges: Path,
+    t_pose: np.ndarray,
+    stamp_unit: str | None,
+    time_offset: float,
+    max_range: float,
+    drops: Drops,
+) -> tuple[RangeData, int, str]:
+    """The ranges CSV read (stamp unit chosen against the poses' span, shifted by ``time_offset``) and cleaned;
+    also its number of rows and the unit."""
+    chooser = RangeStampUnit(
+        ranges, (int(t_pose[0]), int(t_pose[-1])), stamp_unit, time_offset_ns(time_offset)
+    )
+    raw, unit = read_ranges_csv(ranges, chooser)
+    raw = shift_ranges(raw, time_offset, drops)
+    n_rows = len(raw)
+    r = clean_ranges(raw, TOPIC_RANGE, drops, max_range)
+    if len(r) == 0:
+        why = "; ".join(f"{d['count']} {d['reason']}" for d in drops.as_list() if d["topic"] == TOPIC_RANGE)
+        raise InputError(
+            f"{ranges}: all {n_rows} range rows dropped ({why}); nothing to calibrate — fix the file"
+        )
+    drops.note(f"{ranges.name}: {n_rows} rows, {chooser.reason}; " + anchors_note(r))
+    if chooser.warning:
+        drops.note(chooser.warning)
+    return r, n_rows, unit
+
+
+def _uwb_calibration(
+    antenna_file: Path | None, r: RangeData, p: np.ndarray, q: np.ndarray, poses: Path, drops: Drops
+) -> dict:
+    """The calibration's uwb section (tags and antennas from the antenna file, else from the ranges); with
+    antennas, the note on attitudes a planar trajectory leaves unobserved."""
+    uwb = uwb_section(antenna_file, r.tag, r.antenna, drops)
+    if antenna_file is not None:
+        levers = [a for t in parse_antennas(antenna_file)[0].values() for a in t.get("antennas", [])]
+        note = planar_attitude_note(p, q, np.asarray(levers, float), str(poses))
+        if note:
+            drops.note(note)
+    return uwb
+
+
 def convert_tabular(
     poses: str | Path,
     ranges: str | Path,
@@ -157,50 +224,11 @@ def convert_tabular(
 
     poses, ranges = Path(poses), Path(ranges)
     drops = Drops()
-    pt = read_tum(poses)
-    q, ok = normalise_quaternions(pt.q_xyzw, TOPIC_ODOM, drops)
-    fin = np.isfinite(pt.p).all(1)
-    drops.add(TOPIC_ODOM, "non-finite position", int((~fin).sum()))
-    with np.errstate(invalid="ignore"):
-        absurd = fin & ~(np.abs(pt.p) <= MAX_POSITION_M).all(1)
-    if absurd.any():
-        i = int(np.flatnonzero(absurd)[0])
-        drops.add(
-            TOPIC_ODOM, f"implausible position (> {MAX_POSITION_M:g} m)", int(absurd.sum()), f"record {i + 1}"
-        )
-    idx = np.flatnonzero(ok & fin & ~absurd)
-    if len(idx) == 0:
-        raise InputError(
-            f"{poses}: none of the {len(pt.t_ns)} poses is usable (non-finite, absurd or non-unit quaternion); "
-            "fix the trajectory"
-        )
-    o = idx[order_and_dedup(pt.t_ns[idx], None, TOPIC_ODOM, drops)]
-    t_pose, p, q = pt.t_ns[o], pt.p[o], q[o]
+    t_pose, p, q = _usable_poses(poses, drops)
 
-    chooser = RangeStampUnit(
-        ranges, (int(t_pose[0]), int(t_pose[-1])), stamp_unit, time_offset_ns(time_offset)
-    )
-    raw, unit = read_ranges_csv(ranges, chooser)
-    raw = shift_ranges(raw, time_offset, drops)
-    n_rows = len(raw)
-    r = clean_ranges(raw, TOPIC_RANGE, drops, max_range)
-    if len(r) == 0:
-        why = "; ".join(f"{d['count']} {d['reason']}" for d in drops.as_list() if d["topic"] == TOPIC_RANGE)
-        raise InputError(
-            f"{ranges}: all {n_rows} range rows dropped ({why}); nothing to calibrate — fix the file"
-        )
-    drops.note(f"{ranges.name}: {n_rows} rows, {chooser.reason}; " + anchors_note(r))
-    if chooser.warning:
-        drops.note(chooser.warning)
-    antenna_file = None
-    if antennas is not None:
-        antenna_file = find_antennas(ranges, Path(antennas))
-    uwb = uwb_section(antenna_file, r.tag, r.antenna, drops)
-    if antenna_file is not None:
-        levers = [a for t in parse_antennas(antenna_file)[0].values() for a in t.get("antennas", [])]
-        note = planar_attitude_note(p, q, np.asarray(levers, float), str(poses))
-        if note:
-            drops.note(note)
+    r, n_rows, unit = _usable_ranges(ranges, t_pose, stamp_unit, time_offset, max_range, drops)
+    antenna_file = find_antennas(ranges, Path(antennas)) if antennas is not None else None
+    uwb = _uwb_calibration(antenna_file, r, p, q, poses, drops)
     truth = None
     if anchors_truth is not None:
         anchors_truth = Path(anchors_truth)

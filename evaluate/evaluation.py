@@ -1,4 +1,4 @@
-"""`uwbcal evaluate`: a run directory -> metrics.json and readable tables (DESIGN §6, §9).
+"""`uwbcal evaluate`: a run directory -> metrics.json and readable tables.
 
 Only what can be computed is written: a metric without ground truth is absent, never faked.
 """

@@ -1,7 +1,7 @@
 """The ground truth of a recording in the gravity-aligned frame (`pipeline.core.gravity`).
 
 A filter started by the static initialiser estimates in a gravity-aligned frame and is compared with the ground
-truth after a position + yaw alignment (its unobservable directions; DESIGN §6). Against a ground truth whose frame
+truth after a position + yaw alignment (its unobservable directions). Against a ground truth whose frame
 is not level (motion capture), a perfect filter would show the tilt as a constant orientation error its
 covariance rightly does not hold, and position errors growing with the distance from the alignment's centre. The
 evaluator therefore first turns the ground truth and the reference anchors into the gravity-aligned frame fitted

@@ -1,4 +1,4 @@
-"""Error metrics over associated (and, if wanted, aligned) arrays (DESIGN §6).
+"""Error metrics over associated (and, if wanted, aligned) arrays.
 
 - PRMSE [m] = sqrt(mean ||p_hat - p||^2)
 - ORMSE [deg] = sqrt(mean ||Log(R_hat^T R)||^2) * 180 / pi

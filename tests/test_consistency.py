@@ -20,11 +20,11 @@ from scipy.stats import chi2
 
 from uwbcal.convert.recording import RecordingReader, RecordingWriter
 from uwbcal.pipeline.core.geometry import exp_so3, log_so3, quat_to_rot, rot_to_quat
-from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.run.driver import msckf_from_recording, odometry_from_recording, run_estimator
 from uwbcal.pipeline.vio.config import VioConfig
 from uwbcal.pipeline.vio.estimator import TrajectoryRecord
-from uwbcal.pipeline.vio.msckf import MsckfEstimator, groundtruth_state
-from uwbcal.pipeline.vio.odometry_filter import OdometryEstimator, OdometryFilterConfig
+from uwbcal.pipeline.vio.groundtruth import groundtruth_state
+from uwbcal.pipeline.vio.odometry_filter import OdometryFilterConfig
 
 from support import T0, errors_vs_truth, simulate_vi
 
@@ -113,7 +113,7 @@ def odometry_runs(tmp_path_factory):
         with RecordingWriter(path) as w:
             w.write_odometry_batch(t_ns, pm, rot_to_quat(Rm), np.zeros((len(t), 6, 6)))
         rd = RecordingReader(path)
-        est = OdometryEstimator.from_recording(rd, OdometryFilterConfig(error_model="drift", **NOISE))
+        est = odometry_from_recording(rd, OdometryFilterConfig(error_model="drift", **NOISE))
         run_estimator(est, rd, None, None)
         out.append((est.history(), t_ns, R, p))
     return out
@@ -203,7 +203,7 @@ def msckf_runs(tmp_path_factory):
         for key in (True, False, "slam") if seed < FEJ_SEEDS else (True,):
             rd = RecordingReader(path)
             cfg = VioConfig(max_slam_features=SLAM_FEATURES) if key == "slam" else VioConfig(fej=key)
-            est = MsckfEstimator.from_recording(rd, cfg, x0, P0)
+            est = msckf_from_recording(rd, cfg, x0, P0)
             run_estimator(est, rd, None, None)
             out[key].append((est, truth))
     return out

@@ -207,6 +207,18 @@ def test_the_package_list_holds_every_folder_of_modules():
     assert missing_init == []
 
 
+def test_the_package_data_holds_every_file_the_code_reads():
+    setup = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    shipped = {
+        path
+        for package, globs in setup["package-data"].items()
+        for glob in globs
+        for path in (ROOT / Path(*package.split(".")[1:])).glob(glob)
+    }
+    data = {p for p in (ROOT / "convert" / "msg").rglob("*") if p.is_file()}
+    assert data and data <= shipped, sorted(str(p.relative_to(ROOT)) for p in data - shipped)
+
+
 @pytest.mark.parametrize(
     ("module", "layer"),
     [

@@ -13,19 +13,20 @@ from uwbcal.convert.recording import META_CALIBRATION, META_TRUTH, RecordingRead
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import exp_so3, rot_to_quat
 from uwbcal.pipeline.core.state import Kind
-from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.run.driver import msckf_from_recording, run_estimator
 from uwbcal.pipeline.vio.config import VioConfig
-from uwbcal.pipeline.vio.imu import GRAVITY
-from uwbcal.pipeline.vio.msckf import (
+from uwbcal.pipeline.vio.features import (
     FeatureDatabase,
-    MsckfEstimator,
-    VioStats,
     compress,
+    compress_normal,
     feature_jacobians,
     landmark_sigma,
     nullspace_project,
     triangulate,
 )
+from uwbcal.pipeline.vio.imu import GRAVITY
+from uwbcal.pipeline.vio.stats import VioStats
+from uwbcal.pipeline.vio.update_zupt import ZuptUpdater
 
 from support import CAM, body_rotation, errors_vs_truth, simulate_vi
 
@@ -176,7 +177,7 @@ def vi_recording(tmp_path_factory):
 def test_msckf_tracks_synthetic_motion(vi_recording, fej):
     path, (t_ns, p, R) = vi_recording
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig(fej=fej))
+    est = msckf_from_recording(reader, VioConfig(fej=fej))
     run_estimator(est, reader, None, None)
     h, dth, dp = errors_vs_truth(est, t_ns, p, R)
     assert len(h["t_ns"]) > 350
@@ -193,12 +194,12 @@ def test_msckf_resumes_after_pickle(vi_recording, slam):
     path, (t_ns, p, R) = vi_recording
     reader = RecordingReader(path)
     mid, end = int(t_ns[0] + 4e9), int(t_ns[0] + 8e9)
-    a = MsckfEstimator.from_recording(reader, VioConfig(max_slam_features=slam))
+    a = msckf_from_recording(reader, VioConfig(max_slam_features=slam))
     run_estimator(a, reader, None, mid)
     assert bool(a.state.of_kind(Kind.LANDMARK)) == bool(slam)  # the pickle carries the landmarks
     b = pickle.loads(pickle.dumps(a))
     run_estimator(b, reader, mid, end)
-    full = MsckfEstimator.from_recording(reader, VioConfig(max_slam_features=slam))
+    full = msckf_from_recording(reader, VioConfig(max_slam_features=slam))
     run_estimator(full, reader, None, end)
     hb, hf = b.history().arrays(), full.history().arrays()
     assert len(hb["t_ns"]) == len(hf["t_ns"])
@@ -229,7 +230,7 @@ def test_slam_features_on_synthetic_motion(vi_recording):
     (~5%: measured 4.8-5.6% on three seeds); only landmarks whose track is in the last frame are left."""
     path, (t_ns, p, R) = vi_recording
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig(max_slam_features=20))
+    est = msckf_from_recording(reader, VioConfig(max_slam_features=20))
     run_estimator(est, reader, None, None)
     st = est.stats
     assert st.slam_initialized > 50 and st.slam_used > 10 * st.slam_initialized
@@ -252,11 +253,11 @@ def test_msckf_bad_input(tmp_path):
         w.write_imu_batch(t, g, a)
         w.write_pose_batch(t, np.zeros((100, 3)), np.tile([0, 0, 0, 1.0], (100, 1)))
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig())
+    est = msckf_from_recording(reader, VioConfig())
     with pytest.raises(InputError, match=r"/imu @ 1250000000"):
         run_estimator(est, reader, None, None)
     with pytest.raises(InputError, match="initial IMU state"):
-        MsckfEstimator.from_recording(reader, VioConfig(init_from_groundtruth=False))
+        msckf_from_recording(reader, VioConfig(init_from_groundtruth=False))
 
 
 def test_msckf_imu_gap_and_no_features(tmp_path):
@@ -275,7 +276,7 @@ def test_msckf_imu_gap_and_no_features(tmp_path):
         tr = int(t[0]) + np.arange(1, 8) * 100_000_000 + 7
         w.write_range_batch(tr, 1, 0, np.arange(7) % 2, np.full(7, 3.0))
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig())
+    est = msckf_from_recording(reader, VioConfig())
     seen = []
     run_estimator(
         est, reader, None, None, on_range=lambda e, m: seen.append((e.t_ns, m.t_ns, m.anchor, m.distance))
@@ -295,7 +296,7 @@ def test_msckf_logs_to_rerun(vi_recording, tmp_path):
 
     path, (t_ns, _, _) = vi_recording
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig(max_slam_features=10))
+    est = msckf_from_recording(reader, VioConfig(max_slam_features=10))
     with RunLog(tmp_path / "vio.rrd") as log:
         run_estimator(est, reader, None, int(t_ns[0] + 3e9), log=log)
     summary = read_rrd_summary(tmp_path / "vio.rrd")
@@ -307,8 +308,6 @@ def test_msckf_logs_to_rerun(vi_recording, tmp_path):
 
 
 def test_compress_normal_keeps_information():
-    from uwbcal.pipeline.vio.msckf import compress_normal
-
     rng = np.random.default_rng(4)
     H = rng.normal(size=(200, 30)) @ np.diag(np.r_[np.ones(26), np.zeros(4)])  # 4 gauge directions
     r = rng.normal(size=200)
@@ -371,7 +370,7 @@ def test_zupt_holds_a_static_platform(tmp_path):
     path = tmp_path / "static.mcap"
     _static_recording(path)
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig())
+    est = msckf_from_recording(reader, VioConfig())
     run_estimator(est, reader, None, None)
     st = est.stats
     assert st.zupt_updates > 0.9 * st.frames and st.zupt_time_s > 5.0
@@ -379,7 +378,7 @@ def test_zupt_holds_a_static_platform(tmp_path):
     x = est.state.value("imu")
     assert np.abs(x.p).max() < 5e-3 and np.abs(x.v).max() < 5e-3
     # without the ZUPT the same data goes through the MSCKF (zero-parallax tracks are gated away)
-    est2 = MsckfEstimator.from_recording(reader, VioConfig(zupt=False))
+    est2 = msckf_from_recording(reader, VioConfig(zupt=False))
     run_estimator(est2, reader, None, None)
     assert est2.stats.zupt_updates == 0 and len(est2.clones) > 3
 
@@ -390,7 +389,7 @@ def test_zupt_not_on_slow_constant_velocity(tmp_path):
     path = tmp_path / "cv.mcap"
     p = _static_recording(path, v_const=0.08, depth=(1.5, 2.5))
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig())
+    est = msckf_from_recording(reader, VioConfig())
     run_estimator(est, reader, None, None)
     assert est.stats.zupt_updates == 0
     # 0.48 m travelled without rotation (weak scale observability): the MSCKF alone keeps it within 0.1 m
@@ -407,10 +406,10 @@ def test_zupt_disparity_over_a_baseline(tmp_path):
     p = _static_recording(path, v_const=0.06, depth=(3.0, 5.0))
     reader = RecordingReader(path)
     weak = {"zupt_sigma_v": 0.05}
-    old = MsckfEstimator.from_recording(reader, VioConfig(**weak, zupt_disparity_baseline_s=0.0))
+    old = msckf_from_recording(reader, VioConfig(**weak, zupt_disparity_baseline_s=0.0))
     run_estimator(old, reader, None, None)
     assert old.stats.zupt_updates > 20, old.stats.zupt_updates
-    est = MsckfEstimator.from_recording(reader, VioConfig(**weak))
+    est = msckf_from_recording(reader, VioConfig(**weak))
     run_estimator(est, reader, None, None)
     # only in the first 0.3 s (no frame that old yet: the oldest one is the reference)
     assert est.stats.zupt_updates <= 3, est.stats.zupt_updates
@@ -418,12 +417,12 @@ def test_zupt_disparity_over_a_baseline(tmp_path):
 
 
 def test_disparity_reference_is_derotated():
-    """`_derotate` against the direct projection: far points (no lever-arm parallax) seen at IMU orientation R0,
-    turned to R1 (0.5 deg), land where the camera at R1 sees them; `_disparity_reference` picks the newest recent
+    """`ZuptUpdater.derotate` against the direct projection: far points (no lever-arm parallax) seen at IMU orientation R0,
+    turned to R1 (0.5 deg), land where the camera at R1 sees them; `disparity_reference` picks the newest recent
     frame at least the baseline old when the last MSCKF frame is younger."""
     from uwbcal.pipeline.vio.imu import ImuNoise
 
-    est = MsckfEstimator(VioConfig(), CAM, ImuNoise(1e-4, 1e-3, 1e-5, 1e-4))
+    est = ZuptUpdater(VioConfig(), CAM, ImuNoise(1e-4, 1e-3, 1e-5, 1e-4), VioStats())
     rng = np.random.default_rng(1)
     R0 = body_rotation(np.array([[0.05, -0.03, 0.4]]))[0]
     R1 = R0 @ exp_so3(np.radians([0.3, -0.2, 0.35]))
@@ -432,15 +431,15 @@ def test_disparity_reference_is_derotated():
     pw = (R0 @ Ric @ bear.T).T * 1e6  # world directions (far points), camera at the origin
     uv0 = CAM.project(bear)
     uv1 = CAM.project(pw @ (R1 @ Ric))  # camera_now = Ric^T R1^T world
-    np.testing.assert_allclose(est._derotate(CAM.undistort(uv0), R0, R1), uv1, atol=1e-6)
+    np.testing.assert_allclose(est.derotate(CAM.undistort(uv0), R0, R1), uv1, atol=1e-6)
     assert np.abs(uv1 - uv0).max() > 2.0  # the rotation moved them by pixels
     ids = np.arange(50)
     for k in range(10):  # frames every 50 ms, the last MSCKF frame at 0.4 s
-        est._keep_recent(k * 50_000_000, ids, uv0 + k, R0)
-    est._last_frame, est._last_frame_t = (ids, uv0 + 8, R0), 400_000_000
-    ref = est._disparity_reference(500_000_000)
+        est.keep_recent(k * 50_000_000, ids, uv0 + k, R0)
+    est.last_frame, est.last_frame_t = (ids, uv0 + 8, R0), 400_000_000
+    ref = est.disparity_reference(500_000_000)
     assert (ref[1] == uv0 + 4).all()  # at 0.5 s: the newest frame at least 0.3 s old, the one at 0.2 s
-    assert est._disparity_reference(700_000_000) is est._last_frame  # the last MSCKF frame is 0.3 s old
+    assert est.disparity_reference(700_000_000) is est.last_frame  # the last MSCKF frame is 0.3 s old
 
 
 def test_zupt_stops_at_the_onset_of_motion(tmp_path):
@@ -453,7 +452,7 @@ def test_zupt_stops_at_the_onset_of_motion(tmp_path):
     t_onset, jerk = 2.0, 1.0
     _static_recording(path, duration=3.0, jerk=jerk, t_onset=t_onset)
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig())
+    est = msckf_from_recording(reader, VioConfig())
     zupts = []
     process = est.process_frame
 
@@ -479,7 +478,7 @@ def test_zupt_stops_at_the_onset_of_motion(tmp_path):
 def test_zupt_not_on_motion(vi_recording):
     path, _ = vi_recording
     reader = RecordingReader(path)
-    est = MsckfEstimator.from_recording(reader, VioConfig())
+    est = msckf_from_recording(reader, VioConfig())
     run_estimator(est, reader, None, None)
     assert est.stats.zupt_updates == 0 and est.stats.updates > 300
 
@@ -544,10 +543,10 @@ def test_consistency_warning_on_an_overconfident_filter(tmp_path):
     path = tmp_path / "cv.mcap"
     _static_recording(path, duration=4.0, v_const=0.3, depth=(1.5, 2.5))
     reader = RecordingReader(path)
-    good = MsckfEstimator.from_recording(reader, VioConfig(zupt=False))
+    good = msckf_from_recording(reader, VioConfig(zupt=False))
     run_estimator(good, reader, None, None)
     assert good.stats.update_t and not good.span_warnings("vio", None, None, 0)
-    bad = MsckfEstimator.from_recording(reader, VioConfig(zupt=False, pixel_sigma=0.2))
+    bad = msckf_from_recording(reader, VioConfig(zupt=False, pixel_sigma=0.2))
     run_estimator(bad, reader, None, None)
     warns = [w for w in bad.span_warnings("vio", None, None, 0) if "inconsistent visual updates" in w]
     assert len(warns) == 1 and "consistency_max_rejected" in warns[0], bad.warnings
@@ -562,7 +561,7 @@ def test_consistency_warning_per_stage_stretch(tmp_path):
     _static_recording(path, duration=4.0, v_const=0.3, depth=(1.5, 2.5))
     reader = RecordingReader(path)
     mid = 3_000_000_000  # the recording's 4 s start at 1 s
-    est = MsckfEstimator.from_recording(reader, VioConfig(zupt=False))
+    est = msckf_from_recording(reader, VioConfig(zupt=False))
     run_estimator(est, reader, None, mid)
     est = pickle.loads(pickle.dumps(est))  # checkpoint_init.pkl
     est.config = est.config.model_copy(update={"pixel_sigma": 0.2})

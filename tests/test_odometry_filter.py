@@ -16,9 +16,8 @@ from uwbcal.pipeline.core.geometry import (
     skew,
 )
 from uwbcal.pipeline.core.state import Pose, ekf_update
-from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.run.driver import odometry_from_recording, run_estimator
 from uwbcal.pipeline.vio.odometry_filter import (
-    OdometryEstimator,
     OdometryFilterConfig,
     OdometryStats,
     clean_odometry,
@@ -58,7 +57,7 @@ def _rot_err(Ra, Rb):
 def test_no_updates_reproduces_odometry_and_covariance_grows(tmp_path):
     t, R, p = _trajectory()
     rd = _write(tmp_path / "o.mcap", t, R, p)
-    est = OdometryEstimator.from_recording(rd)
+    est = odometry_from_recording(rd)
     run_estimator(est, rd, None, None)
     h = est.history().arrays()
     assert np.array_equal(h["t_ns"], t)
@@ -93,7 +92,7 @@ def test_position_sigma_follows_random_walk_per_metre(tmp_path):
         initial_sigma_theta_deg=1e-12,
     )
     rd = _write(tmp_path / "line.mcap", t, R, p)
-    est = OdometryEstimator.from_recording(rd, cfg)
+    est = odometry_from_recording(rd, cfg)
     run_estimator(est, rd, None, None)
     cov = est.history().arrays()["cov"][-1]
     L, T = 50.0, 10.0
@@ -102,7 +101,7 @@ def test_position_sigma_follows_random_walk_per_metre(tmp_path):
     assert cov[4, 4] == pytest.approx(expected, rel=1e-9)
     assert cov[5, 5] == pytest.approx(expected, rel=1e-9)
     # with heading noise the lateral variance grows faster than the along-track one (lever arm)
-    est = OdometryEstimator.from_recording(rd, OdometryFilterConfig(sigma_p_per_sqrt_m=0.03))
+    est = odometry_from_recording(rd, OdometryFilterConfig(sigma_p_per_sqrt_m=0.03))
     run_estimator(est, rd, None, None)
     cov = est.history().arrays()["cov"][-1]
     assert cov[4, 4] > 2 * cov[3, 3]
@@ -118,7 +117,7 @@ def test_range_stamps_are_interpolated(tmp_path):
         x = est.state.value(est.state.nav)
         seen.append((m.t_ns, est.t_ns, x.R.copy(), x.p.copy(), m.anchor, m.distance))
 
-    est = OdometryEstimator.from_recording(rd)
+    est = odometry_from_recording(rd)
     run_estimator(est, rd, None, None, on_range=handler)
     assert [s[0] for s in seen] == tr
     for t_r, t_state, Rx, px, anchor, dist in seen:
@@ -157,7 +156,7 @@ def test_position_update_pulls_pose_and_later_increments_apply_to_it(tmp_path):
         truth["p"] = est.state.value(est.state.nav).p.copy()
         truth["sigma_p"] = np.sqrt(np.diag(est.state.cov(est.state.nav))[3:6])
 
-    est = OdometryEstimator.from_recording(rd)
+    est = odometry_from_recording(rd)
     run_estimator(est, rd, None, None, on_range=handler)
     assert np.allclose(truth["p"], truth["target"], atol=1e-6)
     assert truth["sigma_p"].max() < 1e-5
@@ -176,10 +175,10 @@ def test_split_run_and_pickle_equal_one_run(tmp_path):
     t, R, p = _trajectory(80)
     tr = (t[:-1] + 33_000_000).tolist()
     rd = _write(tmp_path / "s.mcap", t, R, p, ranges=tr)
-    one = OdometryEstimator.from_recording(rd)
+    one = odometry_from_recording(rd)
     run_estimator(one, rd, None, None)
     mid = int(t[37] + 50_000_000)
-    two = OdometryEstimator.from_recording(rd)
+    two = odometry_from_recording(rd)
     run_estimator(two, rd, None, mid)
     assert two.t_ns < mid
     two = pickle.loads(pickle.dumps(two))
@@ -197,7 +196,7 @@ def test_duplicates_skipped_and_counted_out_of_order_sorted(tmp_path):
     Rd = np.insert(R, 10, R[10], axis=0)  # a re-sent message
     pd = np.insert(p, 10, p[10], axis=0)
     rd = _write(tmp_path / "d.mcap", td, Rd, pd)
-    est = OdometryEstimator.from_recording(rd)
+    est = odometry_from_recording(rd)
     run_estimator(est, rd, None, None)
     assert est.stats.duplicates == 1
     assert any("duplicate" in w for w in est.warnings)
@@ -218,7 +217,7 @@ def test_nan_odometry_names_the_stamp(tmp_path):
     p = p.copy()
     p[7, 1] = np.nan
     rd = _write(tmp_path / "n.mcap", t, R, p)
-    est = OdometryEstimator.from_recording(rd)
+    est = odometry_from_recording(rd)
     with pytest.raises(InputError, match=str(int(t[7]))):
         run_estimator(est, rd, None, None)
 
@@ -227,11 +226,11 @@ def test_missing_topic_and_ranges_outside_odometry(tmp_path):
     with RecordingWriter(tmp_path / "empty.mcap") as w:
         w.write_range_batch([T0], [0], [0], [1], [3.0])
     with pytest.raises(InputError, match="/odometry"):
-        OdometryEstimator.from_recording(RecordingReader(tmp_path / "empty.mcap"))
+        odometry_from_recording(RecordingReader(tmp_path / "empty.mcap"))
     t, R, p = _trajectory(10)
     rd = _write(tmp_path / "o.mcap", t, R, p, ranges=[int(t[0] - 5), int(t[4]), int(t[-1] + 5)])
     calls = []
-    est = OdometryEstimator.from_recording(rd)
+    est = odometry_from_recording(rd)
     run_estimator(est, rd, int(t[0] - 10), None, on_range=lambda e, m: calls.append(m.t_ns))
     assert calls == [int(t[4])]
     assert est.stats.ranges_before_odometry == 1
@@ -271,7 +270,7 @@ def test_simulated_odometry_is_consistent_with_the_drift_model(tmp_path):
         noise = declared_noise(rd.calibration)
         assert list(noise) == list(rd.calibration["odometry"]["noise"])
         cfg = OdometryFilterConfig(**noise)
-        est = OdometryEstimator.from_recording(rd, cfg)
+        est = odometry_from_recording(rd, cfg)
         run_estimator(est, rd, None, None)
         h = est.history().arrays()
         gt = rd.read_poses()
@@ -379,7 +378,7 @@ def test_bounded_model_covariance_relaxes_to_the_stationary_one(tmp_path):
     cfg = OdometryFilterConfig(
         error_model="bounded", correlation_time_s=2.0, initial_sigma_p=0.05, initial_sigma_theta_deg=2.0
     )
-    est = OdometryEstimator.from_recording(rd, cfg)
+    est = odometry_from_recording(rd, cfg)
     assert est.error_model == "bounded" and est.correlation_time_s == 2.0
     P_ss = np.diag([np.radians(2.0) ** 2] * 3 + [0.05**2] * 3)
     od = rd.read_odometry()

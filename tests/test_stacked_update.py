@@ -245,8 +245,7 @@ def test_driver_hands_each_stamp_to_an_epoch_handler_once(tmp_path):
     every range (the updates themselves: the tests above)."""
     from uwbcal.convert.recording import RecordingReader
     from uwbcal.convert.tabular import convert_tabular
-    from uwbcal.pipeline.run.driver import run_estimator
-    from uwbcal.pipeline.vio.odometry_filter import OdometryEstimator
+    from uwbcal.pipeline.run.driver import odometry_from_recording, run_estimator
 
     t0 = 1_700_000_000_000_000_000
     (tmp_path / "p.tum").write_text(
@@ -274,7 +273,7 @@ def test_driver_hands_each_stamp_to_an_epoch_handler_once(tmp_path):
 
     for epochs, calls, sizes in ((True, 0, [3] * 60), (False, 3 * 60, [])):
         h = Counting(epochs)
-        est = OdometryEstimator.from_recording(reader)
+        est = odometry_from_recording(reader)
         run_estimator(est, reader, None, None, on_range=h)
         assert h.calls == calls and h.sizes == sizes
         assert est.stats.ranges == 180 and est.stats.ranges_after_odometry == 0

@@ -40,7 +40,7 @@ def _errors(est, gt, align=False):
 
 def test_euroc_converter_carries_groundtruth_biases(euroc_vi):
     from uwbcal.pipeline.core.topics import TOPIC_GT_IMU_BIAS
-    from uwbcal.pipeline.vio.msckf import groundtruth_state
+    from uwbcal.pipeline.vio.groundtruth import groundtruth_state
 
     rec, _ = euroc_vi
     assert TOPIC_GT_IMU_BIAS in rec.topics()
@@ -54,13 +54,12 @@ def test_euroc_converter_carries_groundtruth_biases(euroc_vi):
 
 
 def test_msckf_real_euroc_excerpt_within_10cm(euroc_vi):
-    from uwbcal.pipeline.run.driver import run_estimator
+    from uwbcal.pipeline.run.driver import msckf_from_recording, run_estimator
     from uwbcal.pipeline.vio.config import VioConfig
-    from uwbcal.pipeline.vio.msckf import MsckfEstimator
 
     rec, reader = euroc_vi
     gt = rec.read_poses("/groundtruth/pose")
-    est = MsckfEstimator.from_recording(reader, VioConfig())
+    est = msckf_from_recording(reader, VioConfig())
     run_estimator(est, reader, None, None)
     e, span = _errors(est, gt)
     print(f"\nV1_01_micro, GT init with GT biases: max {e.max():.3f} m, final {e[-1]:.3f} m, {est.stats}")
@@ -70,15 +69,14 @@ def test_msckf_real_euroc_excerpt_within_10cm(euroc_vi):
 
 
 def test_msckf_real_euroc_excerpt_static_init(euroc_vi):
-    from uwbcal.pipeline.run.driver import run_estimator
+    from uwbcal.pipeline.run.driver import msckf_from_recording, run_estimator
     from uwbcal.pipeline.vio.config import VioConfig
-    from uwbcal.pipeline.vio.msckf import MsckfEstimator
     from uwbcal.pipeline.vio.static_init import static_init_from_recording
 
     rec, reader = euroc_vi
     gt = rec.read_poses("/groundtruth/pose")
     si = static_init_from_recording(rec)
-    est = MsckfEstimator.from_recording(reader, VioConfig(init_from_groundtruth=False), si.state, si.P)
+    est = msckf_from_recording(reader, VioConfig(init_from_groundtruth=False), si.state, si.P)
     run_estimator(est, reader, None, None)
     e, _ = _errors(est, gt, align=True)
     print(f"\nV1_01_micro, static init: posyaw-aligned max {e.max():.3f} m")

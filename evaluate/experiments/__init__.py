@@ -1,4 +1,4 @@
-"""`uwbcal experiment`: the paper's experiments as seeded Monte Carlo sweeps (DESIGN §7).
+"""`uwbcal experiment`: the paper's experiments as seeded Monte Carlo sweeps.
 
 Each experiment is a list of job parameters and one picklable job function; `montecarlo.run_jobs` runs them
 in-process, on local processes (``--jobs``) or on a Dask cluster (``--scheduler``) with identical results.

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-# the staged pipeline (DESIGN §4), in run order; a stage's number (its log file 01_frontend.rrd, ...) is its
+# the staged pipeline, in run order; a stage's number (its log file 01_frontend.rrd, ...) is its
 # position here + 1
 STAGES = ("frontend", "vio", "init", "refine", "localize", "evaluate")
 STAGE_NUMBER = {name: i + 1 for i, name in enumerate(STAGES)}

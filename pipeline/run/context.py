@@ -23,10 +23,9 @@ from uwbcal.pipeline.core.topics import (
 )
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.config import PipelineConfig
+from uwbcal.pipeline.run.driver import msckf_from_recording, odometry_from_recording
 from uwbcal.pipeline.run.windows import Windows, recording_windows
 from uwbcal.pipeline.vio.estimator import Estimator
-from uwbcal.pipeline.vio.msckf import MsckfEstimator
-from uwbcal.pipeline.vio.odometry_filter import OdometryEstimator
 from uwbcal.pipeline.vio.static_init import static_init_from_recording
 from uwbcal.pipeline.viz import runlog as rl
 
@@ -148,9 +147,9 @@ class StageContext:
                 # evaluator aligns position and yaw when it finds this
                 self.dir.save_json("static_init.json", res.summary())
                 initial, cov = res.state, res.P
-            return MsckfEstimator.from_recording(self.features_reader(), self.config.vio, initial, cov)
+            return msckf_from_recording(self.features_reader(), self.config.vio, initial, cov)
 
-        return OdometryEstimator.from_recording(self.reader, self.config.odometry)
+        return odometry_from_recording(self.reader, self.config.odometry)
 
     def assemble_trajectory(self) -> dict[str, np.ndarray]:
         return rd.assemble_trajectory(self.dir, self.windows())

@@ -1,5 +1,5 @@
 """The run directory: file names, atomic artefact I/O (anchors.csv, odometry MCAPs, trajectory.npz), checkpoints
-and the merged run.rrd (DESIGN §4)."""
+and the merged run.rrd."""
 
 from __future__ import annotations
 
@@ -252,7 +252,7 @@ def init_summary(r) -> dict:
 
 
 def undetermined_row(anchor, method: str, stage: str) -> dict:
-    """anchors.csv row of an anchor that was not determined: empty coordinates (DESIGN §9)."""
+    """anchors.csv row of an anchor that was not determined: empty coordinates."""
     return {
         "anchor": str(anchor),
         "method": method,

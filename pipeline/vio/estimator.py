@@ -11,7 +11,7 @@ import numpy as np
 from uwbcal.pipeline.core.geometry import rot_to_quat
 
 if TYPE_CHECKING:
-    from uwbcal.convert.recording import RangeData, RecordingReader
+    from uwbcal.convert.recording import RangeData
     from uwbcal.pipeline.core.state import State
 
 
@@ -76,7 +76,7 @@ class TrajectoryRecord:
 
 @dataclass
 class Span:
-    """What an estimator's `open` hands the driver: the stretch of the recording to process."""
+    """The stretch of the recording the driver processes (`driver.open_span`)."""
 
     source: str  # the recording, for messages
     end_ns: int
@@ -89,9 +89,10 @@ class Span:
 class Estimator(Protocol):
     """Everything the stages and the driver use of a pose source (MSCKF VIO, external-odometry filter).
 
-    The estimator is fed: `open` reads what it propagates with (IMU, odometry) and initialises; the driver then
-    merges `Span.frames` and `Span.ranges` in time order and calls `process_frame` / `process_range` (a frame
-    first when both have the same stamp), then `close`; a log observes it from outside (`viz.observers.log_span`)."""
+    The estimator is fed and opens no file: the driver reads what it propagates with (IMU, odometry) and feeds it
+    (the estimator checks it and initialises), then merges `Span.frames` and `Span.ranges` in time order and
+    calls `process_frame` / `process_range` (a frame first when both have the same stamp), then `close`; a log
+    observes it from outside (`viz.observers.log_span`)."""
 
     state: State
     t_ns: int
@@ -108,10 +109,6 @@ class Estimator(Protocol):
         estimator may carry earlier stages' records through a checkpoint) say about its consistency, times in s
         after ``t0_ns`` (the MSCKF: its visual updates' chi2 rejection rate; the odometry filter: nothing)."""
         ...
-
-    def open(
-        self, reader: RecordingReader, start_ns: int | None, end_ns: int | None, *, trace: bool
-    ) -> Span: ...
 
     def propagate_to(self, t_ns: int) -> None: ...
 

@@ -1,4 +1,4 @@
-"""KLT visual front-end: images -> persistent feature tracks (DESIGN §4 stage 1).
+"""KLT visual front-end: images -> persistent feature tracks.
 
 Per frame: track the previous features with pyramidal Lucas-Kanade (forward and backward; a track survives
 when the backward flow returns within ``fb_threshold_px``), reject outliers with a RANSAC/USAC fundamental

@@ -51,11 +51,14 @@ from uwbcal.pipeline.core.geometry import (
 )
 from uwbcal.pipeline.core.noise import NOISE_KEYS, OdometryFilterConfig, increment_noise
 from uwbcal.pipeline.core.state import Kind, Pose, State
-from uwbcal.pipeline.core.topics import TOPIC_RANGE
 from uwbcal.pipeline.vio.estimator import RangeHandler, RangeMeasurement, Span, TrajectoryRecord
 
 if TYPE_CHECKING:
-    from uwbcal.convert.recording import RecordingReader
+    from collections.abc import Iterator
+
+    from uwbcal.convert.recording import OdometryData
+
+OdometryFrame = tuple[int, np.ndarray, np.ndarray, np.ndarray]  # t_ns, R, p, ROS covariance (or None)
 
 _log = logging.getLogger(__name__)
 
@@ -234,21 +237,6 @@ class OdometryEstimator:
         self._R_ref = np.eye(3)
         self._p_ref = np.zeros(3)
 
-    @classmethod
-    def from_recording(
-        cls, reader: RecordingReader, config: OdometryFilterConfig | None = None
-    ) -> OdometryEstimator:
-        config = config or OdometryFilterConfig()
-        src = str(getattr(reader, "path", "recording"))
-        topics = reader.topics()
-        if config.topic not in topics or topics[config.topic].count == 0:
-            have = ", ".join(sorted(topics)) or "none"
-            raise InputError(
-                f"{src}: no '{config.topic}' messages (topics: {have}); the odometry pose source needs an "
-                "external odometry (convert with poses, or use the MSCKF with IMU + camera)"
-            )
-        return cls(config, src, getattr(reader, "calibration", None))
-
     @property
     def warnings(self) -> list[str]:
         return self.stats.warnings()
@@ -333,33 +321,16 @@ class OdometryEstimator:
         self._history.append(self.t_ns, x.R, x.p, self.state.cov(POSE))
 
     # -- fed by the driver (pipeline/run/driver.py) -------------------------------------------------------------------
-    def open(
-        self, reader: RecordingReader, start_ns: int | None, end_ns: int | None, *, trace: bool
-    ) -> Span | None:
-        """Read and clean the odometry from the state time on (no end: the message after ``end_ns`` interpolates
-        ranges just before it), initialise on the first call; the span's frames are the messages after the state
-        time and before ``end_ns``, its ranges all of ``[start_ns, end_ns)`` (those outside the odometry are
-        counted, not silently lost). None: nothing to do."""
+    def feed_odometry(self, od: OdometryData, src: str, start: int, end: int) -> Iterator[OdometryFrame]:
+        """The odometry from the state time on (no end: the message after ``end`` interpolates ranges just
+        before it), cleaned; initialise on the first call (at the first message from ``start``). Returns the
+        messages after the state time and before ``end``, the frames `process_frame` takes."""
         c = self.config
-        src = str(getattr(reader, "path", self.source))
-        topics = reader.topics()
-        if c.topic not in topics or topics[c.topic].count == 0:
-            raise InputError(f"{src}: no '{c.topic}' messages; the odometry pose source needs them")
-        info = topics[c.topic]
-        start = max(start_ns if start_ns is not None else info.start_ns, info.start_ns)
-        if self.initialized:
-            start = max(start, self.t_ns)
-        end = end_ns if end_ns is not None else info.end_ns + 1
-        if end <= start:
-            return None
-        od = reader.read_odometry(c.topic, self.t_ns if self.initialized else start, None)
         stats = OdometryStats()
         t, Rs, ps, covs = clean_odometry(od.t_ns, od.p, od.q_xyzw, od.cov, src, c.topic, stats)
         for k in ("duplicates", "out_of_order"):
             setattr(self.stats, k, getattr(self.stats, k) + getattr(stats, k))
-        first_record = len(self._history)
-        first_run = not self.initialized
-        if first_run:
+        if not self.initialized:
             i0 = int(np.searchsorted(t, start))
             if i0 >= len(t) or t[i0] >= end:
                 raise InputError(f"{src}: {c.topic}: no odometry in [{start}, {end}); nothing to run on")
@@ -369,15 +340,9 @@ class OdometryEstimator:
         self._odom = (t, Rs, ps)
         i = int(np.searchsorted(t, self.t_ns, side="right"))
         i_end = int(np.searchsorted(t, end, side="left"))
-        frames = ((int(t[k]), Rs[k], ps[k], covs[k]) for k in range(i, i_end))
-        ranges = None
-        if TOPIC_RANGE in topics:
-            r_lo = start_ns if start_ns is not None else (None if first_run else self.t_ns + 1)
-            rd = reader.read_ranges(TOPIC_RANGE, r_lo, end_ns)
-            ranges = rd if len(rd) else None
-        return Span(src, end, frames, ranges, first_record)
+        return ((int(t[k]), Rs[k], ps[k], covs[k]) for k in range(i, i_end))
 
-    def process_frame(self, frame: tuple[int, np.ndarray, np.ndarray, np.ndarray]) -> None:
+    def process_frame(self, frame: OdometryFrame) -> None:
         """One odometry message: the increment from the reference pose, recorded."""
         t_ns, R, p, cov = frame
         if t_ns - self.t_ns > int(self.config.gap_warn_s * 1e9):

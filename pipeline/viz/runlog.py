@@ -1,4 +1,4 @@
-"""The rerun run log (DESIGN §5): one `RunLog` per stage writes an .rrd atomically, with a blueprint.
+"""The rerun run log: one `RunLog` per stage writes an .rrd atomically, with a blueprint.
 
 Every stage logs through the same small object so that entity paths, timelines and styling stay consistent:
 timeline `sensor_time` (timestamp, recording time in ns) on every row and `stage` (sequence, see `STAGE_INDEX`)
@@ -45,7 +45,7 @@ STAGE_INDEX = {
     "evaluate": 6,
 }
 
-# -- entity paths (DESIGN §5) ------------------------------------------------------------------------------------
+# -- entity paths ------------------------------------------------------------------------------------
 WORLD = "world"
 GT = "world/gt"  # trajectory(GT, ...) -> world/gt/{trajectory,pose}
 GT_TRAJECTORY = "world/gt/trajectory"

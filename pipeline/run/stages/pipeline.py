@@ -1,4 +1,4 @@
-"""The staged pipeline (DESIGN §4): frontend -> vio -> init -> refine -> localize -> evaluate.
+"""The staged pipeline: frontend -> vio -> init -> refine -> localize -> evaluate.
 
 `Pipeline` owns one run directory and runs the stages of `stages.REGISTRY` in order; each stage is one module
 of `pipeline/run/stages/` (``run(ctx) -> StageResult``), reads the recording and the artefacts of the stage before

@@ -6,8 +6,8 @@ from __future__ import annotations
 from uwbcal.pipeline.core.topics import TOPIC_VIO
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.context import StageContext, StageResult
-from uwbcal.pipeline.run.driver import run_estimator
-from uwbcal.pipeline.vio.odometry_filter import OdometryEstimator, fit_drift_noise
+from uwbcal.pipeline.run.driver import odometry_from_recording, run_estimator
+from uwbcal.pipeline.vio.odometry_filter import fit_drift_noise
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -70,7 +70,7 @@ def _run_loose(ctx: StageContext) -> StageResult:
     ctx.dir.save_json("vio_drift.json", noise)
     cfg = ctx.config.odometry.model_copy(update={"topic": TOPIC_VIO, "error_model": "drift", **noise})
     reader = ctx.features_reader()
-    est = OdometryEstimator.from_recording(reader, cfg)
+    est = odometry_from_recording(reader, cfg)
     run_estimator(est, reader, win.start_ns, win.init_end_ns)
     ctx.dir.save_pickle("checkpoint_init.pkl", est)
     hist = est.history().arrays()
