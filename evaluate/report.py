@@ -30,7 +30,7 @@ from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.run.stages.refine import RANGE_UPDATES
 
 REPORT = "report.html"
-NIS_WINDOW = 50  # ranges per NIS average
+NIS_WINDOW = 25  # ranges per NIS block mean
 
 
 def _read_json(path: Path) -> dict:
@@ -128,9 +128,10 @@ def nis_view(upd: dict[str, np.ndarray]) -> str:
         nis = upd["nis"][m]
         if len(nis) < n:
             continue
-        avg = np.convolve(nis, np.ones(n) / n, mode="valid")
-        t = (upd["t_ns"][m][n - 1 :] - t0) * 1e-9
-        ax.plot(t, avg, lw=0.9, label=str(a))
+        k = len(nis) // n  # block means (disjoint): each one is a draw the band applies to
+        avg = nis[: k * n].reshape(k, n).mean(axis=1)
+        t = (upd["t_ns"][m][: k * n].reshape(k, n).mean(axis=1) - t0) * 1e-9
+        ax.plot(t, avg, ".-", lw=0.8, ms=4, label=str(a))
     ax.axhspan(lo, hi, color="tab:green", alpha=0.15, label=f"95% band of a mean of {n}")
     ax.axhline(1.0, color="0.4", lw=0.6)
     ax.set_yscale("log")
