@@ -201,7 +201,7 @@ def excitation_lines(data: CheckData, rep: CheckReport) -> None:
 
 
 # -- with truth -----------------------------------------------------------------------------------------------------
-def fit_lines(data: CheckData, rep: CheckReport) -> None:
+def fit_lines(data: CheckData, rep: CheckReport) -> list[ct.LinkFit]:
     s = ct.sample(data)
     fits = ct.predicted_vs_measured(data, s)
     rep.lines += [
@@ -216,9 +216,10 @@ def fit_lines(data: CheckData, rep: CheckReport) -> None:
     no_truth = sorted(set(np.unique(data.ranges.anchor).tolist()) - set(data.truth))
     if no_truth:
         rep.lines.append(f"  ranged without truth: {', '.join(map(str, no_truth))}")
+    return fits
 
 
-def id_lines(data: CheckData, rep: CheckReport) -> CheckData:
+def id_lines(data: CheckData, rep: CheckReport, fits: list[ct.LinkFit]) -> CheckData:
     """The id check; returns the data with the best assignment applied when a swap is found."""
     ids = ct.anchor_ids(data)
     rep.lines.append("anchor ids (scatter of each anchor's ranges at its own truth / at the best):")
@@ -227,6 +228,19 @@ def id_lines(data: CheckData, rep: CheckReport) -> CheckData:
         b = ids.best.get(a)
         at = ids.cost[i, ids.truth_ids.index(b)] if b is not None else float("nan")
         rep.lines.append(f"  anchor {a}: {own:.3f} m at its own, best truth {b} ({at:.3f} m)")
+    moved = {a for a, *_ in ids.swapped}
+    for a in sorted({f.anchor for f in fits} - moved):
+        mine = [f for f in fits if f.anchor == a]
+        frac = sum(f.frac_over_1m * f.n for f in mine) / max(1, sum(f.n for f in mine))
+        if frac > ct.MISFIT_FRAC:
+            rep.verdicts.append(
+                Verdict(
+                    f"anchor {a}: its ranges fit no surveyed position ({frac:.0%} of them > 1 m off the "
+                    "prediction, no other anchor's truth fits better)",
+                    "check its survey and id, or its line of sight (NLOS throughout); leave it out of an "
+                    "evaluation",
+                )
+            )
     if not ids.swapped:
         return data
     for a, b, there, own in ids.swapped:
@@ -323,8 +337,7 @@ def check_recording(recording: str | Path, anchors_truth: str | Path | None = No
     stamp_lines(data, rep)
     excitation_lines(data, rep)
     if data.truth and data.poses is not None:
-        fit_lines(data, rep)
-        data = id_lines(data, rep)
+        data = id_lines(data, rep, fit_lines(data, rep))
         s = ct.sample(data, ct.CLOCK_SCAN_S)
         first = ct.lever_arms(data, s)
         shift = clock_lines(data, rep, s, corrected_levers(data, first))

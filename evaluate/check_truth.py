@@ -17,10 +17,12 @@ from uwbcal.evaluate.check_data import CheckData
 MAX_ROWS = 20_000  # the truth tests use an even subsample of the ranges (their precision is ~1/sqrt(n))
 CLOCK_SCAN_S = 1.0  # offsets scanned: +-1 s
 CLOCK_STEP_S = 0.02
+CLOCK_MIN_S = 0.015  # an offset found below this is not named (the scan's resolution, refined by a parabola)
 BETTER = 1.05  # a hypothesis is named when the one given scatters this much more (and by > MIN_GAIN_M)
 MIN_GAIN_M = 0.003
 FITTED_BETTER = 1.25  # a fitted lever arm (3 free parameters) must gain more to be named
 SWAP_RATIO = 0.5  # an anchor's ranges fit another anchor's truth with under half the scatter
+MISFIT_FRAC = 0.5  # an anchor with more of its ranges > 1 m off the prediction fits its truth not at all
 
 
 def mad_sigma(x: np.ndarray) -> float:
@@ -233,7 +235,7 @@ class ClockCheck:
 
     @property
     def found(self) -> bool:
-        return abs(self.best_s) >= 1.5 * CLOCK_STEP_S and significant(self.at_zero, self.at_best)
+        return abs(self.best_s) >= CLOCK_MIN_S and significant(self.at_zero, self.at_best)
 
 
 def clock_offset(data: CheckData, s: Sample, levers=None) -> ClockCheck | None:
@@ -252,7 +254,8 @@ def clock_offset(data: CheckData, s: Sample, levers=None) -> ClockCheck | None:
     return ClockCheck(taus, sc, best, float(sc[np.argmin(np.abs(taus))]), at_best)
 
 
-def significant(given: float, best: float) -> bool:
+def significant(given: float, best: float, ratio: float = BETTER) -> bool:
+    """The best hypothesis scatters ``ratio`` times less than the given one, and by more than MIN_GAIN_M."""
     return bool(
-        np.isfinite(given) and np.isfinite(best) and given > BETTER * best and given - best > MIN_GAIN_M
+        np.isfinite(given) and np.isfinite(best) and given > ratio * best and given - best > MIN_GAIN_M
     )

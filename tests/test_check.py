@@ -82,3 +82,18 @@ def test_surveyed_rcv_clock_offset(data_dir, tmp_path):
     v = [x for x in check_recording(rec).render().splitlines() if x.startswith("PROBLEM clock offset")]
     assert len(v) == 1 and "s late" in v[0], v
     assert -0.15 < float(v[0].split("--time-offset ")[1]) < -0.03
+
+
+def test_an_anchor_fitting_no_survey_is_named(faults, tmp_path):
+    """A truth CSV (in the poses' frame) with anchor 3 surveyed 8 m off: named as fitting no survey, no swap."""
+    from uwbcal.convert.recording import RecordingReader
+
+    truth = RecordingReader(faults["none"]).truth["anchors"]
+    rows = ["anchor,x,y,z"]
+    for a, v in truth.items():
+        x, y, z = v["position"]
+        rows.append(f"{a},{x + (8.0 if a == '3' else 0.0)},{y},{z}")
+    (tmp_path / "truth.csv").write_text("\n".join(rows) + "\n")
+    v = check_recording(faults["none"], tmp_path / "truth.csv").render().split("verdict:\n")[1].splitlines()
+    assert any("anchor 3: its ranges fit no surveyed position" in x for x in v), v
+    assert not any("swap" in x for x in v), v
