@@ -23,6 +23,7 @@ OUTLIER_M = 0.5  # a range this far (and 4 MAD) from its link's running median i
 OUTLIER_WINDOW = 9
 WINDOW_GAP_S = 2.0  # a link silent this long (and 20 of its intervals) closes a visibility window
 LEVER_TOL_M = 0.05  # a fitted lever arm closer than this to the given one is not a finding
+PLANAR_M = 0.05  # a tag path this flat (std normal to its plane) leaves the anchors' heights unobservable
 POOR_SIGMA_M = 0.5  # an anchor whose weakest direction is determined worse than this is flagged
 
 
@@ -169,7 +170,21 @@ def excitation_lines(data: CheckData, rep: CheckReport) -> None:
         return
     r = data.ranges
     ok = data.covered(r.t_ns)
-    rep.lines.append("pose excitation per anchor (sigma of its position from these poses, offset free):")
+    x_all, _ = data.tag_positions(np.flatnonzero(ok)[:: max(1, int(ok.sum()) // 20000)])
+    normal = float(np.sqrt(max(np.linalg.eigvalsh(np.cov(x_all.T))[0], 0.0))) if len(x_all) > 3 else 0.0
+    rep.lines.append(
+        f"pose excitation (the tag's spread normal to its best plane {normal:.3f} m; per anchor the sigma of its "
+        "position from these poses and the range noise alone, offset free):"
+    )
+    if normal < PLANAR_M:
+        rep.verdicts.append(
+            Verdict(
+                f"the tag moves in a plane (spread {normal:.3f} m normal to it): anchor heights are not "
+                "observable from the ranges (each has a mirror across the plane)",
+                "give the heights from a survey (the calibration reports them as unobservable), or move the "
+                "tag up and down",
+            )
+        )
     for a in np.unique(r.anchor).tolist():
         idx = np.flatnonzero(ok & (r.anchor == a))
         if len(idx) < 10:
