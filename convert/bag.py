@@ -193,9 +193,18 @@ class BagReader:
         self._decoders[conn.id] = dec
         return dec
 
-    def messages(self, connections):
+    def span_ns(self, start_s: float | None, end_s: float | None) -> tuple[int | None, int | None]:
+        """Bag-time bounds [start, stop) for the seconds ``start_s`` / ``end_s`` after the bag's start."""
+        t0 = int(self.reader.start_time)
+        lo = None if start_s is None else t0 + int(round(start_s * 1e9))
+        hi = None if end_s is None else t0 + int(round(end_s * 1e9))
+        if lo is not None and hi is not None and hi <= lo:
+            raise InputError(f"{self.path}: --end {end_s:g} s is not after --start {start_s:g} s")
+        return lo, hi
+
+    def messages(self, connections, start: int | None = None, stop: int | None = None):
         try:
-            yield from self.reader.messages(connections=connections)
+            yield from self.reader.messages(connections=connections, start=start, stop=stop)
         except Exception as exc:  # noqa: BLE001
             raise _bag_error(self.path, exc) from None
 
@@ -508,6 +517,25 @@ def _uwb_section(r: RangeData, antennas: Path | None, given: dict | None, drops:
 # ---------------------------------------------------------------------------------------------------------------
 # conversion
 # ---------------------------------------------------------------------------------------------------------------
+def _surveyed_truth(path: str | Path | None) -> dict | None:
+    """``--anchors-truth``: the surveyed anchors in the ground truth's (world) frame."""
+    if path is None:
+        return None
+    return truth_record(read_anchor_truth(path), "surveyed", path, frame="world")
+
+
+def _account_trim(accounts: dict, drops: Drops, start_s: float | None, end_s: float | None) -> None:
+    """Messages of mapped topics outside ``--start``/``--end`` were not read: count them as dropped."""
+    if start_s is None and end_s is None:
+        return
+    span = f"outside --start {start_s or 0:g} s / --end {'end' if end_s is None else f'{end_s:g} s'}"
+    for t, acc in accounts.items():
+        left = acc["count"] - acc["converted"] - acc["dropped"]
+        if acc["role"] is not None and left > 0:
+            acc["dropped"] += left
+            drops.add(t, span, left)
+
+
 @dataclass
 class _BagRun:
     """One conversion's inputs and running accounts (what the steps of `convert_bag` share)."""
@@ -533,17 +561,18 @@ def convert_bag(
     groundtruth: str | None = None,
     antennas: str | Path | None = None,
     calibration: str | Path | None = None,
+    anchors_truth: str | Path | None = None,
+    start_s: float | None = None,
+    end_s: float | None = None,
     max_range: float = MAX_RANGE_M,
     time_offset: float = 0.0,
-    anchors_truth: str | Path | None = None,
 ) -> str:
     """Convert a ROS 1 / ROS 2 bag into one recording; returns a human summary. ``time_offset`` [s] is added to
-    every range stamp (a known range-to-pose clock offset). ``anchors_truth``: surveyed ``anchor,x,y,z`` in the
-    ground truth's frame -> ``uwbcal.truth`` (frame ``groundtruth``: compared frame-free, by inter-anchor
-    distances, as the run's world is the estimator's)."""
+    every range stamp (a known range-to-pose clock offset); ``anchors_truth``: a surveyed ``anchor,x,y,z`` CSV in
+    the ground truth's frame (``uwbcal.truth``); ``start_s`` / ``end_s``: keep the messages from / before these
+    seconds after the bag's start."""
     path = Path(path)
     time_offset_ns(time_offset)
-    truth_anchors = read_anchor_truth(anchors_truth) if anchors_truth is not None else None
     ant = Path(antennas) if antennas is not None else None
     if ant is not None and not ant.is_file():
         raise InputError(f"{ant}: antenna yaml not found")
@@ -553,6 +582,7 @@ def convert_bag(
     )
     cal = given_cal.to_metadata()
     drops = Drops()
+    truth = _surveyed_truth(anchors_truth)
     given = {"imu": imu, "cam0": cam0, "cam1": cam1, "uwb": list(uwb or []), "odometry": odometry}
     given["groundtruth"] = groundtruth
     with BagReader(path) as bag:
@@ -566,21 +596,22 @@ def convert_bag(
             )
         run = _BagRun(path, ant, cal, cal_source, roles, _accounts(topics, roles, drops), drops)
         use = [c for c in bag.connections if c.topic in roles]
+        lo, hi = bag.span_ns(start_s, end_s)
         files = [path] if path.is_file() else sorted(p for p in path.iterdir() if p.is_file())
-        hasher = Hasher(files + ([ant] if ant else []) + ([Path(calibration)] if calibration else []))
+        hasher = Hasher(files + [Path(f) for f in (ant, calibration, anchors_truth) if f is not None])
         with RecordingWriter(output) as w:
             conv = Converter(
                 w, lambda role, size, topic: check_image_size(given_cal, role, size, topic, cal_source)
             )
-            _convert_messages(bag, use, conv, run)
+            _convert_messages(bag, use, conv, run, lo, hi)
+            _account_trim(run.accounts, drops, start_s, end_s)
             raw_ranges, ranges = _write_bag_ranges(w, conv, run, max_range, time_offset)
             counts = dict(w.counts)
             if not counts:
                 raise InputError(f"{path}: nothing converted ({', '.join(roles)} had no usable message)")
             calib = _bag_calibration(run, conv, counts, raw_ranges, ranges, tmap.notes)
             w.set_metadata(META_CALIBRATION, calib)
-            if truth_anchors is not None:
-                truth = truth_record(truth_anchors, "surveyed", anchors_truth, "groundtruth")
+            if truth is not None:
                 drops.note(truth_note(truth["anchors"], ranges.anchor, Path(anchors_truth)))
                 w.set_metadata(META_TRUTH, truth)
             w.set_metadata(
@@ -612,13 +643,20 @@ def _accounts(topics: dict[str, tuple[str, int]], roles: dict[str, str], drops: 
     return accounts
 
 
-def _convert_messages(bag: BagReader, use: list, conv: Converter, run: _BagRun) -> None:
+def _convert_messages(
+    bag: BagReader,
+    use: list,
+    conv: Converter,
+    run: _BagRun,
+    start: int | None = None,
+    stop: int | None = None,
+) -> None:
     """Decode and convert every message of the connections ``use``; a message that does not decode or convert
     is dropped and counted (an `InputError` stops the conversion)."""
     drops = run.drops
     total = sum(c.msgcount for c in use)
     with progress(f"bag {run.path.name}", total) as advance:
-        for conn, bag_t, raw in bag.messages(use):
+        for conn, bag_t, raw in bag.messages(use, start, stop):
             acc = run.accounts[conn.topic]
             role = run.roles[conn.topic]
             advance(1)

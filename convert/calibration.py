@@ -131,6 +131,12 @@ class ImuCalibration(BaseModel):
         description="an accelerometer bias random walk > 0 [m/s^3/sqrt(Hz)]"
     )
     rate_hz: Positive | None = Field(None, description="the IMU rate > 0 [Hz] (default 200)")
+    noise_origin: Literal["allan", "tuned"] | None = Field(
+        None,
+        description="where the noise values come from: allan (a static Allan-variance / datasheet figure, which "
+        "leaves out vibration and scale-factor errors in motion: uwbcal run inflates it for a real IMU) or tuned "
+        "(the values an estimator was tuned with on such data); unset: used as given",
+    )
 
 
 class CameraCalibration(BaseModel):

@@ -150,7 +150,9 @@ def imu_calibration(path: Path) -> tuple[dict, np.ndarray]:
         "accelerometer_random_walk",
         "rate_hz",
     )
-    return {k: float(_field(d, k, path)) for k in keys}, sensor_T_BS(d, path)
+    # EuRoC's sensor.yaml: "inertial sensor noise model parameters (static)"
+    out: dict = {k: float(_field(d, k, path)) for k in keys}
+    return {**out, "noise_origin": "allan"}, sensor_T_BS(d, path)
 
 
 def camera_calibration(path: Path, T_B_imu: np.ndarray) -> dict:

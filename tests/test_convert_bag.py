@@ -15,6 +15,7 @@ from uwbcal.cli import app
 from uwbcal.convert import uwb_msgs
 from uwbcal.convert.bag import bag_info, convert_bag, detect_topics
 from uwbcal.convert.recording import RecordingReader
+from uwbcal.pipeline.core.errors import InputError
 
 FORMATS = ("ros1", "db3", "mcap")
 T0 = 1_700_000_000_000_000_000
@@ -323,3 +324,23 @@ def test_images_odometry_groundtruth(tmp_path, fmt):
     gt = r.read_poses("/groundtruth/pose")
     np.testing.assert_array_equal(gt.p[0], [1.0, 2.0, 3.0])
     assert r.source["topic_map"]["/vicon/body"] == "groundtruth"
+
+
+def test_trim_and_anchor_truth(tmp_path):
+    """--start/--end keep the messages in the span (the rest counted as dropped); --anchors-truth is the
+    recording's anchor truth in the ground truth's frame."""
+    bag, _ = write_bag("mcap", tmp_path / "in", "range")
+    csv = tmp_path / "anchors.csv"
+    csv.write_text("anchor,x,y,z\n10,1.0,2.0,3.0\n11,-1.0,0.5,2.0\n")
+    out = tmp_path / "rec.mcap"
+    convert_bag(bag, out, uwb=["/uwb/range"], anchors_truth=csv, start_s=0.25, end_s=0.65)
+    r = RecordingReader(out)
+    t = r.read_imu("/imu").t_ns
+    assert t.tolist() == [T0 + i * 100_000_000 for i in (3, 4, 5)]
+    acc = r.source["messages"]["/imu"]
+    assert acc["converted"] == 3 and acc["dropped"] == N - 3
+    truth = r.truth
+    assert truth["kind"] == "surveyed" and truth["anchors_frame"] == "world"
+    assert truth["anchors"]["10"]["position"] == [1.0, 2.0, 3.0]
+    with pytest.raises(InputError, match="--end"):
+        convert_bag(bag, tmp_path / "bad.mcap", start_s=0.5, end_s=0.2)

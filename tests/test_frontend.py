@@ -7,7 +7,16 @@ from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import exp_so3
 from uwbcal.pipeline.vio.camera import Camera
 from uwbcal.pipeline.vio.config import FrontendConfig
-from uwbcal.pipeline.vio.frontend import KltFrontend, bucket_select, decode_image, run_frontend, track_frames
+from uwbcal.pipeline.vio.frontend import (
+    DescriptorFrontend,
+    GyroRotation,
+    KltFrontend,
+    bucket_select,
+    decode_image,
+    make_frontend,
+    run_frontend,
+    track_frames,
+)
 
 from support import T0
 
@@ -203,3 +212,35 @@ def test_real_euroc_recording_to_features_with_stereo(euroc_recording, tmp_path)
     assert len(stats.stereo_ratio) == 95 and np.mean(stats.stereo_ratio) > 0.5
     got = list(RecordingReader(tmp_path / "f.mcap").iter_features())
     assert len(got) == 95
+
+
+def test_descriptor_tracker_follows_a_fast_motion_with_the_rotation_prediction():
+    """30 px per frame (a fast turn at a low frame rate): the tracker started at the gyro-predicted pixels keeps
+    the ids and the positions; the rotation that moves the image by the step is what a gyro would report."""
+    step = np.array([30.0, 0.0])
+    frames = _shifted_frames(n=6, step=tuple(step))
+    theta = np.arctan(step[0] / 250.0)
+
+    def rotation(t0, t1):
+        return exp_so3(np.array([0.0, theta * (t1 - t0) / 50_000_000, 0.0]))
+
+    cfg = FrontendConfig(tracker="descriptor", max_features=120, equalize=False)
+    fe = make_frontend(cfg, Camera.from_calibration({"cameras": {"cam0": PINHOLE}}), rotation=rotation)
+    assert isinstance(fe, DescriptorFrontend)
+    out = list(track_frames(fe, frames))
+    for k in range(1, len(out)):
+        (_, ida, uva), (_, idb, uvb) = out[k - 1], out[k]
+        common, ia, ib = np.intersect1d(ida, idb, return_indices=True)
+        assert len(common) > 0.6 * len(ida)
+        err = uvb[ib] - (uva[ia] - step)
+        assert np.median(np.linalg.norm(err, axis=1)) < 0.2
+
+
+def test_gyro_rotation_is_the_camera_frame_rotation_between_stamps():
+    t = T0 + np.arange(101) * 10_000_000
+    w = np.tile([0.0, 0.0, 0.5], (len(t), 1))
+    R_ic = exp_so3(np.array([0.3, -0.2, 0.1]))
+    rot = GyroRotation(t, w, R_ic)
+    got = rot(int(t[10]) + 5_000_000, int(t[60]))
+    want = R_ic.T @ exp_so3(np.array([0.0, 0.0, 0.5 * 0.495])) @ R_ic
+    np.testing.assert_allclose(got, want, atol=1e-9)

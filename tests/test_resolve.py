@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from uwbcal.pipeline.core.topics import TOPIC_FEATURES, TOPIC_IMU, TOPIC_ODOM, TOPIC_RANGE
+from uwbcal.pipeline.core.topics import TOPIC_CAM0, TOPIC_FEATURES, TOPIC_IMU, TOPIC_ODOM, TOPIC_RANGE
 from uwbcal.pipeline.run.config import load_config
-from uwbcal.pipeline.run.resolve import REAL_IMU_DEFAULTS, imu_is_real, resolve
+from uwbcal.pipeline.run.resolve import ALLAN_NOISE_INFLATION, imu_is_real, resolve
 
 S = 1_000_000_000
 
@@ -57,14 +57,37 @@ def test_simulated_msckf_keeps_the_papers_defaults_and_never_changes_the_input()
 
 def test_real_imu_defaults_fill_only_unset_keys():
     cfg = load_config(None, {"run": {"recording": "stub.mcap"}, "vio": {"max_clones": 12}})
-    res = resolve(cfg, StubReader([TOPIC_IMU, TOPIC_FEATURES, TOPIC_RANGE], dataset="euroc"))
+    allan = {"imu": {"noise_origin": "allan"}}
+    res = resolve(cfg, StubReader([TOPIC_IMU, TOPIC_FEATURES, TOPIC_RANGE], "euroc", allan))
     got = _choices(res)
     assert res.config.vio.max_clones == 12 and "vio.max_clones" not in got
-    assert got["vio.imu_noise_inflation"] == REAL_IMU_DEFAULTS["imu_noise_inflation"]
+    assert got["vio.imu_noise_inflation"] == ALLAN_NOISE_INFLATION
     assert got["vio.init_from_groundtruth"] is False and got["uwb.init_method"] == "ri-robust"
     assert imu_is_real({"dataset": "hybrid", "real": ["/imu"]}) and not imu_is_real(
         {"dataset": "x", "real": []}
     )
+
+
+def test_real_imu_noise_is_taken_as_given_unless_declared_a_static_figure():
+    cfg = load_config(None, {"run": {"recording": "stub.mcap"}})
+    for origin, want in ((None, 1.0), ("tuned", 1.0), ("allan", ALLAN_NOISE_INFLATION)):
+        cal = {"imu": {"noise_origin": origin} if origin else {}}
+        res = resolve(cfg, StubReader([TOPIC_IMU, TOPIC_FEATURES, TOPIC_RANGE], "bag", cal))
+        choice = next(c for c in res.choices if c.key == "vio.imu_noise_inflation")
+        assert choice.value == want and "noise_origin" in choice.reason
+    told = load_config(None, {"run": {"recording": "stub.mcap"}, "vio": {"imu_noise_inflation": 2.0}})
+    res = resolve(told, StubReader([TOPIC_IMU, TOPIC_FEATURES, TOPIC_RANGE], "bag", {}))
+    assert res.config.vio.imu_noise_inflation == 2.0
+
+
+def test_a_slow_camera_gets_the_descriptor_tracker_with_its_reason():
+    cfg = load_config(None, {"run": {"recording": "stub.mcap"}})
+    res = resolve(cfg, StubReader([TOPIC_IMU, TOPIC_CAM0, TOPIC_RANGE], "bag", {}))  # 100 frames over 90 s
+    choice = next(c for c in res.choices if c.key == "frontend.tracker")
+    assert choice.value == "descriptor" and "descriptor_below_hz" in choice.reason
+    told = load_config(None, {"run": {"recording": "stub.mcap"}, "frontend": {"tracker": "klt"}})
+    res = resolve(told, StubReader([TOPIC_IMU, TOPIC_CAM0, TOPIC_RANGE], "bag", {}))
+    assert res.config.frontend.tracker == "klt" and not any(c.key == "frontend.tracker" for c in res.choices)
 
 
 def test_odometry_takes_the_declared_noise_and_error_model():

@@ -7,6 +7,7 @@ from uwbcal.pipeline.core.geometry import exp_so3
 from uwbcal.pipeline.vio.static_init import (
     StaticInitConfig,
     gravity_aligned_rotation,
+    image_still,
     roll_pitch,
     static_init_from_recording,
     static_initialize,
@@ -151,3 +152,27 @@ def test_real_euroc_flight_part_is_refused(data_dir):
     start = np.searchsorted(t, t[0] + int(8e9))  # in flight
     with pytest.raises(InputError, match="not still at the start"):
         static_initialize(t[start:], gyro[start:], acc[start:])
+
+
+def _frames(t_move_s, n=30, rate=3.0, speed_px=20.0):
+    """Tracks at rest (0.3 px noise) until t_move_s, then sliding at speed_px per frame."""
+    rng = np.random.default_rng(1)
+    ids = np.arange(50)
+    uv0 = rng.uniform(50, 400, size=(50, 2))
+    for k in range(n):
+        t = k / rate
+        shift = max(0.0, t - t_move_s) * rate * speed_px
+        yield T0 + int(t * 1e9), ids, uv0 + [shift, 0.0] + 0.3 * rng.normal(size=(50, 2))
+
+
+def test_images_end_the_still_period_when_the_camera_moves_first():
+    """A hand-held start: the IMU passes as still for 3 s, the images move after 2 s."""
+    t, gyro, acc, *_ = _synthetic(still_s=3.0)
+    cfg = StaticInitConfig()
+    imgs = image_still(_frames(2.0), cfg)
+    assert imgs.moved and imgs.t_end_ns == T0 + 2 * 1_000_000_000
+    res = static_initialize(t, gyro, acc, cfg, images=imgs)
+    assert res.t_end_ns <= imgs.t_end_ns and "images move" in res.image_check
+    assert not image_still(_frames(99.0), cfg).moved
+    with pytest.raises(InputError, match="images move"):
+        static_initialize(t, gyro, acc, cfg, images=image_still(_frames(0.4), cfg))

@@ -26,7 +26,7 @@ from uwbcal.pipeline.run.config import PipelineConfig
 from uwbcal.pipeline.run.driver import msckf_from_recording, odometry_from_recording
 from uwbcal.pipeline.run.windows import Windows, recording_windows
 from uwbcal.pipeline.vio.estimator import Estimator
-from uwbcal.pipeline.vio.static_init import static_init_from_recording
+from uwbcal.pipeline.vio.static_init import StaticInitConfig, static_init_from_recording
 from uwbcal.pipeline.viz import runlog as rl
 
 _log = logging.getLogger(__name__)
@@ -141,7 +141,8 @@ class StageContext:
         if self.pose_source() == "msckf":
             initial = cov = None
             if not self.config.vio.init_from_groundtruth:  # real data without usable ground truth
-                res = static_init_from_recording(self.reader, start_ns=self.windows().start_ns)
+                sc = StaticInitConfig(max_disparity_px=self.config.vio.init_max_disparity_px)
+                res = static_init_from_recording(self.features_reader(), sc, self.windows().start_ns)
                 _log.info("vio: static initialisation: %s", res)
                 # the world frame is the initialiser's (gravity-aligned, yaw 0, origin at the start): the
                 # evaluator aligns position and yaw when it finds this

@@ -6,9 +6,12 @@ reason) that the run directory keeps (``resolved.json``) beside the config that 
 
 - ``run.pose_source``: the MSCKF when the recording has an IMU and camera (images or tracks), else the
   odometry filter;
+- ``frontend.tracker``: descriptor tracking for slow cameras or poor KLT survival (`choose_tracker`), when the
+  recording has images and no tracks;
 - ``uwb.init_method``: ri-robust on real recordings (NLOS ranges are the rule), the paper's ri on simulated;
 - odometry pose source: ``odometry.error_model`` and the drift sigmas the recording's calibration declares;
-- MSCKF on a real IMU: `REAL_IMU_DEFAULTS` for the vio keys not set;
+- MSCKF on a real IMU: `REAL_IMU_DEFAULTS` for the vio keys not set, the IMU noise inflation from the
+  calibration's ``imu.noise_origin`` (`imu_noise_inflation`);
 - ``uwb.lever_arms``: planar lever arms when an external, bounded pose source carries several antennas in a
   plane (`planar_levers.choose_lever_arms`), else the calibration's;
 - ``run.schedule``: per anchor when an anchor is ranged mostly after the first window, or the poses have a
@@ -30,22 +33,35 @@ from uwbcal.pipeline.run.windows import Windows, recording_windows
 from uwbcal.pipeline.uwb.planar_levers import choose_lever_arms
 from uwbcal.pipeline.uwb.schedule import choose_schedule
 from uwbcal.pipeline.uwb.updater import auto_init_method, lever_arms
+from uwbcal.pipeline.vio.frontend import choose_tracker
 from uwbcal.pipeline.vio.odometry_filter import declared_noise, resolve_error_model
 
 # VIO defaults for a *real* IMU (its recording's source is not the simulator, or a hybrid lists /imu as real):
 # - init_from_groundtruth = false: the static initialiser starts the filter, as for a user without ground truth
 #   (world frame gravity-aligned, yaw 0, origin at the start; the evaluator aligns position and yaw);
-# - imu_noise_inflation = 5: a datasheet / static Allan-variance figure leaves out rotor vibration,
-#   scale-factor and axis-misalignment errors in flight (docs/results/measurements.md: EuRoC V1_01's residual
-#   densities are 5-10x sensor.yaml's);
-# - max_clones = 30: with the inflated IMU noise the filter leans on vision; 30 clones hold the parallax;
+# - max_clones = 30: a real camera's tracks need the parallax of a long window;
 # - max_slam_features = 25 (OpenVINS' EuRoC setting): landmarks in the state hold the drift while in view.
+# The IMU noise inflation is `imu_noise_inflation`'s: the calibration's values as given unless they are declared a
+# static Allan-variance figure.
 REAL_IMU_DEFAULTS: dict[str, object] = {
     "init_from_groundtruth": False,
-    "imu_noise_inflation": 5.0,
     "max_clones": 30,
     "max_slam_features": 25,
 }
+# a static Allan-variance / datasheet figure leaves out vibration, scale-factor and axis-misalignment errors in
+# motion (docs/results/measurements.md: EuRoC V1_01's residual densities are 5-10x its sensor.yaml's)
+ALLAN_NOISE_INFLATION = 5.0
+
+
+def imu_noise_inflation(calibration: dict | None) -> tuple[float, str]:
+    """The factor on a real IMU's declared noise, and why (``imu.noise_origin`` of the calibration)."""
+    origin = ((calibration or {}).get("imu") or {}).get("noise_origin")
+    if origin == "allan":
+        return (
+            ALLAN_NOISE_INFLATION,
+            "real IMU, calibration noise is a static Allan-variance figure (imu.noise_origin)",
+        )
+    return 1.0, f"real IMU, the calibration's noise values as given (imu.noise_origin {origin or 'unset'})"
 
 
 @dataclass(frozen=True)
@@ -96,6 +112,7 @@ def resolve(config: PipelineConfig, reader: RecordingReader) -> ResolvedConfig:
     """Every recording-aware default of ``config`` for ``reader``'s recording (the module docstring's rules)."""
     b = _Builder(config)
     _pose_source(b, reader)
+    _tracker(b, reader)
     if b.config.uwb.init_method == "auto":
         m = auto_init_method(reader.source.get("dataset"))
         b.set("uwb.init_method", m, "simulated recording" if m == "ri" else "real recording: NLOS ranges")
@@ -105,6 +122,8 @@ def resolve(config: PipelineConfig, reader: RecordingReader) -> ResolvedConfig:
         for k, v in REAL_IMU_DEFAULTS.items():
             if b.unset(f"vio.{k}"):
                 b.set(f"vio.{k}", v, "real-IMU default")
+        if b.unset("vio.imu_noise_inflation"):
+            b.set("vio.imu_noise_inflation", *imu_noise_inflation(reader.calibration))
     if b.config.uwb.lever_arms == "auto":
         b.set("uwb.lever_arms", *_lever_arms(b.config, reader))
     if b.config.run.schedule == "auto":
@@ -122,6 +141,12 @@ def _pose_source(b: _Builder, reader: RecordingReader) -> None:
         b.set("run.pose_source", "msckf", "IMU and camera in the recording")
     else:
         b.set("run.pose_source", "odometry", "no IMU + camera: the odometry filter on /odometry")
+
+
+def _tracker(b: _Builder, reader: RecordingReader) -> None:
+    topics = reader.topics()
+    if b.config.frontend.tracker == "auto" and TOPIC_CAM0 in topics and TOPIC_FEATURES not in topics:
+        b.set("frontend.tracker", *choose_tracker(reader, b.config.frontend))
 
 
 def _odometry(b: _Builder, reader: RecordingReader) -> None:

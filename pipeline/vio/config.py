@@ -17,6 +17,12 @@ class VioConfig(BaseModel):
     min_track_length: int = Field(3, ge=2, description="frames a track needs before it updates the MSCKF")
     max_features_per_update: int = Field(150, ge=1, description="longest tracks first")
     init_from_groundtruth: bool = Field(True, description="initial R, p, v (and biases) from ground truth")
+    init_max_disparity_px: float | None = Field(
+        5.0,
+        gt=0,
+        description="static initialisation: the rest ends before the first frame whose tracks moved more than this "
+        "since the first one (median) [px] (OpenVINS' init_max_disparity); unset: the IMU alone decides",
+    )
     sigma_theta0: float = Field(1e-3, gt=0, description="initial orientation sigma [rad]")
     sigma_p0: float = Field(1e-3, gt=0, description="initial position sigma [m]")
     sigma_v0: float = Field(1e-2, gt=0, description="initial velocity sigma [m/s]")
@@ -83,6 +89,36 @@ class VioConfig(BaseModel):
 
 class FrontendConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
+    tracker: Literal["auto", "klt", "descriptor"] = Field(
+        "auto",
+        description="klt: pyramidal Lucas-Kanade (fast cameras); descriptor: FAST corners + ORB descriptors matched "
+        "around the gyro-predicted position (low frame rates, fast turns); auto: descriptor when the camera is "
+        "slower than descriptor_below_hz or too few KLT tracks survive between sampled frames (klt_min_survival)",
+    )
+    descriptor_below_hz: float = Field(
+        10.0, gt=0, description="auto: descriptor tracking for cameras slower than this [Hz]"
+    )
+    klt_min_survival: float = Field(
+        0.6,
+        gt=0,
+        le=1,
+        description="auto: descriptor tracking when the lower quartile of the KLT track survival between "
+        "consecutive frames (sampled over the recording) is below this fraction",
+    )
+    match_radius_px: float = Field(
+        40.0, gt=0, description="descriptor: search radius around the rotation-predicted position [px]"
+    )
+    match_max_hamming: int = Field(
+        60, gt=0, le=256, description="descriptor: largest Hamming distance of a match (ORB, 256 bits)"
+    )
+    match_ratio: float = Field(
+        0.8,
+        gt=0,
+        le=1,
+        description="descriptor: best match below this fraction of the second best (ratio test)",
+    )
+    fast_threshold: int = Field(15, gt=0, description="descriptor: FAST corner threshold (intensity levels)")
 
     max_features: int = Field(200, gt=0, description="target number of live tracks per frame")
     grid_cols: int = Field(

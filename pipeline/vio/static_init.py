@@ -9,6 +9,9 @@ hand-held or flying start does not). Over that prefix:
 - gyroscope bias = mean gyroscope (the earth rate, 7e-5 rad/s, is below the noise of MEMS gyros);
 - accelerometer bias = 0, or with ``accel_bias = "gravity_residual"`` the part along gravity,
   ``(|f| - g) f/|f|`` (the only accelerometer bias component a static period reveals);
+- the images agree (OpenVINS' ``init_max_disparity``): with feature tracks, the still period also ends before
+  the first frame whose tracks moved more than ``max_disparity_px`` since the first frame (a hand-held rig can
+  start moving while the IMU still passes as quiet);
 - p = 0, v = 0; covariance from the configured sigmas, with the roll/pitch sigma not below what the
   accelerometer noise over the window allows.
 
@@ -17,6 +20,7 @@ The result is the initial `ImuState` and 15x15 covariance for the MSCKF (``initi
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
@@ -26,6 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import exp_so3
 from uwbcal.pipeline.core.state import ImuState
+from uwbcal.pipeline.core.topics import TOPIC_FEATURES
 
 if TYPE_CHECKING:
     from uwbcal.convert.recording import RecordingReader
@@ -54,6 +59,16 @@ class StaticInitConfig(BaseModel):
     sigma_v: float = Field(0.02, gt=0)
     sigma_bg_min: float = Field(1e-3, gt=0, description="floor of the gyro bias sigma [rad/s]")
     sigma_ba: float = Field(0.1, gt=0, description="accelerometer bias sigma [m/s^2]")
+    max_disparity_px: float | None = Field(
+        5.0,
+        gt=0,
+        description="the images must agree: the still period ends before the first frame whose tracks moved more "
+        "than this (median, since the first frame) [px]: well above the noise (1 px per axis in two frames gives a "
+        "median of 1.7 px) (OpenVINS' init_max_disparity; None: IMU only)",
+    )
+    min_disparity_tracks: int = Field(
+        10, ge=1, description="tracks a frame needs in common with the first one"
+    )
 
 
 @dataclass
@@ -66,6 +81,7 @@ class StaticInitResult:
     acc_norm_mean: float
     acc_norm_std: float
     gyro_std: float
+    image_check: str = ""  # what the images said about the still period ("" when not checked)
 
     @property
     def t_ns(self) -> int:
@@ -92,6 +108,7 @@ class StaticInitResult:
             "ba": s.ba.tolist(),
             "sigma": np.sqrt(np.diag(self.P)).tolist(),
             "world_frame": "gravity-aligned, yaw 0 and origin at the start (not the ground truth's frame)",
+            "image_check": self.image_check,
         }
 
     def __str__(self) -> str:
@@ -100,6 +117,7 @@ class StaticInitResult:
             f"|acc| {self.acc_norm_mean:.3f} ± {self.acc_norm_std:.3f} m/s², gyro std {self.gyro_std:.4f} rad/s, "
             f"roll/pitch {np.degrees(roll_pitch(self.state.R)).round(2).tolist()} deg, "
             f"bg {self.state.bg.round(4).tolist()} rad/s"
+            + (f"; {self.image_check}" if self.image_check else "")
         )
 
 
@@ -146,14 +164,52 @@ def still_prefix(t_ns: np.ndarray, gyro: np.ndarray, acc: np.ndarray, config: St
     return k
 
 
+@dataclass(frozen=True)
+class ImageStill:
+    """Until when the feature tracks say the camera rests: ``t_end_ns`` (None: moving from the first frame)."""
+
+    t_end_ns: int | None
+    disparity_px: float  # median track motion since the first frame at the frame that ended it (or the last)
+    frames: int
+    moved: bool
+
+    def __str__(self) -> str:
+        if not self.moved:
+            return f"images still over {self.frames} frame(s) (disparity {self.disparity_px:.2f} px)"
+        return f"images move after frame {self.frames} (disparity {self.disparity_px:.2f} px)"
+
+
+def image_still(frames: Iterable[tuple[int, np.ndarray, np.ndarray]], config: StaticInitConfig) -> ImageStill:
+    """The rest the images allow: frames ``(t_ns, ids, uv)`` until the median motion of the tracks in common with
+    the first frame exceeds ``max_disparity_px`` (too few tracks in common count as motion)."""
+    first: dict[int, np.ndarray] = {}
+    last, disp, n = None, 0.0, 0
+    for t, ids, uv in frames:
+        if n == 0:
+            first = dict(zip(ids.tolist(), np.asarray(uv, float), strict=True))
+            last, n = int(t), 1
+            continue
+        keep = [i for i, k in enumerate(ids.tolist()) if k in first]
+        if len(keep) < config.min_disparity_tracks:
+            return ImageStill(last, float("inf"), n, True)
+        ref = np.array([first[int(ids[i])] for i in keep])
+        disp = float(np.median(np.linalg.norm(np.asarray(uv, float)[keep] - ref, axis=1)))
+        if disp > float(config.max_disparity_px or np.inf):
+            return ImageStill(last, disp, n, True)
+        last, n = int(t), n + 1
+    return ImageStill(last, disp, n, False)
+
+
 def static_initialize(
     t_ns: np.ndarray,
     gyro: np.ndarray,
     acc: np.ndarray,
     config: StaticInitConfig | None = None,
     source: str = "imu",
+    images: ImageStill | None = None,
 ) -> StaticInitResult:
-    """Initial IMU state and covariance from a still period at the start of ``(t_ns, gyro, acc)``."""
+    """Initial IMU state and covariance from a still period at the start of ``(t_ns, gyro, acc)`` (ended earlier
+    where ``images`` say the camera moved)."""
     c = config or StaticInitConfig()
     t_ns = np.asarray(t_ns, np.int64)
     gyro = np.asarray(gyro, float)
@@ -173,6 +229,11 @@ def static_initialize(
             f"{source}: IMU @ {int(t_ns[np.flatnonzero(bad)[0]])}: NaN/inf sample; repair the IMU data"
         )
     n = still_prefix(t_ns, gyro, acc, c)
+    why = ""
+    if images is not None and images.moved:
+        cut = 0 if images.t_end_ns is None else int(np.searchsorted(t_ns, images.t_end_ns, side="right"))
+        if cut < n:
+            n, why = cut, f"; the {images}"
     still_s = (t_ns[n - 1] - t_ns[0]) * 1e-9 if n > 0 else 0.0
     if n == 0 or still_s < c.min_still_s - 1e-9:
         m = np.searchsorted(t_ns, t_ns[0] + int(c.window_s * 1e9))
@@ -180,7 +241,8 @@ def static_initialize(
         raise InputError(
             f"{source}: the IMU is not still at the start (first {c.window_s:g} s: |acc| std "
             f"{an.std():.3f} m/s² (max {c.acc_norm_std_max:g}), gyro std {np.linalg.norm(gyro[:m].std(0)):.4f} "
-            f"rad/s (max {c.gyro_std_max:g}); still for {still_s:.2f} s < {c.min_still_s:g} s); {hint}"
+            f"rad/s (max {c.gyro_std_max:g}); still for {still_s:.2f} s < {c.min_still_s:g} s{why}); {hint} "
+            "(convert bag --start trims a moving start)"
         )
     if c.max_still_s is not None:
         n = min(n, int(np.searchsorted(t_ns, t_ns[0] + int(c.max_still_s * 1e9), side="right")))
@@ -216,6 +278,7 @@ def static_initialize(
         float(an.mean()),
         float(an.std()),
         float(np.linalg.norm(gstd)),
+        "" if images is None else str(images),
     )
 
 
@@ -225,7 +288,8 @@ def static_init_from_recording(
     start_ns: int | None = None,
     topic: str = "/imu",
 ) -> StaticInitResult:
-    """Static initialisation from the recording's IMU, starting at ``start_ns`` (default: the first sample)."""
+    """Static initialisation from the recording's IMU, starting at ``start_ns`` (default: the first sample); with
+    feature tracks in the recording, the images must rest too (`image_still`)."""
     c = config or StaticInitConfig()
     src = str(getattr(reader, "path", "recording"))
     topics = reader.topics()
@@ -234,13 +298,18 @@ def static_init_from_recording(
     t0 = start_ns if start_ns is not None else topics[topic].start_ns
     horizon = max(c.max_still_s or 0.0, 30.0 * c.window_s, c.min_still_s + c.window_s)
     imu = reader.read_imu(topic, t0, t0 + int(horizon * 1e9))
-    return static_initialize(imu.t_ns, imu.gyro, imu.acc, c, f"{src}: {topic}")
+    images = None
+    if c.max_disparity_px is not None and TOPIC_FEATURES in topics:
+        images = image_still(reader.iter_features(TOPIC_FEATURES, t0, t0 + int(horizon * 1e9)), c)
+    return static_initialize(imu.t_ns, imu.gyro, imu.acc, c, f"{src}: {topic}", images)
 
 
 __all__ = [
+    "ImageStill",
     "StaticInitConfig",
     "StaticInitResult",
     "gravity_aligned_rotation",
+    "image_still",
     "roll_pitch",
     "static_init_from_recording",
     "static_initialize",
