@@ -23,7 +23,7 @@ OUTLIER_M = 0.5  # a range this far (and 4 MAD) from its link's running median i
 OUTLIER_WINDOW = 9
 WINDOW_GAP_S = 2.0  # a link silent this long (and 20 of its intervals) closes a visibility window
 LEVER_TOL_M = 0.05  # a fitted lever arm closer than this to the given one is not a finding
-PLANAR_M = 0.05  # a tag path this flat (std normal to its plane) leaves the anchors' heights unobservable
+PLANAR_M = 0.15  # a tag path this flat (std normal to its plane; 3 x a 5 cm pose error) hides a coordinate
 POOR_SIGMA_M = 0.5  # an anchor whose weakest direction is determined worse than this is flagged
 
 
@@ -171,7 +171,11 @@ def excitation_lines(data: CheckData, rep: CheckReport) -> None:
     r = data.ranges
     ok = data.covered(r.t_ns)
     x_all, _ = data.tag_positions(np.flatnonzero(ok)[:: max(1, int(ok.sum()) // 20000)])
-    normal = float(np.sqrt(max(np.linalg.eigvalsh(np.cov(x_all.T))[0], 0.0))) if len(x_all) > 3 else 0.0
+    w, V = np.linalg.eigh(np.cov(x_all.T)) if len(x_all) > 3 else (np.zeros(3), np.eye(3))
+    normal = float(np.sqrt(max(w[0], 0.0)))
+    across = (
+        "heights" if abs(V[2, 0]) > 0.7 else f"coordinates along ~{'xyz'[int(np.argmax(np.abs(V[:, 0])))]}"
+    )
     rep.lines.append(
         f"pose excitation (the tag's spread normal to its best plane {normal:.3f} m; per anchor the sigma of its "
         "position from these poses and the range noise alone, offset free):"
@@ -179,10 +183,10 @@ def excitation_lines(data: CheckData, rep: CheckReport) -> None:
     if normal < PLANAR_M:
         rep.verdicts.append(
             Verdict(
-                f"the tag moves in a plane (spread {normal:.3f} m normal to it): anchor heights are not "
+                f"the tag moves in a plane (spread {normal:.3f} m normal to it): the anchors' {across} are not "
                 "observable from the ranges (each has a mirror across the plane)",
-                "give the heights from a survey (the calibration reports them as unobservable), or move the "
-                "tag up and down",
+                f"give the {across} from a survey (the calibration reports them as unobservable), or move the "
+                "tag across the plane",
             )
         )
     for a in np.unique(r.anchor).tolist():
