@@ -18,7 +18,7 @@ class VioConfig(BaseModel):
     max_features_per_update: int = Field(150, ge=1, description="longest tracks first")
     init_from_groundtruth: bool = Field(True, description="initial R, p, v (and biases) from ground truth")
     init_max_disparity_px: float | None = Field(
-        2.0,
+        5.0,
         gt=0,
         description="static initialisation: the rest ends before the first frame whose tracks moved more than this "
         "since the first one (median) [px] (OpenVINS' init_max_disparity); unset: the IMU alone decides",

@@ -60,10 +60,11 @@ class StaticInitConfig(BaseModel):
     sigma_bg_min: float = Field(1e-3, gt=0, description="floor of the gyro bias sigma [rad/s]")
     sigma_ba: float = Field(0.1, gt=0, description="accelerometer bias sigma [m/s^2]")
     max_disparity_px: float | None = Field(
-        2.0,
+        5.0,
         gt=0,
         description="the images must agree: the still period ends before the first frame whose tracks moved more "
-        "than this (median, since the first frame) [px] (OpenVINS' init_max_disparity; None: IMU only)",
+        "than this (median, since the first frame) [px]: well above the noise (1 px per axis in two frames gives a "
+        "median of 1.7 px) (OpenVINS' init_max_disparity; None: IMU only)",
     )
     min_disparity_tracks: int = Field(
         10, ge=1, description="tracks a frame needs in common with the first one"
