@@ -96,6 +96,9 @@ def assess(
         found.append(_first(t, sig, config.max_position_sigma, "covariance", "vio.max_position_sigma"))
     if rejection is not None:
         tr, frac, _ = rejection
+        big = np.iinfo(np.int64).max
+        keep = (tr >= (-big if start_ns is None else start_ns)) & (tr < (big if end_ns is None else end_ns))
+        tr, frac = tr[keep], frac[keep]
         found.append(
             _first(tr, frac, config.consistency_max_rejected, "chi2", "vio.consistency_max_rejected")
         )
