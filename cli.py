@@ -179,57 +179,61 @@ def demo(output: Annotated[Path, typer.Option("-o", "--output")] = Path("recordi
     typer.echo(run_demo(output))
 
 
+# the options of `simulate`
+_SimScenario = Annotated[
+    str | None,
+    typer.Option(
+        help="A class of real setup: planar (ground trolley, coplanar anchors), large-area (~400 m, anchors "
+        "ranged late or briefly), per-link (3 tags, an offset per link), nlos (NLOS junk on some links). "
+        "Ranges + odometry, no camera unless --camera; other options override the scenario's."
+    ),
+]
+_SimTrajectory = Annotated[
+    str | None,
+    typer.Option(help="EuRoC ground-truth name (MH_01_easy) or file, or built-in: default, planar, campus."),
+]
+_SimDuration = Annotated[float | None, typer.Option(help="Seconds to simulate (default: whole trajectory).")]
+_SimNlosRate = Annotated[
+    float | None, typer.Option(help="Fraction of ranges with a positive NLOS bias (default 0).")
+]
+_SimDropoutRate = Annotated[float | None, typer.Option(help="Fraction of ranges dropped (default 0).")]
+_SimOdometryRate = Annotated[
+    float | None,
+    typer.Option(help="Also write /odometry at this rate [Hz], drifting as the odometry filter models it."),
+]
+_SimOdometryNoiseScale = Annotated[
+    float,
+    typer.Option(min=0.0, help="Factor on the odometry drift sigmas (declared in the calibration)."),
+]
+_SimCamera = Annotated[
+    bool | None,
+    typer.Option("--camera/--no-camera", help="Simulate camera feature tracks (default: yes)."),
+]
+_SimImuFrom = Annotated[
+    Path | None,
+    typer.Option(
+        help="A converted recording with a real IMU and ground truth: keep its IMU, ground truth and "
+        "biases, simulate tracks and ranges along its trajectory (a hybrid recording)."
+    ),
+]
+
+
 @app.command()
 @_guard
 def simulate(
     output: Output,
-    scenario: Annotated[
-        str | None,
-        typer.Option(
-            help="A class of real setup: planar (ground trolley, coplanar anchors), large-area (~400 m, anchors "
-            "ranged late or briefly), per-link (3 tags, an offset per link), nlos (NLOS junk on some links). "
-            "Ranges + odometry, no camera unless --camera; other options override the scenario's."
-        ),
-    ] = None,
-    trajectory: Annotated[
-        str | None,
-        typer.Option(
-            help="EuRoC ground-truth name (MH_01_easy) or file, or built-in: default, planar, campus."
-        ),
-    ] = None,
+    scenario: _SimScenario = None,
+    trajectory: _SimTrajectory = None,
     anchors: Annotated[int | None, typer.Option(min=1, help="Number of anchors (default 4).")] = None,
-    duration: Annotated[
-        float | None, typer.Option(help="Seconds to simulate (default: whole trajectory).")
-    ] = None,
+    duration: _SimDuration = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    nlos_rate: Annotated[
-        float | None, typer.Option(help="Fraction of ranges with a positive NLOS bias (default 0).")
-    ] = None,
-    dropout_rate: Annotated[
-        float | None, typer.Option(help="Fraction of ranges dropped (default 0).")
-    ] = None,
+    nlos_rate: _SimNlosRate = None,
+    dropout_rate: _SimDropoutRate = None,
     max_range: Annotated[float | None, typer.Option(help="Maximum UWB range [m].")] = None,
-    odometry_rate: Annotated[
-        float | None,
-        typer.Option(
-            help="Also write /odometry at this rate [Hz], drifting as the odometry filter models it."
-        ),
-    ] = None,
-    odometry_noise_scale: Annotated[
-        float,
-        typer.Option(min=0.0, help="Factor on the odometry drift sigmas (declared in the calibration)."),
-    ] = 1.0,
-    camera: Annotated[
-        bool | None,
-        typer.Option("--camera/--no-camera", help="Simulate camera feature tracks (default: yes)."),
-    ] = None,
-    imu_from: Annotated[
-        Path | None,
-        typer.Option(
-            help="A converted recording with a real IMU and ground truth: keep its IMU, ground truth and "
-            "biases, simulate tracks and ranges along its trajectory (a hybrid recording)."
-        ),
-    ] = None,
+    odometry_rate: _SimOdometryRate = None,
+    odometry_noise_scale: _SimOdometryNoiseScale = 1.0,
+    camera: _SimCamera = None,
+    imu_from: _SimImuFrom = None,
 ) -> None:
     """Simulate IMU, camera feature tracks, UWB ranges and ground truth into a recording."""
     from uwbcal.convert.simulator import SimConfig, simulate_to_file
@@ -453,8 +457,11 @@ def run(
     refine: Annotated[RefineMethod | None, typer.Option(help="Refinement.")] = None,
     stages: Annotated[str | None, typer.Option(help="Comma-separated subset of stages.")] = None,
     no_log: Annotated[bool, typer.Option("--no-log", help="Do not write run.rrd.")] = False,
+    overwrite: Annotated[
+        bool, typer.Option(help="Replace the artefacts of another recording in the output directory.")
+    ] = False,
 ) -> None:
-    """Run the pipeline stages on a recording into a run directory."""
+    """Run the pipeline stages on a recording into a run directory (one recording per directory)."""
     from uwbcal.evaluate.evaluation import evaluate_stage
     from uwbcal.pipeline.run.stages.pipeline import run_cli
 
@@ -468,6 +475,7 @@ def run(
             stages=stages,
             log=not no_log,
             evaluator=evaluate_stage,
+            overwrite=overwrite,
         )
     )
 

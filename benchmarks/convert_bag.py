@@ -17,6 +17,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -120,43 +121,14 @@ def write_euroc_bag(
         for t, kind, i in events:
             if kind == 0:
                 g, a = rng.normal(0, 0.1, 3), rng.normal(0, 0.5, 3) + (0, 0, 9.81)
-                msg = T["sensor_msgs/msg/Imu"](
-                    header=_header(T, t, "imu4", i),
-                    orientation=T["geometry_msgs/msg/Quaternion"](x=0, y=0, z=0, w=1),
-                    orientation_covariance=np.zeros(9),
-                    angular_velocity=T["geometry_msgs/msg/Vector3"](*g),
-                    angular_velocity_covariance=np.zeros(9),
-                    linear_acceleration=T["geometry_msgs/msg/Vector3"](*a),
-                    linear_acceleration_covariance=np.zeros(9),
-                )
+                msg = _imu_msg(T, t, i, g, a)
                 w.write(c_imu, t + bag_delay_ns, ts.serialize_ros1(msg, "sensor_msgs/msg/Imu"))
                 if record:
                     out.imu_t.append(t)
                     out.imu.append((*g, *a))
                 if c_gt is not None and i % 2 == 0:
-                    p = (np.sin(i * 1e-3), np.cos(i * 1e-3), 1.0 + 0.1 * np.sin(i * 1e-2))
-                    if gt == "vicon":
-                        ang = i * 1e-3
-                        q = (0.0, 0.0, np.sin(ang / 2), np.cos(ang / 2))
-                        m = T["geometry_msgs/msg/TransformStamped"](
-                            header=_header(T, t, "world", i),
-                            child_frame_id="firefly_sbx",
-                            transform=T["geometry_msgs/msg/Transform"](
-                                translation=T["geometry_msgs/msg/Vector3"](*p),
-                                rotation=T["geometry_msgs/msg/Quaternion"](*q),
-                            ),
-                        )
-                        w.write(
-                            c_gt, t + bag_delay_ns, ts.serialize_ros1(m, "geometry_msgs/msg/TransformStamped")
-                        )
-                    else:
-                        q = ()
-                        m = T["geometry_msgs/msg/PointStamped"](
-                            header=_header(T, t, "world", i), point=T["geometry_msgs/msg/Point"](*p)
-                        )
-                        w.write(
-                            c_gt, t + bag_delay_ns, ts.serialize_ros1(m, "geometry_msgs/msg/PointStamped")
-                        )
+                    m, msgtype, p, q = _gt_msg(T, gt, t, i)
+                    w.write(c_gt, t + bag_delay_ns, ts.serialize_ros1(m, msgtype))
                     if record:
                         out.gt_t.append(t)
                         out.gt.append((*p, *q))
@@ -165,21 +137,59 @@ def write_euroc_bag(
                     w.write(c_x, t + bag_delay_ns, ts.serialize_ros1(m, "custom_msgs/msg/Thing"))
             else:
                 for cam, conn in enumerate(c_cam):
-                    img = textures[(i + cam) % n_textures]
-                    msg = T["sensor_msgs/msg/Image"](
-                        header=_header(T, t, f"cam{cam}", i),
-                        height=height,
-                        width=width,
-                        encoding="mono8",
-                        is_bigendian=0,
-                        step=width,
-                        data=img.reshape(-1),
-                    )
+                    msg = _image_msg(T, t, cam, i, textures[(i + cam) % n_textures])
                     w.write(conn, t + bag_delay_ns, ts.serialize_ros1(msg, "sensor_msgs/msg/Image"))
                 if record:
                     out.img_t.append(t)
                     out.img_seed.append(i)
     return out
+
+
+def _imu_msg(T: dict, t: int, i: int, g: np.ndarray, a: np.ndarray) -> Any:
+    return T["sensor_msgs/msg/Imu"](
+        header=_header(T, t, "imu4", i),
+        orientation=T["geometry_msgs/msg/Quaternion"](x=0, y=0, z=0, w=1),
+        orientation_covariance=np.zeros(9),
+        angular_velocity=T["geometry_msgs/msg/Vector3"](*g),
+        angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=T["geometry_msgs/msg/Vector3"](*a),
+        linear_acceleration_covariance=np.zeros(9),
+    )
+
+
+def _gt_msg(T: dict, gt: str, t: int, i: int) -> tuple[Any, str, tuple, tuple]:
+    """Ground truth ``i`` (every other IMU sample): the message, its type, position and quaternion (vicon) or
+    () (leica)."""
+    p = (np.sin(i * 1e-3), np.cos(i * 1e-3), 1.0 + 0.1 * np.sin(i * 1e-2))
+    if gt == "vicon":
+        ang = i * 1e-3
+        q = (0.0, 0.0, np.sin(ang / 2), np.cos(ang / 2))
+        m = T["geometry_msgs/msg/TransformStamped"](
+            header=_header(T, t, "world", i),
+            child_frame_id="firefly_sbx",
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](*p),
+                rotation=T["geometry_msgs/msg/Quaternion"](*q),
+            ),
+        )
+        return m, "geometry_msgs/msg/TransformStamped", p, q
+    m = T["geometry_msgs/msg/PointStamped"](
+        header=_header(T, t, "world", i), point=T["geometry_msgs/msg/Point"](*p)
+    )
+    return m, "geometry_msgs/msg/PointStamped", p, ()
+
+
+def _image_msg(T: dict, t: int, cam: int, i: int, img: np.ndarray) -> Any:
+    height, width = img.shape
+    return T["sensor_msgs/msg/Image"](
+        header=_header(T, t, f"cam{cam}", i),
+        height=height,
+        width=width,
+        encoding="mono8",
+        is_bigendian=0,
+        step=width,
+        data=img.reshape(-1),
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -33,6 +33,7 @@ from uwbcal.convert.recording import (
     TOPIC_GT_POSE,
     TOPIC_IMU,
     TOPIC_RANGE,
+    ImuData,
     RecordingReader,
 )
 from uwbcal.convert.simulator import (
@@ -40,6 +41,7 @@ from uwbcal.convert.simulator import (
     ImuSim,
     SimConfig,
     SimData,
+    WorldSim,
     camera_model,
     rel_seconds,
     simulate_world,
@@ -135,6 +137,57 @@ def hybrid_simulate(source: str | Path, cfg: SimConfig, knot_dt: float = HYBRID_
     source = Path(source)
     reader = RecordingReader(source)
     src = str(source)
+    t_gt, p_gt, q_gt, imu_all, traj = _real_trajectory(reader, source, knot_dt)
+    duration = traj.duration if cfg.duration is None else float(cfg.duration)
+    if duration > traj.duration + 1e-9:
+        raise InputError(
+            f"{src}: duration {duration:g} s: IMU and ground truth overlap over {traj.duration:.1f} s; give a "
+            "shorter --duration"
+        )
+    t_end = traj.t0_ns + int(round(duration * 1e9))
+    imu, bias, gt = _real_streams(reader, imu_all, traj, t_end)
+    m_gt = (t_gt >= traj.t0_ns) & (t_gt <= t_end)
+    g_w, level = groundtruth_level(t_gt[m_gt], p_gt[m_gt], q_gt[m_gt], imu, bias is not None, cfg.gravity)
+
+    calibration = reader.calibration
+    cam, cam_note = _camera(calibration, src)
+    world = simulate_world(traj, duration, cam, cfg)
+    data = SimData.from_world(
+        world, config=cfg, trajectory=traj, imu=imu, groundtruth=gt, groundtruth_bias=bias
+    )
+    cal = {
+        "imu": dict(calibration["imu"]) if "imu" in calibration else {},
+        "uwb": uwb_calibration(cfg),
+        "groundtruth": dict(calibration.get("groundtruth", {"lever_arm": [0.0, 0.0, 0.0], "frame": "body"})),
+    }
+    if world.features is not None:
+        cal["cameras"] = {"cam0": cam}
+    truth = world_truth(data, duration)  # no "imu" biases: the real ones are on /groundtruth/imu_bias
+    simulation = {
+        "seed": int(cfg.seed),
+        "camera": cam_note,
+        "trajectory": f"cubic B-spline through {TOPIC_GT_POSE} (IMU frame), knots {knot_dt:g} s",
+        "landmarks": len(world.landmarks),
+        "anchors": len(world.anchors),
+        # the camera and the ranges follow the ground truth's frame, the IMU feels gravity: off level by
+        # groundtruth_gravity.tilt_deg (the evaluator levels the ground truth; pipeline.core.gravity)
+        "groundtruth_gravity": level,
+        "imu_vs_trajectory": imu_agreement(traj, imu, g_w),
+    }
+    data.metadata = {
+        META_CALIBRATION: cal,
+        META_TRUTH: truth,
+        META_SOURCE: _hybrid_source(reader.source, source, cfg, world, bias is not None, simulation),
+    }
+    return data
+
+
+def _real_trajectory(
+    reader: RecordingReader, source: Path, knot_dt: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, ImuData, SplineTrajectory]:
+    """The ground truth (IMU frame) where it overlaps the IMU, all the IMU, and the spline through that ground
+    truth (it starts at the first pose in the overlap)."""
+    src = str(source)
     topics = reader.topics()
     for need, what in ((TOPIC_IMU, "a real IMU"), (TOPIC_GT_POSE, "ground-truth poses")):
         if need not in topics:
@@ -165,17 +218,17 @@ def hybrid_simulate(source: str | Path, cfg: SimConfig, knot_dt: float = HYBRID_
         name=f"{reader.source.get('sequence', source.stem)} (ground truth)",
         source=source,
     )
-    duration = traj.duration if cfg.duration is None else float(cfg.duration)
-    if duration > traj.duration + 1e-9:
-        raise InputError(
-            f"{src}: duration {duration:g} s: IMU and ground truth overlap over {traj.duration:.1f} s; give a "
-            "shorter --duration"
-        )
-    t_end = traj.t0_ns + int(round(duration * 1e9))
-    m = (imu_all.t_ns >= traj.t0_ns) & (imu_all.t_ns <= t_end)
+    return t_gt, p_gt, q_gt, imu_all, traj
 
+
+def _real_streams(
+    reader: RecordingReader, imu_all: ImuData, traj: SplineTrajectory, t_end: int
+) -> tuple[ImuSim, ImuSim | None, GroundTruthSim]:
+    """The recording's IMU (with its biases at the IMU stamps), biases and ground truth from the trajectory's
+    start to ``t_end``."""
+    m = (imu_all.t_ns >= traj.t0_ns) & (imu_all.t_ns <= t_end)
     bias = None
-    if TOPIC_GT_IMU_BIAS in topics:
+    if TOPIC_GT_IMU_BIAS in reader.topics():
         b = reader.read_imu(TOPIC_GT_IMU_BIAS)
         mb = (b.t_ns >= traj.t0_ns) & (b.t_ns <= t_end)
         bias = ImuSim(b.t_ns[mb], b.gyro[mb], b.acc[mb], b.gyro[mb], b.acc[mb])
@@ -191,58 +244,33 @@ def hybrid_simulate(source: str | Path, cfg: SimConfig, knot_dt: float = HYBRID_
     v = traj.evaluate((gt_raw.t_ns[g] - traj.t0_ns) * 1e-9).v
     gt = GroundTruthSim(gt_raw.t_ns[g], gt_raw.p[g], gt_raw.q_xyzw[g], v)
 
-    m_gt = (t_gt >= traj.t0_ns) & (t_gt <= t_end)
-    g_w, level = groundtruth_level(t_gt[m_gt], p_gt[m_gt], q_gt[m_gt], imu, bias is not None, cfg.gravity)
+    return imu, bias, gt
 
-    calibration = reader.calibration
-    cam, cam_note = _camera(calibration, src)
-    world = simulate_world(traj, duration, cam, cfg)
-    data = SimData.from_world(
-        world, config=cfg, trajectory=traj, imu=imu, groundtruth=gt, groundtruth_bias=bias
-    )
-    cal = {
-        "imu": dict(calibration["imu"]) if "imu" in calibration else {},
-        "uwb": uwb_calibration(cfg),
-        "groundtruth": dict(calibration.get("groundtruth", {"lever_arm": [0.0, 0.0, 0.0], "frame": "body"})),
-    }
-    if world.features is not None:
-        cal["cameras"] = {"cam0": cam}
-    truth = world_truth(data, duration)  # no "imu" biases: the real ones are on /groundtruth/imu_bias
-    orig = reader.source
-    real = [TOPIC_IMU, TOPIC_GT_POSE] + ([TOPIC_GT_IMU_BIAS] if bias is not None else [])
+
+def _hybrid_source(
+    orig: dict, source: Path, cfg: SimConfig, world: WorldSim, has_bias: bool, simulation: dict
+) -> dict:
+    """The hybrid recording's source metadata: which topics are real (from where) and which simulated."""
+    src = str(source)
+    real = [TOPIC_IMU, TOPIC_GT_POSE] + ([TOPIC_GT_IMU_BIAS] if has_bias else [])
     simulated = ([TOPIC_FEATURES] if world.features is not None else []) + [TOPIC_RANGE]
-    data.metadata = {
-        META_CALIBRATION: cal,
-        META_TRUTH: truth,
-        META_SOURCE: {
-            "dataset": "hybrid",
-            "sequence": str(orig.get("sequence", source.stem)),
-            "real": real,
-            "simulated": simulated,
-            "real_from": {
-                "path": src,
-                "sha256": sha256_file(source),
-                "dataset": orig.get("dataset"),
-                "files": orig.get("files", []),
-            },
-            "simulation": {
-                "seed": int(cfg.seed),
-                "camera": cam_note,
-                "trajectory": f"cubic B-spline through {TOPIC_GT_POSE} (IMU frame), knots {knot_dt:g} s",
-                "landmarks": len(world.landmarks),
-                "anchors": len(world.anchors),
-                # the camera and the ranges follow the ground truth's frame, the IMU feels gravity: off level by
-                # groundtruth_gravity.tilt_deg (the evaluator levels the ground truth; pipeline.core.gravity)
-                "groundtruth_gravity": level,
-                "imu_vs_trajectory": imu_agreement(traj, imu, g_w),
-            },
-            "files": [{"path": src, "sha256": sha256_file(source)}],
-            "converter": orig.get("converter"),
-            "dropped": [],
-            "seed": int(cfg.seed),
+    return {
+        "dataset": "hybrid",
+        "sequence": str(orig.get("sequence", source.stem)),
+        "real": real,
+        "simulated": simulated,
+        "real_from": {
+            "path": src,
+            "sha256": sha256_file(source),
+            "dataset": orig.get("dataset"),
+            "files": orig.get("files", []),
         },
+        "simulation": simulation,
+        "files": [{"path": src, "sha256": sha256_file(source)}],
+        "converter": orig.get("converter"),
+        "dropped": [],
+        "seed": int(cfg.seed),
     }
-    return data
 
 
 def hybrid_to_file(source: str | Path, cfg: SimConfig, output: str | Path) -> str:

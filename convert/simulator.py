@@ -46,6 +46,10 @@ PROBE_DENSITY = 4.0  # landmarks / m^2 for probing how many are visible
 MAX_DENSITY = 40.0
 
 
+def _bad(name: str, value, what: str) -> InputError:
+    return InputError(f"simulate: {name}={value!r}: {what}; fix the simulation settings")
+
+
 @dataclass
 class SimConfig:
     trajectory: str | Path | None = None  # None = built-in default; EuRoC name or ground-truth file
@@ -104,15 +108,17 @@ class SimConfig:
     odometry_correlation_s: float = 5.0
 
     def __post_init__(self) -> None:
-        def bad(name: str, value, what: str) -> InputError:
-            return InputError(f"simulate: {name}={value!r}: {what}; fix the simulation settings")
+        self._check_numbers()
+        self._check_anchors_and_tags()
 
+    def _check_numbers(self) -> None:
+        """Rates, noises, fractions and counts in their ranges."""
         if self.duration is not None and not (np.isfinite(self.duration) and self.duration > 0):
-            raise bad("duration", self.duration, "must be a positive number of seconds")
+            raise _bad("duration", self.duration, "must be a positive number of seconds")
         for name in ("imu_rate", "cam_rate", "uwb_rate", "knot_dt", "gravity", "max_feature_range"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
-                raise bad(name, v, "must be positive")
+                raise _bad(name, v, "must be positive")
         for name in (
             "gyro_noise_density",
             "gyro_random_walk",
@@ -125,67 +131,71 @@ class SimConfig:
         ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
-                raise bad(name, v, "must be >= 0")
+                raise _bad(name, v, "must be >= 0")
         if self.odometry_rate is not None and not (
             np.isfinite(self.odometry_rate) and self.odometry_rate > 0
         ):
-            raise bad("odometry_rate", self.odometry_rate, "must be positive (or None for no odometry)")
+            raise _bad("odometry_rate", self.odometry_rate, "must be positive (or None for no odometry)")
         if not (np.isfinite(self.odometry_noise_scale) and self.odometry_noise_scale >= 0):
-            raise bad("odometry_noise_scale", self.odometry_noise_scale, "must be >= 0")
+            raise _bad("odometry_noise_scale", self.odometry_noise_scale, "must be >= 0")
         if self.odometry_error not in ("drift", "bounded"):
-            raise bad("odometry_error", self.odometry_error, "expected drift or bounded")
+            raise _bad("odometry_error", self.odometry_error, "expected drift or bounded")
         for name in ("odometry_sigma_p", "odometry_sigma_theta_deg", "odometry_correlation_s"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
-                raise bad(name, v, "must be positive")
+                raise _bad(name, v, "must be positive")
         for name in ("nlos_rate", "dropout_rate"):
             v = getattr(self, name)
             if not (0.0 <= v <= 1.0):
-                raise bad(name, v, "must be a fraction in [0, 1]")
+                raise _bad(name, v, "must be a fraction in [0, 1]")
         if self.landmark_density is not None and not (
             np.isfinite(self.landmark_density) and self.landmark_density > 0
         ):
-            raise bad("landmark_density", self.landmark_density, "must be positive (or None for automatic)")
+            raise _bad("landmark_density", self.landmark_density, "must be positive (or None for automatic)")
         if self.min_features < 1:
-            raise bad("min_features", self.min_features, "must be at least 1")
+            raise _bad("min_features", self.min_features, "must be at least 1")
         if self.max_features is not None and self.max_features < 1:
-            raise bad("max_features", self.max_features, "must be at least 1 (or None for no cap)")
+            raise _bad("max_features", self.max_features, "must be at least 1 (or None for no cap)")
         if self.max_range is not None and not self.max_range > 0:
-            raise bad("max_range", self.max_range, "must be positive (or None for no limit)")
+            raise _bad("max_range", self.max_range, "must be positive (or None for no limit)")
+
+    def _check_anchors_and_tags(self) -> None:
+        """Anchors (their count from ``anchors`` when given), their beta/gamma, the tags and the per-link settings
+        in shape."""
         if self.anchors is not None:
             a = np.asarray(self.anchors, float)
             if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0 or not np.all(np.isfinite(a)):
-                raise bad("anchors", self.anchors, "must be a list of [x, y, z] positions")
+                raise _bad("anchors", self.anchors, "must be a list of [x, y, z] positions")
             self.n_anchors = len(a)
         if self.n_anchors < 1:
-            raise bad("n_anchors", self.n_anchors, "must be at least 1")
+            raise _bad("n_anchors", self.n_anchors, "must be at least 1")
         for name in ("beta", "gamma"):
             v = np.atleast_1d(np.asarray(getattr(self, name), float))
             if len(v) not in (1, self.n_anchors) or not np.all(np.isfinite(v)):
-                raise bad(
+                raise _bad(
                     name, getattr(self, name), f"must be one number or one per anchor ({self.n_anchors})"
                 )
         for name in ("gyro_bias_init", "acc_bias_init", "tag_lever_arm"):
             v = np.asarray(getattr(self, name), float)
             if v.shape != (3,) or not np.all(np.isfinite(v)):
-                raise bad(name, getattr(self, name), "must be 3 numbers")
+                raise _bad(name, getattr(self, name), "must be 3 numbers")
         if self.tags is not None:
             v = np.asarray(self.tags, float)
             if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0 or not np.all(np.isfinite(v)):
-                raise bad("tags", self.tags, "must be a list of [x, y, z] lever arms")
+                raise _bad("tags", self.tags, "must be a list of [x, y, z] lever arms")
         shape = (self.n_anchors, len(self.lever_arms()))
         for name, lo, hi in (("link_gamma_offset", -np.inf, np.inf), ("link_nlos_rate", 0.0, 1.0)):
             v = getattr(self, name)
             if v is not None:
                 a = np.asarray(v, float)
                 if a.shape != shape or not np.all((a >= lo) & (a <= hi)):
-                    raise bad(
+                    raise _bad(
                         name, v, f"must be {shape[0]} x {shape[1]} (anchors x tags) values in [{lo}, {hi}]"
                     )
         for a, wins in (self.visibility or {}).items():
             w = np.asarray(wins, float).reshape(-1, 2) if len(wins) else np.zeros((0, 2))
             if not 0 <= int(a) < self.n_anchors or not np.all(np.isfinite(w)) or np.any(w[:, 1] < w[:, 0]):
-                raise bad("visibility", {a: wins}, "must map an anchor index to [(start_s, end_s), ...]")
+                raise _bad("visibility", {a: wins}, "must map an anchor index to [(start_s, end_s), ...]")
 
     def lever_arms(self) -> np.ndarray:
         """[n_tags, 3] lever arms; tag i has id ``tag_id + i``."""

@@ -17,7 +17,7 @@ def run_demo(output: Path, seed: int = 0, duration: float | None = None) -> str:
     print(simulate_to_file(SimConfig(trajectory=None, seed=seed, duration=duration), recording))
     cfg = load_config(None, {"run": {"recording": str(recording.resolve())}})
     pipe = Pipeline(cfg, output, evaluate_stage)
-    pipe.run()
+    pipe.run(overwrite=True)  # the demo's directory holds its own recording, simulated anew
     text = pipe.results_text
     lines = [
         "",

@@ -21,6 +21,8 @@ from uwbcal.evaluate.anchors_export import export_anchors
 from uwbcal.evaluate.association import Association, associate, lever_point
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run.provenance import check_recording
+from uwbcal.pipeline.run.rundir import RunDir
 
 TRAJECTORY = "trajectory.npz"
 VIO_TRAJECTORY = "vio.npz"
@@ -85,7 +87,7 @@ def load_run_trajectory(run_dir: str | Path) -> RunTrajectory:
 
 def run_recording_path(run_dir: str | Path) -> Path:
     """The recording of a run: ``[run] recording`` in ``run_dir/config.toml`` (relative paths tried against the
-    working directory, then the run directory)."""
+    working directory, then the run directory), which every stage recorded must have run on."""
     cfg_path = Path(run_dir) / CONFIG
     if not cfg_path.is_file():
         raise InputError(f"{cfg_path}: missing; is {run_dir} a run directory?")
@@ -106,6 +108,7 @@ def run_recording_path(run_dir: str | Path) -> Path:
         p = Path(run_dir) / p
     if not p.exists():
         raise InputError(f"{cfg_path}: [run] recording: {p} does not exist; was the recording moved?")
+    check_recording(RunDir(Path(run_dir)), p)
     return p
 
 

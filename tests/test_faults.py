@@ -28,7 +28,7 @@ from uwbcal.cli import app
 from uwbcal.convert.msgs import POSE_STAMPED
 from uwbcal.convert.recording import TOPIC_GT_POSE, TOPIC_IMU, TOPIC_RANGE, RecordingReader, RecordingWriter
 from uwbcal.convert.simulator import SimConfig, simulate_to_file
-from uwbcal.pipeline.run import rundir
+from uwbcal.pipeline.run import provenance, rundir
 
 runner = CliRunner()
 ROOT = Path(__file__).resolve().parents[1]
@@ -1262,8 +1262,7 @@ case("artefacts-respect-umask", [12], "outputs", run_on(lambda c: c.shared.rec),
 
 def other_recording_partial(c: Ctx) -> list[str]:
     run = c.run_copy()
-    other = fi.rewrite(c.shared.rec, c.p("other.mcap"))
-    return ["run", str(other), "-o", str(run), "--no-log", "--stages", "refine,localize,evaluate"]
+    return ["run", str(c.shared.rec60), "-o", str(run), "--no-log", "--stages", "refine,localize,evaluate"]
 
 
 case(
@@ -1272,7 +1271,151 @@ case(
     "concurrent runs",
     other_recording_partial,
     names=named("run"),
-    new_ok=("run", "other.mcap"),
+    new_ok=("run",),
+)
+
+
+# -- one recording per run directory -------------------------------------------------------------------------------
+def run_into(make_dir: Callable[[Ctx], Path], rec: str = "rec60", *extra: str):
+    def build(c: Ctx) -> list[str]:
+        return ["run", str(getattr(c.shared, rec)), "-o", str(make_dir(c)), "--no-log", *extra]
+
+    return build
+
+
+def holds_only(rec: str):
+    """The run directory holds one run of ``rec`` and nothing of the other recording."""
+
+    def check(c: Ctx, res) -> None:
+        run, want = c.p("run"), provenance.recording_id(getattr(c.shared, rec))
+        stages = json.loads((run / "stages.json").read_text())
+        assert {s["recording"]["id"] for s in stages.values()} == {want}, stages
+        assert str(getattr(c.shared, rec).resolve()) in (run / "config.toml").read_text()
+        assert set(rundir.artefacts(run)) == {p.name for p in run.iterdir()} - {"notes.txt"}
+        assert "removed" in res.stdout and "artefact(s) of another recording" in res.stdout, res.stdout
+
+    return check
+
+
+def foreign_stage(stage: str, cmd: str, recording: dict | None):
+    """stages.json of the shared run with ``stage`` made another recording's (None: no recording at all)."""
+
+    def build(c: Ctx) -> list[str]:
+        run = c.run_copy()
+        st = json.loads((run / "stages.json").read_text())
+        if recording is None:
+            st[stage].pop("recording")
+        else:
+            st[stage]["recording"] = recording
+        (run / "stages.json").write_text(json.dumps(st))
+        return ["evaluate", str(run)] if cmd == "evaluate" else ["export", str(run), "-o", str(c.p("tum"))]
+
+    return build
+
+
+def only(*names: str):
+    def make(c: Ctx) -> Path:
+        run = c.run_copy()
+        for p in run.iterdir():
+            if p.name not in names:
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
+        return run
+
+    return make
+
+
+def with_user_file(c: Ctx) -> Path:
+    run = c.p("run")
+    run.mkdir()
+    (run / "notes.txt").write_text("mine")
+    return run
+
+
+OTHER = {"id": "1-0000000000000000", "path": "/elsewhere/other.mcap"}
+ONE_REC = "one recording per directory"
+case(
+    "dir-other-recording-refused", [0], ONE_REC, run_into(Ctx.run_copy), names=named("run"), new_ok=RUN_FILES
+)
+case(
+    "dir-other-recording-partial-overwrite-refused",
+    [0],
+    ONE_REC,
+    run_into(Ctx.run_copy, "rec60", "--stages", "init,refine", "--overwrite"),
+    names=named("run"),
+    new_ok=RUN_FILES,
+)
+case(
+    "dir-other-recording-overwritten",
+    [0],
+    ONE_REC,
+    run_into(Ctx.run_copy, "rec60", "--overwrite"),
+    "ok",
+    check=holds_only("rec60"),
+)
+for cid, keep in (
+    ("dir-unknown-artefacts-refused", ("anchors.csv", "vio.npz")),
+    ("dir-no-stages-refused", ("config.toml", "trajectory.npz")),
+):
+    case(cid, [0], ONE_REC, run_into(only(*keep), "rec"), names=named("run"), new_ok=RUN_FILES)
+case(
+    "dir-clearing-cut-short-unreadable",
+    [0],
+    ONE_REC,
+    lambda c: ["evaluate", str(only("anchors.csv", "trajectory.npz", "metrics.json")(c))],
+    names=lambda c: str(c.p("run") / "config.toml"),
+    new_ok=RUN_FILES,
+)
+case(
+    "dir-user-files-kept",
+    [0],
+    ONE_REC,
+    run_into(with_user_file, "rec", "--stages", "vio"),
+    "ok",
+    check=lambda c, res: (c.p("run") / "notes.txt").read_text() == "mine" or pytest.fail("notes.txt"),
+)
+case(
+    "dir-copy-of-the-recording-is-the-same",
+    [0],
+    ONE_REC,
+    lambda c: [
+        "run",
+        str(shutil.copy(c.shared.rec, c.p("copy.mcap"))),
+        "-o",
+        str(c.run_copy()),
+        "--no-log",
+        "--stages",
+        "evaluate",
+    ],
+    "ok",
+    check=lambda c, res: (c.p("run") / "metrics.json").is_file() or pytest.fail("metrics.json"),
+)
+for stage in ("vio", "init", "refine", "localize", "evaluate"):
+    for cmd in ("evaluate", "export"):
+        for what, rec in (("other", OTHER), ("none", None)):
+            case(
+                f"{cmd}-stage-{stage}-recording-{what}",
+                [0],
+                ONE_REC,
+                foreign_stage(stage, cmd, rec),
+                names=lambda c: str(c.p("run") / "stages.json"),
+                new_ok=RUN_FILES,
+            )
+
+
+def config_names_other(c: Ctx) -> list[str]:
+    run = c.run_copy()
+    cfg = run / "config.toml"
+    cfg.write_text(cfg.read_text().replace(str(c.shared.rec.resolve()), str(c.shared.rec60.resolve())))
+    return ["evaluate", str(run)]
+
+
+case(
+    "eval-config-names-another-recording",
+    [0],
+    ONE_REC,
+    config_names_other,
+    names=lambda c: str(c.p("run") / "stages.json"),
+    new_ok=RUN_FILES,
 )
 
 
@@ -1393,6 +1536,7 @@ def test_fault_table_covers_the_issue() -> None:
         "existing outputs",
         "corrupt run directory",
         "diff abuse",
+        ONE_REC,
     ):
         assert want in cats, want
 
@@ -1476,6 +1620,28 @@ def test_sigterm_removes_partial_outputs(long_rec: Path, tmp_path: Path) -> None
         app, ["run", str(long_rec), "-o", str(run), "--no-log", "--stages", "init,refine,localize,evaluate"]
     )
     assert res.exit_code == 0, res.output
+
+
+def test_sigint_during_vio_of_another_recording(shared: Shared, long_rec: Path, tmp_path: Path) -> None:
+    """A finished run of one recording, a run of another into the same directory (--overwrite) interrupted
+    during its VIO: nothing of the first recording is left, and evaluate/export never read the two as one."""
+    run = shutil.copytree(shared.run, tmp_path / "run")
+    proc = _spawn("run", str(long_rec), "-o", str(run), "--no-log", "--overwrite")
+    assert _wait_for(lambda: (run / "windows.json").exists() and not (run / "anchors.csv").exists())
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode in (0, 130) and "Traceback" not in err, err
+    want = provenance.recording_id(long_rec)
+    if (run / "stages.json").exists():
+        stages = json.loads((run / "stages.json").read_text())
+        assert {s["recording"]["id"] for s in stages.values()} == {want}, stages
+    if (run / "config.toml").exists():
+        assert str(shared.rec.resolve()) not in (run / "config.toml").read_text()
+    for args in (["evaluate", str(run)], ["export", str(run), "-o", str(tmp_path / "tum")]):
+        res = runner.invoke(app, args)
+        assert res.exit_code in (0, 2) and "Traceback" not in res.output, res.output
+        if res.exit_code == 0:  # the interrupt came after the VIO: a run of the second recording alone
+            assert proc.returncode == 130 and _stage_done(run, "vio")
 
 
 @pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])

@@ -443,10 +443,16 @@ def test_anchor_ranges_jumping_mid_refinement_are_named(run_dir, sim, tmp_path):
         return d
 
     from uwbcal.pipeline.run.config import load_config
+    from uwbcal.pipeline.run.provenance import recording_record
     from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
     rec = fi.rewrite(sim, tmp_path / "jump.mcap", ranges=jump)
-    # the stages' Python API: the CLI refuses (rightly) to mix two recordings in one run directory
+    # the run of the recording before the fault is declared this one's (the earlier stages saw the same data):
+    # a run directory otherwise refuses a second recording
+    stages = json.loads((run_dir / "stages.json").read_text())
+    for entry in stages.values():
+        entry["recording"] = recording_record(rec)
+    (run_dir / "stages.json").write_text(json.dumps(stages))
     # a 5 s window: this run's stages last 15 s, shorter than the default 20 s (calibrated on full-length runs)
     over = {"run": {"recording": str(rec), "log": False}, "uwb": {"gate_window_s": 5.0}}
     cfg = load_config(run_dir / "config.toml", over)

@@ -5,12 +5,23 @@ reproduces them.
 stage whose artefacts are in the directory, so ``uwbcal run REC -o NEW --config RUN_DIR/config.toml`` redoes the
 run. A stage re-run under another config than the stages it builds on is reported (stages.json warnings, hence
 metrics.json): then no single config reproduces the directory.
+
+A run directory belongs to one recording: each stage's entry carries the id of the recording it ran on
+(`recording_id`). A run into a directory holding another recording's artefacts is refused, or with
+``overwrite`` the stale artefacts are removed first (config.toml, then stages.json, then the rest: a removal
+cut short leaves nothing that reads as a run); `check_recording` refuses to read a directory whose stages ran
+on another recording than its config names.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import shutil
+from pathlib import Path
 from typing import Any
 
+from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.names import STAGES
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.config import PipelineConfig
@@ -56,11 +67,12 @@ def record_stage(
     entry: dict,
     cfg: PipelineConfig,
     invocation: list[str],
+    recording: dict,
     choices: list[dict] | None = None,
 ) -> list[str]:
     """Add ``stage`` (wall_s, summary, warnings) with its config to stages.json, then write config.toml and,
     when this invocation resolved ``"auto"`` keys, resolved.json (each key, its value and why).
-    Returns warnings about stages outside this ``invocation`` whose artefacts were made under another config
+    ``recording``: `recording_record` of the recording the stage ran on. Returns warnings about stages outside this ``invocation`` whose artefacts were made under another config
     (also stored with the stage)."""
     stages = load_stages(run)
     mine = config_record(cfg)
@@ -75,7 +87,7 @@ def record_stage(
                 f"{stage} ran with another config than {other} ({shown}); no single config.toml reproduces "
                 f"this run directory — re-run every stage to make it consistent"
             )
-    entry = dict(entry, warnings=list(entry.get("warnings", [])) + warns, config=mine)
+    entry = dict(entry, warnings=list(entry.get("warnings", [])) + warns, config=mine, recording=recording)
     stages[stage] = entry
     run.save_json(rd.STAGES_JSON, {k: stages[k] for k in STAGES if k in stages})
     done = [k for k in STAGES if k in stages]
@@ -85,3 +97,88 @@ def record_stage(
     if choices:
         run.save_json(rd.RESOLVED, choices)
     return warns
+
+
+# -- which recording the artefacts belong to -------------------------------------------------------------------
+_EDGE = 1 << 20  # bytes hashed at each end of a recording
+
+
+def recording_id(path: Path) -> str:
+    """A recording's identity, cheap for any size: its length and a digest of its first and last MiB (an MCAP's
+    header and its summary, whose chunk index carries each chunk's CRC). A copy or a move keeps it; another
+    recording, or the same one re-converted differently, does not."""
+    path = Path(path)
+    size = path.stat().st_size
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        h.update(f.read(_EDGE))
+        if size > _EDGE:
+            f.seek(max(_EDGE, size - _EDGE))
+            h.update(f.read())
+    return f"{size}-{h.hexdigest()[:16]}"
+
+
+def recording_record(path: Path) -> dict:
+    """What a stage's entry in stages.json says about its recording."""
+    return {"id": recording_id(path), "path": str(Path(path).resolve())}
+
+
+def _held(run: rd.RunDir) -> dict[str, dict]:
+    """The recording of each stage recorded in the directory ({} for an entry without one)."""
+    return {
+        k: v.get("recording") if isinstance(v.get("recording"), dict) else {}
+        for k, v in load_stages(run).items()
+    }
+
+
+def claim(run: rd.RunDir, recording: dict, stages: list[str], overwrite: bool) -> list[str]:
+    """Make ``run`` a directory of ``recording`` before any stage writes: nothing to do when it holds no
+    artefacts or only this recording's; else refused, or with ``overwrite`` (and a run that starts from the VIO)
+    the stale artefacts removed. Returns the names removed."""
+    present = rd.artefacts(run.path)
+    if not present:
+        return []
+    held = _held(run) if run.exists(rd.STAGES_JSON) else {}
+    others = {r.get("path", "an unknown recording") for r in held.values() if r.get("id") != recording["id"]}
+    if held and not others:
+        return []
+    what = ", ".join(sorted(others)) if others else "an unknown recording (no stages.json)"
+    if "vio" not in stages:
+        raise InputError(
+            f"{run.path}: holds the artefacts of {what}; re-running only {','.join(stages)} on "
+            f"{recording['path']} would mix two recordings — run every stage (with --overwrite to replace "
+            "them), or choose another output directory"
+        )
+    if not overwrite:
+        raise InputError(
+            f"{run.path}: holds the artefacts of {what}; choose another output directory, or pass "
+            "--overwrite to replace them"
+        )
+    for name in present:  # config.toml and stages.json first (rd.ARTEFACTS' order)
+        p = run.file(name)
+        with contextlib.suppress(FileNotFoundError):
+            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+    return present
+
+
+def check_recording(run: rd.RunDir, recording: Path) -> None:
+    """Refuse a run directory whose recorded stages ran on another recording than ``recording`` (the one its
+    config.toml names), or on several."""
+    if not run.exists(rd.STAGES_JSON):
+        return  # no stage recorded (a directory put together by hand): nothing to compare
+    held = _held(run)
+    path = run.file(rd.STAGES_JSON)
+    missing = [k for k, r in held.items() if not r.get("id")]
+    if missing:
+        raise InputError(
+            f"{path}: stage {missing[0]} names no recording (an older uwbcal wrote it); re-run every stage "
+            f"(uwbcal run REC -o {run.path} --overwrite)"
+        )
+    rid = recording_id(recording)
+    wrong = {k: r for k, r in held.items() if r["id"] != rid}
+    if wrong:
+        k, r = next(iter(wrong.items()))
+        raise InputError(
+            f"{path}: stage {k} ran on {r.get('path')}, not on {recording} (config.toml's recording); the "
+            f"directory mixes two recordings — re-run every stage (uwbcal run REC -o {run.path} --overwrite)"
+        )

@@ -35,6 +35,41 @@ TRAJECTORY = "trajectory.npz"
 LOGS = "logs"
 STAGES_JSON = "stages.json"
 LOCK = ".uwbcal.lock"
+# every artefact the stages write; config.toml and stages.json first: a removal (provenance.claim) cut short
+# leaves neither the recording's name nor its stages
+ARTEFACTS = (
+    CONFIG,
+    STAGES_JSON,
+    RESOLVED,
+    "frontend.mcap",
+    "windows.json",
+    "static_init.json",
+    "checkpoint_init.pkl",
+    "vio.npz",
+    "vio.mcap",
+    "vio_drift.json",
+    "init.pkl",
+    "init.json",
+    "lever_arms.pkl",
+    ANCHORS,
+    "checkpoint_refine.pkl",
+    "refine.npz",
+    "refine.mcap",
+    "anchor_states.json",
+    "localize.npz",
+    "localize.mcap",
+    TRAJECTORY,
+    METRICS,
+    "results.md",
+    "recording_id.txt",
+    LOGS,
+    RRD,
+)
+
+
+def artefacts(path: Path) -> list[str]:
+    """The artefacts present in a run directory, in `ARTEFACTS` order (other files are not the run's)."""
+    return [n for n in ARTEFACTS if os.path.lexists(Path(path) / n)]
 
 
 class RunDir:

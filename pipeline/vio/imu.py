@@ -108,25 +108,25 @@ def imu_intervals(
     return dt[keep], wm[keep], am[keep]
 
 
-def propagate(
-    x: ImuState,
-    dt: np.ndarray,
-    gyro: np.ndarray,
-    acc: np.ndarray,
-    noise: ImuNoise,
-    x_fej: ImuState | None = None,
-) -> Propagation:
-    """Propagate ``x`` over sub-intervals ``dt`` with measurements ``gyro``/``acc`` (see module doc).
+@dataclass
+class _Integration:
+    """The mean integrated over the sub-intervals ``dt`` (`propagate`): what the Jacobian and noise blocks use."""
 
-    ``x_fej`` is the linearisation point of the start state for the orientation columns of Phi (FEJ); None
-    uses ``x`` itself.
-    """
+    dt: np.ndarray  # (n,)
+    a: np.ndarray  # (n, 3) bias-corrected acceleration
+    R: np.ndarray  # (n + 1, 3, 3) orientations at the sub-interval bounds
+    dRh: np.ndarray  # (n, 3, 3) half-step rotations
+    Rm: np.ndarray  # (n, 3, 3) mid-interval orientations
+    Jr: np.ndarray  # (n, 3, 3) right Jacobians of the full steps
+    Jrh: np.ndarray  # (n, 3, 3) and of the half steps
+    v: np.ndarray  # (n + 1, 3)
+    p: np.ndarray  # (n + 1, 3)
+    tau: np.ndarray  # (n + 1,) time since the interval start
+    Rm_skew_a: np.ndarray  # (n, 3, 3) Rm [a]x
+
+
+def _integrate(x: ImuState, dt: np.ndarray, gyro: np.ndarray, acc: np.ndarray) -> _Integration:
     n = dt.shape[0]
-    Phi = _EYE15.copy()
-    Q = np.zeros((15, 15))
-    if n == 0:
-        return Propagation(x, Phi, Q)
-    x0 = x_fej if x_fej is not None else x
     w = gyro - x.bg
     a = acc - x.ba
     wdt = w * dt[:, None]
@@ -147,33 +147,70 @@ def propagate(
     p[0] = x.p
     p[1:] = x.p + np.cumsum(v[:-1] * dt[:, None] + 0.5 * dv * dt[:, None], axis=0)
     tau = np.concatenate([[0.0], np.cumsum(dt)])  # time since the interval start
-    T = tau[-1]
+    Jr, Jrh = Jboth[:n], Jboth[n:]
+    return _Integration(dt, a, R, dRh, Rm, Jr, Jrh, v, p, tau, Rm @ skew(a))
+
+
+def propagate(
+    x: ImuState,
+    dt: np.ndarray,
+    gyro: np.ndarray,
+    acc: np.ndarray,
+    noise: ImuNoise,
+    x_fej: ImuState | None = None,
+) -> Propagation:
+    """Propagate ``x`` over sub-intervals ``dt`` with measurements ``gyro``/``acc`` (see module doc).
+
+    ``x_fej`` is the linearisation point of the start state for the orientation columns of Phi (FEJ); None
+    uses ``x`` itself.
+    """
+    n = dt.shape[0]
+    Phi = _EYE15.copy()
+    Q = np.zeros((15, 15))
+    if n == 0:
+        return Propagation(x, Phi, Q)
+    x0 = x_fej if x_fej is not None else x
+    it = _integrate(x, dt, gyro, acc)
+    R, v, p = it.R, it.v, it.p
+    T = it.tau[-1]
     x1 = ImuState(R[-1], p[-1], v[-1], x.bg, x.ba)
 
     # -- orientation / velocity / position columns (FEJ-able closed form) -------------------------------------
     Phi[0:3, 0:3] = R[-1].T @ x0.R
     Phi[6:9, 0:3] = -skew(v[-1] - x0.v - GRAVITY * T) @ x0.R
     Phi[3:6, 0:3] = -skew(p[-1] - x0.p - x0.v * T - 0.5 * GRAVITY * T * T) @ x0.R
-    dt3 = dt[:, None, None]
     Phi[3:6, 6:9] = T * I3
+    _bias_columns(Phi, it)
+    Q[0:9, 0:9] = _white_noise(it, noise)
+    Q[9:12, 9:12] = noise.sigma_bg**2 * T * I3
+    Q[12:15, 12:15] = noise.sigma_ba**2 * T * I3
+    return Propagation(x1, Phi, Q)
 
-    # -- bias columns --------------------------------------------------------------------------------------------
-    Jr, Jrh = Jboth[:n], Jboth[n:]
+
+def _bias_columns(Phi: np.ndarray, it: _Integration) -> None:
+    """The bias columns of ``Phi`` (in place)."""
+    n, dt, R, Rm = len(it.dt), it.dt, it.R, it.Rm
+    dt3 = dt[:, None, None]
     C = np.zeros((n + 1, 3, 3))
-    C[1:] = np.cumsum(R[1:] @ Jr * dt3, axis=0)
+    C[1:] = np.cumsum(R[1:] @ it.Jr * dt3, axis=0)
     A = -np.swapaxes(R, 1, 2) @ C  # d dtheta_k / d bg (body frame of R_k)
-    Amid = np.swapaxes(dRh, 1, 2) @ A[:-1] - Jrh * (0.5 * dt)[:, None, None]
-    Rm_skew_a = Rm @ skew(a)
+    Amid = np.swapaxes(it.dRh, 1, 2) @ A[:-1] - it.Jrh * (0.5 * dt)[:, None, None]
     # d dv_k / d bg and d dv_k / d ba side by side: one cumulative sum and one sum for both bias blocks
-    E = np.concatenate([-(Rm_skew_a @ Amid) * dt3, -Rm * dt3], axis=2)
+    E = np.concatenate([-(it.Rm_skew_a @ Amid) * dt3, -Rm * dt3], axis=2)
     V = np.zeros((n, 3, 6))
     V[1:] = np.cumsum(E, axis=0)[:-1]
     Phi[0:3, 9:12] = A[-1]
     Phi[6:9, 9:15] = E.sum(axis=0)
     Phi[3:6, 9:15] = (V * dt3 + 0.5 * E * dt3).sum(axis=0)
 
-    # -- white noise: effect of a measurement perturbation in sub-interval k on the end state ---------------
-    rem = T - tau[1:]  # time from the end of sub-interval k to the interval end
+
+def _white_noise(it: _Integration, noise: ImuNoise) -> np.ndarray:
+    """The 9x9 (orientation, position, velocity) noise of the measurements' white noise: the effect of a
+    perturbation in sub-interval k on the end state, summed over k."""
+    n, dt, R, v, p, Rm, Jr = len(it.dt), it.dt, it.R, it.v, it.p, it.Rm, it.Jr
+    dt3 = dt[:, None, None]
+    T = it.tau[-1]
+    rem = T - it.tau[1:]  # time from the end of sub-interval k to the interval end
     Rk1 = R[1:]
     Ftt = R[-1].T @ Rk1  # (n, 3, 3) R_1^T R_{k+1}
     rem1 = rem[:, None]
@@ -185,7 +222,7 @@ def propagate(
     ) @ np.concatenate([Rk1, Rk1])
     # gyro: dtheta_{k+1} = Jr dt dw; dv_{k+1} = -Rm [a]x Jrh dt^2/2 dw; dp_{k+1} = dv_{k+1} dt / 2
     gth = Jr * dt3
-    gv = -(Rm_skew_a @ Jrh) * (0.5 * dt * dt)[:, None, None]
+    gv = -(it.Rm_skew_a @ it.Jrh) * (0.5 * dt * dt)[:, None, None]
     Fg = Fvp @ np.concatenate([gth, gth])
     Gg = np.zeros((n, 9, 3))
     Gg[:, 0:3] = Ftt @ gth
@@ -197,12 +234,9 @@ def propagate(
     Ga[:, 3:6] = Rm * (dt * rem + 0.5 * dt * dt)[:, None, None]
     dt_nom = 1.0 / noise.rate_hz
     deff = np.minimum(dt, dt_nom)
-    Q[0:9, 0:9] = np.einsum("kij,klj,k->il", Gg, Gg, noise.sigma_g**2 / deff) + np.einsum(
+    return np.einsum("kij,klj,k->il", Gg, Gg, noise.sigma_g**2 / deff) + np.einsum(
         "kij,klj,k->il", Ga, Ga, noise.sigma_a**2 / deff
     )
-    Q[9:12, 9:12] = noise.sigma_bg**2 * T * I3
-    Q[12:15, 12:15] = noise.sigma_ba**2 * T * I3
-    return Propagation(x1, Phi, Q)
 
 
 def propagate_static(x: ImuState, T: float, noise: ImuNoise, x_fej: ImuState | None = None) -> Propagation:

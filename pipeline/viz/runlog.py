@@ -364,6 +364,13 @@ class RunLog:
         self._rec.log(LOG, self._rr.TextLog(str(msg), level=str(level).upper()))
 
     # -- time series -------------------------------------------------------------------------------------------
+    def _stamps(self, t_ns: Any) -> np.ndarray | None:
+        """A series' stamps as int64, or None when nothing is to be logged (no recording, no stamps)."""
+        if self._rec is None:
+            return None
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        return t if len(t) else None
+
     def scalars(self, entity: str, t_ns: Any, values: Any, names: Sequence[str] | None = None) -> None:
         """Column-wise scalar series: values (N,) or (N,k) at t_ns (N,)."""
         if self._rec is None:
@@ -382,10 +389,8 @@ class RunLog:
 
     def constant(self, entity: str, t_ns: Any, values: Any, names: Sequence[str] | None = None) -> None:
         """A constant line (e.g. a chi-square gate or NEES bounds) over the span of t_ns: values scalar or (k,)."""
-        if self._rec is None:
-            return
-        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
-        if len(t) == 0:
+        t = self._stamps(t_ns)
+        if t is None:
             return
         v = np.atleast_1d(np.asarray(values, dtype=np.float64))
         self.scalars(
@@ -493,12 +498,10 @@ class RunLog:
         self, entity: str, t_ns: Any, centers: Any, covs: Any, n_sigma: float = 3.0, color: Any = None
     ) -> None:
         """One n-sigma ellipsoid per stamp, column-wise (e.g. world/vio/cov from the pose covariance's p block)."""
-        if self._rec is None:
+        t = self._stamps(t_ns)
+        if t is None:
             return
         rr = self._rr
-        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
-        if len(t) == 0:
-            return
         self._note(entity)
         c = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
         half, quat = cov_to_ellipsoid(covs, n_sigma)
@@ -599,12 +602,10 @@ class RunLog:
 
     def point_series(self, entity: str, t_ns: Any, p: Any, color: Any = None, radius: float = 0.05) -> None:
         """A point moving over time (e.g. an anchor estimate over refinement), column-wise."""
-        if self._rec is None:
+        t = self._stamps(t_ns)
+        if t is None:
             return
         rr = self._rr
-        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
-        if len(t) == 0:
-            return
         self._note(entity)
         p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
         self._rec.send_columns(entity, indexes=self._indexes(t), columns=rr.Points3D.columns(positions=p))

@@ -9,10 +9,12 @@ from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.names import INIT_METHODS
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.context import StageContext, StageResult
+from uwbcal.pipeline.run.windows import Windows
 from uwbcal.pipeline.uwb.planar_levers import planar_windows, refit_searches
 from uwbcal.pipeline.uwb.schedule import join_time
 from uwbcal.pipeline.uwb.updater import initialize_anchors, search_window, windows_from_trajectory
 from uwbcal.pipeline.viz import runlog as rl
+from uwbcal.pipeline.viz.runlog import RunLog
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -65,24 +67,7 @@ def run(ctx: StageContext) -> StageResult:
         log.stage("init", win.start_ns)
         ctx.log_truth_anchors(log)
         log.legend(list(results))
-        for m, res in results.items():
-            for a, r in res.items():
-                if not r.ok:
-                    continue
-                log.initialiser(a, m, r.x[:3])
-                if m == chosen and np.all(np.isfinite(r.cov[:3, :3])):  # 3σ, then updated over refinement
-                    log.ellipsoids(
-                        rl.anchor_world(a, "cov"), r.x[:3], r.cov[None, :3, :3], t_ns=win.init_end_ns
-                    )
-                if r.costs:
-                    t = np.linspace(win.start_ns, win.init_end_ns, len(r.costs)).astype(np.int64)
-                    log.scalars(rl.init(m, "cost") + f"/{a}", t, np.asarray(r.costs))
-                if r.fim is not None:
-                    log.scalars(
-                        rl.init(m, "fim_logdet") + f"/{a}",
-                        [win.init_end_ns],
-                        [r.fim.summary().get("logdet", np.nan)],
-                    )
+        _log_initialisers(log, results, chosen, win)
         for w in warns:
             log.text(w, "WARN", win.init_end_ns)
     ok = sum(r.ok for r in results[chosen].values())
@@ -96,6 +81,27 @@ def run(ctx: StageContext) -> StageResult:
     extra += f"; not determined: {', '.join(nd)}" if nd else ""
     sched = ctx.config.run.schedule
     return StageResult("init", f"{chosen} [{sched}]: {ok}/{len(res)} anchors initialised{extra}{errs}", warns)
+
+
+def _log_initialisers(log: RunLog, results: dict, chosen: str, win: Windows) -> None:
+    """Each method's anchors, the chosen one's covariance (3σ, then updated over refinement), the cost and FIM
+    series."""
+    for m, res in results.items():
+        for a, r in res.items():
+            if not r.ok:
+                continue
+            log.initialiser(a, m, r.x[:3])
+            if m == chosen and np.all(np.isfinite(r.cov[:3, :3])):  # 3σ, then updated over refinement
+                log.ellipsoids(rl.anchor_world(a, "cov"), r.x[:3], r.cov[None, :3, :3], t_ns=win.init_end_ns)
+            if r.costs:
+                t = np.linspace(win.start_ns, win.init_end_ns, len(r.costs)).astype(np.int64)
+                log.scalars(rl.init(m, "cost") + f"/{a}", t, np.asarray(r.costs))
+            if r.fim is not None:
+                log.scalars(
+                    rl.init(m, "fim_logdet") + f"/{a}",
+                    [win.init_end_ns],
+                    [r.fim.summary().get("logdet", np.nan)],
+                )
 
 
 def _lever_arms(ctx: StageContext, windows: dict):

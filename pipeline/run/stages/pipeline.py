@@ -20,9 +20,9 @@ from uwbcal.pipeline.core.atomic import sweep_stale
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.names import STAGES
 from uwbcal.pipeline.run import rundir as rd
-from uwbcal.pipeline.run.config import PipelineConfig, load_config, read_toml
+from uwbcal.pipeline.run.config import PipelineConfig, load_config
 from uwbcal.pipeline.run.context import Evaluator, StageContext, StageResult
-from uwbcal.pipeline.run.provenance import record_stage
+from uwbcal.pipeline.run.provenance import claim, record_stage, recording_record
 from uwbcal.pipeline.run.resolve import resolve
 from uwbcal.pipeline.run.stages import REGISTRY
 from uwbcal.pipeline.viz.log_server import start_log_server
@@ -34,6 +34,7 @@ class Pipeline:
     def __init__(self, config: PipelineConfig, run_dir: Path, evaluator: Evaluator | None = None) -> None:
         self.ctx = StageContext(config, run_dir, evaluator)
         self.shown_warnings: set[str] = set()
+        self.recording: dict = {}  # provenance.recording_record of this run's recording (set by run)
 
     @property
     def config(self) -> PipelineConfig:
@@ -47,9 +48,12 @@ class Pipeline:
     def results_text(self) -> str:
         return self.ctx.results_text
 
-    def run(self, stages: list[str] | None = None, progress=print) -> list[StageResult]:
+    def run(
+        self, stages: list[str] | None = None, progress=print, overwrite: bool = False
+    ) -> list[StageResult]:
         """The stages, under the run-directory lock; config.toml and stages.json are written after each stage
-        that succeeds (`provenance`); temporary files of an interrupted earlier run are removed first."""
+        that succeeds (`provenance`); temporary files of an interrupted earlier run are removed first, and a
+        directory of another recording is refused (``overwrite``: its artefacts are removed, `provenance.claim`)."""
         ctx = self.ctx
         stages = list(ctx.config.run.stages) if stages is None else list(stages)
         if not stages:
@@ -62,6 +66,10 @@ class Pipeline:
             if removed:
                 names = ", ".join(p.name for p in removed[:3]) + (" ..." if len(removed) > 3 else "")
                 progress(f"note: removed {len(removed)} temporary file(s) of an interrupted run ({names})")
+            self.recording = recording_record(ctx.recording)
+            stale = claim(ctx.dir, self.recording, stages, overwrite)
+            if stale:
+                progress(f"note: --overwrite: removed {len(stale)} artefact(s) of another recording")
             ctx.reader.check_schemas()
             parse_calibration(ctx.reader.calibration, f"{ctx.recording}: uwbcal.calibration")
             for w in ctx.reader.warnings:  # once here; the results table leaves them out (run_cli)
@@ -100,7 +108,7 @@ class Pipeline:
 
         entry = {"wall_s": res.wall_s, "summary": res.summary, "warnings": res.warnings}
         res.warnings += record_stage(
-            self.dir, res.stage, entry, self.config, self.ctx.stages, self.ctx.choices
+            self.dir, res.stage, entry, self.config, self.ctx.stages, self.recording, self.ctx.choices
         )
 
 
@@ -128,21 +136,12 @@ def check_values(ctx: StageContext) -> None:
 
 def _resumed_config(output: Path, overrides: dict) -> Path | None:
     """A partial re-run (stages given, VIO not among them) builds on the directory's artefacts: it continues
-    with the directory's config.toml (then config.toml keeps reproducing the run). Refused when that run was of
-    another recording (its artefacts would be mixed with this one's)."""
+    with the directory's config.toml (then config.toml keeps reproducing the run; a directory of another
+    recording is refused by `provenance.claim`)."""
     stages = overrides["run"].get("stages")
     cfg_path = output / rd.CONFIG
     if not stages or "vio" in stages or not cfg_path.is_file():
         return None
-
-    data = read_toml(cfg_path)
-    was = (data.get("run") or {}).get("recording")
-    now = overrides["run"]["recording"]
-    if isinstance(was, str) and was and Path(was).resolve() != Path(now):
-        raise InputError(
-            f"{output}: holds a run of {was}; re-running only {','.join(stages)} on {now} would mix two "
-            "recordings — run every stage, or choose another output directory"
-        )
     return cfg_path
 
 
@@ -156,6 +155,7 @@ def run_cli(
     stages: str | None,
     log: bool,
     evaluator: Evaluator | None = None,
+    overwrite: bool = False,
 ) -> str:
     overrides: dict = {"run": {"recording": str(Path(recording).resolve()), "log": log}}
     if stages is not None:
@@ -177,5 +177,5 @@ def run_cli(
     RecordingReader(overrides["run"]["recording"])  # fail early, before the run directory is touched
     cfg = load_config(config or _resumed_config(Path(output), overrides), overrides)
     pipe = Pipeline(cfg, output, evaluator)
-    pipe.run()
+    pipe.run(overwrite=overwrite)
     return "\n".join(ln for ln in pipe.results_text.splitlines() if ln not in pipe.shown_warnings)

@@ -10,8 +10,10 @@ from uwbcal.pipeline.run.context import StageContext, StageResult, filter_warnin
 from uwbcal.pipeline.run.driver import run_estimator
 from uwbcal.pipeline.uwb.height_regain import HeightRegain
 from uwbcal.pipeline.uwb.updater import UwbUpdater, add_initialised_anchors, initialize_anchors, search_window
+from uwbcal.pipeline.vio.estimator import Estimator
 from uwbcal.pipeline.viz import observers
 from uwbcal.pipeline.viz import runlog as rl
+from uwbcal.pipeline.viz.runlog import RunLog
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -24,6 +26,45 @@ def run(ctx: StageContext) -> StageResult:
     tau = getattr(est, "pose_correlation_s", None)  # bounded pose errors: their correlation time
     warns = add_initialised_anchors(est.state, results, cfg, cal, pose_correlation_s=tau)
     inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
+    updater, regain = _updater(ctx, results, inflation, tau)
+    with ctx.runlog("refine") as log:
+        log.stage("refine", win.init_end_ns)
+        run_estimator(
+            est, ctx.features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log
+        )
+        observers.log_uwb_updates(log, updater)
+        consistency = filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns, log)
+        _log_anchors(log, est, updater, win.refine_end_ns)
+    ctx.dir.save_pickle("checkpoint_refine.pkl", est)
+    hist = est.history().arrays()
+    seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
+    ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
+    rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
+    states = _anchor_states(est, updater, results, inflation, regain, win.init_end_ns, warns)
+    ctx.dir.save_json("anchor_states.json", states)
+    label = f"{cfg.init_method}+{cfg.refine_method}"
+    rd.write_anchors(
+        ctx.dir,
+        [rd.anchor_row(a, label, "refine", s["x"]) for a, s in states.items()]
+        + [rd.undetermined_row(a, label, "refine") for a, r in results.items() if not r.ok],
+        replace_stage="refine",
+    )
+    ctx.assemble_trajectory()
+    c = updater.counts
+    warns += consistency
+    errs = ctx.anchor_errors({a: s["x"] for a, s in states.items()})
+    return StageResult(
+        "refine", f"{cfg.refine_method}: {c['accepted']} range updates, {c['rejected']} rejected{errs}", warns
+    )
+
+
+def _updater(
+    ctx: StageContext, results: dict, inflation: dict, tau: float | None
+) -> tuple[UwbUpdater, HeightRegain | None]:
+    """The range updater of refinement, its anchors scheduled from the init results; the height regain when
+    configured."""
+    cal = ctx.reader.calibration
+    cfg = ctx.config.uwb
     updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
     if ctx.dir.exists("lever_arms.pkl"):  # a planar carrier's estimated lever arms (init)
         updater.planar_arms = ctx.dir.load_pickle("lever_arms.pkl", "refine")
@@ -46,32 +87,38 @@ def run(ctx: StageContext) -> StageResult:
                 a
             ],
         )
-    with ctx.runlog("refine") as log:
-        log.stage("refine", win.init_end_ns)
-        run_estimator(
-            est, ctx.features_reader(), win.init_end_ns, win.refine_end_ns, on_range=updater, log=log
-        )
-        observers.log_uwb_updates(log, updater)
-        consistency = filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns, log)
-        for a, arr in updater.arrays().items():
-            if len(arr["t_ns"]) and arr["cov"].any():
-                log.ellipsoid_series(
-                    rl.anchor_world(a, "cov"), arr["t_ns"], arr["x"][:, :3], arr["cov"][:, :3, :3]
-                )
-                log.point_series(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
-        for (
-            a,
-            n,
-        ) in est.state.anchors.items():  # at the end of refinement: the covariance anchor_states.json holds
-            x = est.state.value(n).x
-            log.ellipsoids(
-                rl.anchor_world(a, "cov"), x[:3], est.state.cov(n)[None, :3, :3], t_ns=win.refine_end_ns
+    return updater, regain
+
+
+def _log_anchors(log: RunLog, est: Estimator, updater: UwbUpdater, t_end_ns: int) -> None:
+    """The anchors' estimate and covariance series, and at the end of refinement the covariance
+    anchor_states.json holds."""
+    for a, arr in updater.arrays().items():
+        if len(arr["t_ns"]) and arr["cov"].any():
+            log.ellipsoid_series(
+                rl.anchor_world(a, "cov"), arr["t_ns"], arr["x"][:, :3], arr["cov"][:, :3, :3]
             )
-    ctx.dir.save_pickle("checkpoint_refine.pkl", est)
-    hist = est.history().arrays()
-    seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
-    ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
-    rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
+            log.point_series(rl.anchor_world(a, "estimate"), arr["t_ns"], arr["x"][:, :3])
+    for (
+        a,
+        n,
+    ) in est.state.anchors.items():  # at the end of refinement: the covariance anchor_states.json holds
+        x = est.state.value(n).x
+        log.ellipsoids(rl.anchor_world(a, "cov"), x[:3], est.state.cov(n)[None, :3, :3], t_ns=t_end_ns)
+
+
+def _anchor_states(
+    est: Estimator,
+    updater: UwbUpdater,
+    results: dict,
+    inflation: dict,
+    regain: HeightRegain | None,
+    init_end_ns: int,
+    warns: list[str],
+) -> dict[str, dict]:
+    """Per anchor (the refined ones and those determined only by all their ranges): state, covariance (its
+    height variance kept where unobservable), noise inflation, link offsets, a regained height; the warnings
+    appended to ``warns``."""
     offsets, offset_cov = updater.offsets(est.state), updater.offset_covariances(est.state)
     states = {
         str(a): {
@@ -105,24 +152,10 @@ def run(ctx: StageContext) -> StageResult:
     if regained:
         warns.append(
             "refine: height regained for anchors "
-            + ", ".join(f"{a} at {g['t_s'] - win.init_end_ns * 1e-9:.0f} s" for a, g in regained.items())
+            + ", ".join(f"{a} at {g['t_s'] - init_end_ns * 1e-9:.0f} s" for a, g in regained.items())
             + " into refinement (the motion left the init window's plane; re-initialised from all their ranges)"
         )
-    ctx.dir.save_json("anchor_states.json", states)
-    label = f"{cfg.init_method}+{cfg.refine_method}"
-    rd.write_anchors(
-        ctx.dir,
-        [rd.anchor_row(a, label, "refine", s["x"]) for a, s in states.items()]
-        + [rd.undetermined_row(a, label, "refine") for a, r in results.items() if not r.ok],
-        replace_stage="refine",
-    )
-    ctx.assemble_trajectory()
-    c = updater.counts
-    warns += consistency
-    errs = ctx.anchor_errors({a: s["x"] for a, s in states.items()})
-    return StageResult(
-        "refine", f"{cfg.refine_method}: {c['accepted']} range updates, {c['rejected']} rejected{errs}", warns
-    )
+    return states
 
 
 def _keep_height_sigma(P, P_init) -> np.ndarray:
