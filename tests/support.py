@@ -105,3 +105,55 @@ def errors_vs_truth(est, t_ns, p, R):
     dth = log_so3(np.swapaxes(Rh, 1, 2) @ R[idx])
     dp = p[idx] - h["p"]
     return h, dth, dp
+
+
+def surveyed_links(folder):
+    """A surveyed folder (`poses.tum`, `ranges.csv`, `antennas.yaml`, `anchors_truth.csv`) as the ranges of each
+    anchor with the ground-truth tag antenna positions at their stamps: {anchor: (xyz, d, link, t_ns)}, truth."""
+    import csv
+
+    import yaml
+    from scipy.spatial.transform import Rotation
+
+    P = np.loadtxt(folder / "poses.tum")
+    R = np.genfromtxt(folder / "ranges.csv", delimiter=",", names=True, dtype=None, encoding=None)
+    truth = {
+        r["anchor"]: np.array([float(r[k]) for k in "xyz"])
+        for r in csv.DictReader(open(folder / "anchors_truth.csv"))
+    }
+    ao = (yaml.safe_load(open(folder / "antennas.yaml")) or {}).get("antenna_offset") or []
+    arms, i = {}, 0
+    while i < len(ao):  # [tag, n, x, y, z (n times), ...]
+        for k in range(int(ao[i + 1])):
+            arms[(int(ao[i]), k)] = np.array(ao[i + 2 + 3 * k : i + 5 + 3 * k], float)
+        i += 2 + 3 * int(ao[i + 1])
+    t, ts = P[:, 0], R["stamp"] * 1e-9
+    ok = (ts >= t[0]) & (ts <= t[-1]) & np.isfinite(R["distance"])
+    out = {}
+    for a in np.unique(R["anchor"][ok]):
+        m = ok & (R["anchor"] == a)
+        pos = np.stack([np.interp(ts[m], t, P[:, j]) for j in (1, 2, 3)], axis=1)
+        rot = Rotation.from_quat(P[np.clip(np.searchsorted(t, ts[m]), 0, len(t) - 1), 4:8])
+        arm = np.array(
+            [
+                arms.get((int(g), int(n)), np.zeros(3))
+                for g, n in zip(R["tag"][m], R["antenna"][m], strict=True)
+            ]
+        )
+        link = R["tag"][m].astype(np.int64) * 256 + R["antenna"][m].astype(np.int64)
+        out[str(a)] = (
+            pos + rot.apply(arm),
+            R["distance"][m].astype(float),
+            link,
+            R["stamp"][m].astype(np.int64),
+        )
+    return out, truth
+
+
+def naive_anchor(xyz, d):
+    """The naive reference of a surveyed folder: the position alone by soft-L1 least squares from the linear
+    least-squares multilateration (no offset, no scale)."""
+    from scipy.optimize import least_squares
+
+    s = np.linalg.lstsq(np.c_[-2 * xyz, np.ones(len(d))], d**2 - np.sum(xyz**2, axis=1), rcond=None)[0]
+    return least_squares(lambda p: np.linalg.norm(xyz - p, axis=1) - d, s[:3], loss="soft_l1", f_scale=0.1).x

@@ -69,6 +69,12 @@ class UwbConfig(BaseModel):
     gamma_prior_mean: float | None = Field(
         None, description="override uwb.gamma_prior.mean of the calibration"
     )
+    offset_sigma_m: float = Field(
+        0.3,
+        gt=0,
+        description="prior sigma of a range offset [m] when the calibration states no gamma prior (what UWB "
+        "hardware has: decimetres); an offset enters an anchor's model only when held-out ranges demand it",
+    )
     gamma_prior_sigma: float | None = Field(None, gt=0, description="override uwb.gamma_prior.sigma")
     pose_sigma_floor_m: float = Field(0.0, ge=0, description="added to the pose position sigma at init")
     residual_factor: float = Field(
@@ -81,6 +87,14 @@ class UwbConfig(BaseModel):
         "variable, so that the anchors' cross-covariances with the filter are exact (the paper's window states "
         "X_I; 1, 2 and 5 s give the same anchor NEES); None: random-walk approximation from the poses' marginal "
         "covariances",
+    )
+    range_model: Literal["search", "evidence"] = Field(
+        "search",
+        description="how an anchor's range model and observability are decided with search on: search (the global "
+        "search's rules: height verdict, mirror test, beta likelihood ratio, per-link cross-validation) or "
+        "evidence (a soft-L1 position fit from the linear multilateration; an offset, scale or per-link offsets "
+        "enter only when time-blocked cross-validation of held-out ranges demands them; weak directions from the "
+        "information's eigen-decomposition, not determined when one is horizontal)",
     )
     search: bool = Field(
         True,
@@ -170,6 +184,11 @@ class UwbConfig(BaseModel):
         if isinstance(one, dict) and "mean" in one:
             return float(one["mean"]), float(one.get("sigma", 1.0))
         return None
+
+    def offset_prior(self, calibration: Mapping | None = None) -> tuple[float, float]:
+        """(mean, sigma) of a range offset for the evidence rule: the calibration's gamma prior, else
+        N(0, offset_sigma_m^2)."""
+        return self.gamma_prior(calibration) or (0.0, float(self.offset_sigma_m))
 
     def gamma_prior(self, calibration: Mapping | None = None) -> tuple[float, float] | None:
         uwb = (calibration or {}).get("uwb", {}) or {}

@@ -100,6 +100,9 @@ class InitResult:
     link_offsets: dict = field(default_factory=dict)  # link id -> offset relative to gamma (per-link bias)
     link_cov: np.ndarray | None = None  # (L, L) covariance of the offsets (in link_offsets' order; sum-zero)
     join_ns: int | None = None  # when the anchor joins the refinement (per-anchor schedule)
+    # (gamma prior, beta prior) of the range model the evidence chose (`evidence.fit_anchor`); the refinement
+    # keeps them (a parameter left out stays at its mean). None: the recording's priors
+    model_priors: tuple | None = None
 
     @property
     def reason(self) -> str:

@@ -30,6 +30,7 @@ from uwbcal.pipeline.core.state import (
     schmidt_update,
 )
 from uwbcal.pipeline.uwb.config import UwbConfig
+from uwbcal.pipeline.uwb.evidence import FitSpec, fit_anchor
 from uwbcal.pipeline.uwb.initializer import InitResult, InitWindow, initialize_anchor
 from uwbcal.pipeline.uwb.link_bias import bias_evidence
 from uwbcal.pipeline.uwb.model import jacobians, range_model, range_variance
@@ -186,15 +187,25 @@ def initialize_anchors(
             sr = searches.get(a)
             if sr is None:
                 sr = searches[a] = search_window(w, config, sigma, calibration)
-        evidence = bias_evidence(sr, w.tag_xyz, w.d, w.links(), w.t_ns, w.R) if sr is not None else None
+        model = _chosen_model(sr)
+        gp, bp = config.gamma_prior(calibration), config.init_beta_prior(calibration)
+        beta_sigma = config.beta_prior(calibration)[1]
+        if model is not None:  # the range model the held-out ranges chose (evidence.fit_anchor)
+            gp = config.offset_prior(calibration)
+            gp = gp if model != "position" else (gp[0], FIXED_OFFSET_SIGMA)
+            bp = config.beta_prior(calibration) if model == "gamma+beta" else None
+            beta_sigma = beta_sigma if model == "gamma+beta" else FIXED_BETA_SIGMA
+        evidence = None
+        if sr is not None and model is None:
+            evidence = bias_evidence(sr, w.tag_xyz, w.d, w.links(), w.t_ns, w.R)
         out[a] = initialize_anchor(
             w,
             _method(method or config.init_method),
             anchor=str(a),
             sigma_range=sigma,
-            gamma_prior=config.gamma_prior(calibration),
-            beta_sigma=config.beta_prior(calibration)[1],
-            beta_prior=config.init_beta_prior(calibration),
+            gamma_prior=gp,
+            beta_sigma=beta_sigma,
+            beta_prior=bp,
             robust_loss=config.robust_loss,
             robust_scale=config.robust_scale,
             min_ranges=config.min_ranges,
@@ -203,14 +214,49 @@ def initialize_anchors(
             residual_factor=config.residual_factor,
             correlation_block_s=config.correlation_block_s,
             search=sr,
-            per_link=config.bias == "per-link"
+            per_link=model == "link"
+            or config.bias == "per-link"
             or (config.bias == "auto" and evidence is not None and evidence["model"] == "per-link"),
             max_ranges=config.max_init_ranges,
             z_prior=config.z_prior(a),
         )
-        if evidence is not None and out[a].ok:  # the bias model used and the evidence, for init/metrics.json
+        if model is not None:  # the range model, its evidence and the axes, for init/metrics.json
+            out[a].verdict["model"] = sr.costs["evidence"]
+            b0 = config.beta_prior(calibration)
+            out[a].model_priors = (gp, b0 if model == "gamma+beta" else (1.0, FIXED_BETA_SIGMA))
+        elif evidence is not None and out[a].ok:  # the bias model used and the evidence
             out[a].verdict["bias"] = evidence | {"model": "per-link" if out[a].link_offsets else "per-anchor"}
     return out
+
+
+# the priors that hold an offset / the scale at its mean when the evidence leaves it out of an anchor's model
+FIXED_OFFSET_SIGMA = 1e-3  # [m]
+FIXED_BETA_SIGMA = 1e-5
+
+
+def _chosen_model(sr: SearchResult | None) -> str | None:
+    """The range model `evidence.fit_anchor` chose for the anchor (None: the search decided, or none ran)."""
+    if sr is None:
+        return None
+    return (sr.costs.get("evidence") or {}).get("model")
+
+
+def _evidence_fit(
+    w: InitWindow, config: UwbConfig, sigma: float, calibration: Mapping | None
+) -> SearchResult:
+    """`evidence.fit_anchor` on an init window: the robust position fit, the range model the held-out ranges
+    choose, the anchor's weak directions (or "not determined" with the reason)."""
+    spec = FitSpec(
+        sigma_range=sigma,
+        gamma_mean=config.offset_prior(calibration)[0],
+        gamma_sigma=config.offset_prior(calibration)[1],
+        beta_sigma=config.beta_prior(calibration)[1],
+        max_sigma=config.max_sigma_horizontal_m,
+        min_ranges=max(config.min_ranges, 30),
+        max_ranges=config.max_init_ranges,
+    )
+    pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
+    return fit_anchor(w.tag_xyz, w.d, w.links(), t_ns=w.t_ns, pos_cov=pos_cov, spec=spec)
 
 
 def search_window(
@@ -226,6 +272,8 @@ def search_window(
         return _not_determined(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
+    if config.range_model == "evidence":
+        return _evidence_fit(w, config, sigma, calibration)
     pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
     kw = dict(
         t_ns=w.t_ns,
@@ -502,6 +550,8 @@ def add_anchor_to_state(
     if not result.ok:
         raise ValueError(f"anchor {anchor}: initialisation {result.status}; not added to the state")
     pose_var = pose_var or state.nav
+    if result.model_priors is not None:
+        gamma_prior, beta_prior = result.model_priors
     P_now = state.cov(pose_var)[0:6, 0:6]
     if not np.all(np.isfinite(P_now)):
         raise FloatingPointError(f"anchor {anchor}: the filter's pose covariance has NaN/inf")
