@@ -49,7 +49,7 @@ def _guard(fn):
         import click
 
         from uwbcal.pipeline.core.atomic import discard_all
-        from uwbcal.pipeline.core.errors import Terminated, os_error_message
+        from uwbcal.pipeline.core.errors import EstimateFailed, Terminated, os_error_message
 
         def _term(signum, frame):
             raise Terminated()
@@ -76,6 +76,9 @@ def _guard(fn):
         except Exception as exc:
             if _DEBUG["on"]:
                 raise
+            if isinstance(exc, EstimateFailed):
+                typer.echo("error: " + " ".join(str(exc).split("\n")).strip(), err=True)
+                raise typer.Exit(3) from None
             if isinstance(exc, InputError):
                 msg = str(exc)
             elif isinstance(exc, OSError):

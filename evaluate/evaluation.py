@@ -137,6 +137,10 @@ def _run_notes(run_dir: Path, reader: RecordingReader, traj: RunTrajectory) -> d
         notes["wall_s"] = float(sum(float(st.get("wall_s", 0.0)) for st in stages.values()))
     if len(traj):
         notes["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
+    if (
+        run_dir / "health.json"
+    ).is_file():  # the pose source's health checks per stage (context.check_health)
+        notes["vio_health"] = read_json(run_dir / "health.json")
     return notes
 
 

@@ -44,6 +44,7 @@ ARTEFACTS = (
     "frontend.mcap",
     "windows.json",
     "static_init.json",
+    "health.json",
     "checkpoint_init.pkl",
     "vio.npz",
     "vio.mcap",
