@@ -49,7 +49,7 @@ def _guard(fn):
         import click
 
         from uwbcal.pipeline.core.atomic import discard_all
-        from uwbcal.pipeline.core.errors import Terminated, os_error_message
+        from uwbcal.pipeline.core.errors import EstimateFailed, Terminated, os_error_message
 
         def _term(signum, frame):
             raise Terminated()
@@ -76,6 +76,9 @@ def _guard(fn):
         except Exception as exc:
             if _DEBUG["on"]:
                 raise
+            if isinstance(exc, EstimateFailed):
+                typer.echo("error: " + " ".join(str(exc).split("\n")).strip(), err=True)
+                raise typer.Exit(3) from None
             if isinstance(exc, InputError):
                 msg = str(exc)
             elif isinstance(exc, OSError):
@@ -427,6 +430,73 @@ def info(
         typer.echo(bag_info(recording))
         return
     typer.echo(recording_info(recording).render())
+
+
+@app.command()
+@_guard
+def calibrate(
+    path: Annotated[
+        Path | None,
+        typer.Argument(
+            help="A ROS 1/2 bag, EuRoC folder (mav0/), NTU-VIRAL sequence folder, a folder with poses.tum + "
+            "ranges.csv, or a uwbcal recording"
+        ),
+    ] = None,
+    output: Output = Path("calibration"),
+    poses: Annotated[Path | None, typer.Option(help="Tabular input: TUM trajectory (with --ranges).")] = None,
+    ranges: Annotated[Path | None, typer.Option(help="Tabular input: ranges CSV (with --poses).")] = None,
+    antennas: Annotated[
+        Path | None, typer.Option(help="Antenna lever-arm yaml (default: antennas.yaml beside the data).")
+    ] = None,
+    anchors_truth: Annotated[
+        Path | None, typer.Option(help="Surveyed anchors CSV (default: anchors_truth.csv beside the data).")
+    ] = None,
+    calibration: Annotated[
+        Path | None, typer.Option(help="Bag input: calibration yaml (default: calibration.yaml beside it).")
+    ] = None,
+    stamp_unit: Annotated[
+        StampUnit | None, typer.Option(help="Tabular input: unit of the range stamps.")
+    ] = None,
+    time_offset: TimeOffset = 0.0,
+    config: Annotated[Path | None, typer.Option(help="TOML config (default: the defaults).")] = None,
+    log: Annotated[bool, typer.Option("--log", help="Also write run.rrd (the rerun viewer's log).")] = False,
+) -> None:
+    """Calibrate the anchors in one command: convert, check, run with the defaults, evaluate when truth exists,
+    export anchors.json / uwb_anchors.yaml / localization.yaml (with covariance) and report.html."""
+    from uwbcal.evaluate.calibrate import CalibrateInput
+    from uwbcal.evaluate.calibrate import calibrate as run
+
+    inp = CalibrateInput(
+        path,
+        poses,
+        ranges,
+        antennas,
+        anchors_truth,
+        calibration,
+        stamp_unit and stamp_unit.value,
+        time_offset,
+        config,
+        log,
+    )
+    typer.echo(run(inp, output, progress=lambda s: typer.echo(s, err=True)))
+
+
+@app.command()
+@_guard
+def check(
+    recording: Annotated[Path, typer.Argument(help="A .mcap recording")],
+    anchors_truth: Annotated[
+        Path | None,
+        typer.Option(
+            help="Surveyed anchors CSV anchor,x,y,z in the poses' frame (default: the recording's truth, if any)."
+        ),
+    ] = None,
+) -> None:
+    """A recording's own consistency before calibrating: range statistics, stamps, pose excitation; with truth
+    the anchor ids, lever arms and range-to-pose clock offset. Ends in one verdict line per problem."""
+    from uwbcal.evaluate.check import check_recording
+
+    typer.echo(check_recording(recording, anchors_truth).render())
 
 
 @app.command("config")

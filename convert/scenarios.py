@@ -2,7 +2,7 @@
 
 ``uwbcal simulate --scenario NAME`` and, from Python::
 
-    from convert.scenarios import SCENARIOS, scenario_config, simulate_scenario
+    from uwbcal.convert.scenarios import SCENARIOS, scenario_config, simulate_scenario
     cfg = scenario_config("planar", seed=3, duration=60)      # a SimConfig; any SimConfig field can be overridden
     data = simulate_scenario("nlos", seed=1)                    # SimData (arrays, nothing written)
     simulate_to_file(cfg, "planar.mcap")                        # convert.simulator: the recording

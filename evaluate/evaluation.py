@@ -38,6 +38,7 @@ from uwbcal.evaluate.export import (
 from uwbcal.evaluate.gravity import level_truth
 from uwbcal.evaluate.metrics import ormse_deg_by_segment, prmse_by_segment, segment_masks_from_ids
 from uwbcal.evaluate.quality import range_quality
+from uwbcal.evaluate.report import write_report
 from uwbcal.evaluate.tables import render
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
@@ -133,6 +134,10 @@ def _run_notes(run_dir: Path, reader: RecordingReader, traj: RunTrajectory) -> d
         notes["wall_s"] = float(sum(float(st.get("wall_s", 0.0)) for st in stages.values()))
     if len(traj):
         notes["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
+    if (
+        run_dir / "health.json"
+    ).is_file():  # the pose source's health checks per stage (context.check_health)
+        notes["vio_health"] = read_json(run_dir / "health.json")
     return notes
 
 
@@ -357,11 +362,12 @@ def evaluate_run_cli(
 
 
 def evaluate_stage(run_dir: Path, align: str | None, open_log: Callable[[], RunLog]) -> str:
-    """The pipeline's `evaluate` stage (handed to `Pipeline(..., evaluator=)`): metrics.json and results.md, and
-    the pose NEES over time with its chi-square bounds in the stage's rerun log."""
+    """The pipeline's `evaluate` stage (handed to `Pipeline(..., evaluator=)`): metrics.json, results.md and
+    report.html, and the pose NEES over time with its chi-square bounds in the stage's rerun log."""
 
     series: dict = {}
     text = evaluate_run_cli(run_dir, align=align, series=series)
+    write_report(run_dir)
     if series:
         with open_log() as log:
             log.stage("evaluate", int(series["t_ns"][0]))

@@ -30,7 +30,7 @@ PNG = b"\x89PNG\r\n\x1a\n"
 def test_degrade_scales_simulated_and_believed_noise_alike():
     base = SimConfig(seed=3)
     assert VioDegrade.of(1.0).sim(base) == base
-    assert VioDegrade.of(1.0).config() == {"vio": {"pixel_sigma": 1.0}}
+    assert VioDegrade.of(1.0).config() == {"vio": {"pixel_sigma": 1.0, "on_failure": "warn"}}
     assert VioDegrade.of(3, 3).config() == VioDegrade.of(3).config()  # told = simulated: the default
     d = VioDegrade.of(3)
     s = d.sim(base)

@@ -562,9 +562,11 @@ def test_filter_warnings_go_to_the_stage_log():
     logged = []
     log = SimpleNamespace(text=lambda msg, level="INFO", t_ns=None: logged.append((msg, level, t_ns)))
     ctx = SimpleNamespace(
-        config=SimpleNamespace(uwb=UwbConfig()), windows=lambda: SimpleNamespace(start_ns=0)
+        config=SimpleNamespace(uwb=UwbConfig()),
+        windows=lambda: SimpleNamespace(start_ns=0),
+        check_health=lambda stage, est, a, b: [f"{stage}: inconsistent visual updates"],
     )
-    est = SimpleNamespace(span_warnings=lambda stage, a, b, t0: [f"{stage}: inconsistent visual updates"])
+    est = SimpleNamespace()
     from uwbcal.pipeline.uwb.updater import AnchorRecord
 
     upd = UwbUpdater("skf", ARMS, chi2_quantile=0.95)

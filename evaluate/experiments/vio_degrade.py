@@ -79,7 +79,7 @@ class VioDegrade(BaseModel):
         it through the recording's calibration (scaled like the simulation), so a told factor that differs from
         the simulated one is applied to them as ``imu_noise_inflation`` (told / simulated)."""
         base = base or VioConfig()
-        out = {"pixel_sigma": base.pixel_sigma * self.noise_scale}
+        out = {"pixel_sigma": base.pixel_sigma * self.noise_scale, "on_failure": "warn"}
         if self.told_scale != self.noise_scale:
             out["imu_noise_inflation"] = base.imu_noise_inflation * self.told_scale / self.noise_scale
         return {"vio": out}

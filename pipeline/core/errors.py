@@ -11,6 +11,10 @@ class InputError(Exception):
     """Bad input or bad usage: names the file/record and what to do. Never a bug in uwbcal."""
 
 
+class EstimateFailed(Exception):  # noqa: N818 - a result, not a bug
+    """An estimator's health check failed (a diverged VIO): the CLI prints the one-line message, exit 3."""
+
+
 class Terminated(BaseException):  # noqa: N818 - like KeyboardInterrupt: not an Exception, unwinds everything
     """SIGTERM received: unwind (temporary outputs are removed on the way) and exit 143."""
 

@@ -36,7 +36,7 @@ class RunSection(BaseModel):
     refine_window_s: float | None = Field(None, gt=0, description="length of paper stage 2; default 1/3")
     align: Literal["auto", "none", "posyaw", "se3", "sim3"] = Field(
         "auto",
-        description="trajectory alignment of the evaluation; auto: none in a shared world frame, posyaw for a VIO in its own frame",
+        description="trajectory alignment of the evaluation; auto: posyaw for a VIO started by the static initialiser (its own frame), none for a simulation, se3 otherwise (a real ground truth in another frame)",
     )
     log: bool = Field(True, description="write the rerun recording run.rrd (--no-log: false)")
     log_process: bool = Field(

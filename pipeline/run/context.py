@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from uwbcal.convert.recording import MergedReader, RecordingReader
+from uwbcal.pipeline.core.errors import EstimateFailed
 from uwbcal.pipeline.core.names import STAGE_NUMBER
 from uwbcal.pipeline.core.topics import (
     TOPIC_GT_POSE,
@@ -26,7 +27,9 @@ from uwbcal.pipeline.run.config import PipelineConfig
 from uwbcal.pipeline.run.driver import msckf_from_recording, odometry_from_recording
 from uwbcal.pipeline.run.windows import Windows, recording_windows
 from uwbcal.pipeline.vio.estimator import Estimator
+from uwbcal.pipeline.vio.health import assess
 from uwbcal.pipeline.vio.static_init import StaticInitConfig, static_init_from_recording
+from uwbcal.pipeline.vio.stats import VioStats
 from uwbcal.pipeline.viz import runlog as rl
 
 _log = logging.getLogger(__name__)
@@ -54,7 +57,7 @@ def filter_warnings(
     logged to the stage's rerun log (``log``) at ``end_ns``."""
     cfg, t0 = ctx.config.uwb, ctx.windows().start_ns
     warns = (
-        est.span_warnings(stage, start_ns, end_ns, t0)
+        ctx.check_health(stage, est, start_ns, end_ns)
         + updater.gate_excess_warning(stage)
         + updater.gate_warnings(
             stage, cfg.gate_window_s, cfg.gate_min_ranges, cfg.gate_max_rejected, cfg.chi2_quantile, t0
@@ -112,6 +115,29 @@ class StageContext:
         truth = self.reader.truth
         simulated = truth is not None and truth.get("kind", "simulated") == "simulated"
         return self.reader.time_span()[0] if simulated else None
+
+    def check_health(self, stage: str, est: Estimator, start_ns: int | None, end_ns: int | None) -> list[str]:
+        """The pose source's health over the stretch ``stage`` filtered (`health.assess`), kept in health.json.
+        A failure stops the run (`EstimateFailed`; metrics.json records it) or, with ``vio.on_failure = "warn"``,
+        is a warning."""
+        cfg = self.config.vio
+        stats = getattr(est, "stats", None)
+        rejection = None
+        if isinstance(stats, VioStats):
+            rejection = stats.rejection_rate(
+                cfg.consistency_window_s, cfg.consistency_min_tracks, start_ns, end_ns
+            )
+        fail = assess(est.history().arrays(), cfg, rejection, start_ns, end_ns)
+        t0 = self.windows().start_ns
+        record = dict(self.dir.load_json("health.json")) if self.dir.exists("health.json") else {}
+        record[stage] = {"failed": False} if fail is None else fail.summary(stage, t0)
+        self.dir.save_json("health.json", record)
+        if fail is None:
+            return []
+        if cfg.on_failure == "warn":
+            return [fail.message(stage, t0)]
+        self.dir.save_json("metrics.json", {"vio_failure": record[stage]})
+        raise EstimateFailed(fail.message(stage, t0))
 
     def windows(self) -> Windows:
         run = self.config.run

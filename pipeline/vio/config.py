@@ -66,6 +66,20 @@ class VioConfig(BaseModel):
         description="fraction of a window's tracks failing the chi2 gate above which the vio stage warns that "
         "the filter is inconsistent (consistent: 1 - chi2_quantile)",
     )
+    on_failure: Literal["stop", "warn"] = Field(
+        "stop",
+        description="when a stage's VIO fails a health check (chi2 rejection rate, speed, position sigma): stop the "
+        "run with an error (exit 3, the failure in health.json and metrics.json), or warn and keep the estimate",
+    )
+    max_speed: float = Field(
+        50.0, gt=0, description="health check: a faster estimated speed is a divergence [m/s]"
+    )
+    max_position_sigma: float = Field(
+        10.0, gt=0, description="health check: a larger position sigma is a lost filter [m]"
+    )
+    health_speed_baseline_s: float = Field(
+        0.5, gt=0, description="health check: the speed is measured over this much of the trajectory [s]"
+    )
     max_slam_features: int = Field(
         0,
         ge=0,

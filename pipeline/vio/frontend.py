@@ -225,6 +225,18 @@ class KltFrontend:
         out[np.flatnonzero(ok)] = mask.reshape(-1).astype(bool)
         return out
 
+    def _cell_room(self, pts: np.ndarray, w: int, h: int) -> np.ndarray:
+        """New corners each grid cell may take: its share of ``max_features`` less the live tracks in it."""
+        c = self.config
+        cells = c.grid_cols * c.grid_rows
+        cap = math.ceil(c.max_features / cells)
+        have = np.zeros(cells, np.int64)
+        if len(pts):
+            cx = np.clip((pts[:, 0] * c.grid_cols / w).astype(np.int64), 0, c.grid_cols - 1)
+            cy = np.clip((pts[:, 1] * c.grid_rows / h).astype(np.int64), 0, c.grid_rows - 1)
+            have = np.bincount(cy * c.grid_cols + cx, minlength=cells)
+        return np.maximum(cap - have, 0)
+
     def _detect(self, img: np.ndarray, pts: np.ndarray) -> np.ndarray:
         c = self.config
         h, w = img.shape[:2]
@@ -248,15 +260,7 @@ class KltFrontend:
         if corners is None:
             return np.zeros((0, 2), np.float32)
         corners = corners.reshape(-1, 2)
-        cells = c.grid_cols * c.grid_rows
-        cap = math.ceil(c.max_features / cells)
-        have = np.zeros(cells, np.int64)
-        if len(pts):
-            cx = np.clip((pts[:, 0] * c.grid_cols / w).astype(np.int64), 0, c.grid_cols - 1)
-            cy = np.clip((pts[:, 1] * c.grid_rows / h).astype(np.int64), 0, c.grid_rows - 1)
-            have = np.bincount(cy * c.grid_cols + cx, minlength=cells)
-        need = np.maximum(cap - have, 0)
-        sel = bucket_select(corners, need, c.grid_cols, c.grid_rows, w, h)
+        sel = bucket_select(corners, self._cell_room(pts, w, h), c.grid_cols, c.grid_rows, w, h)
         new = corners[sel]
         if len(new) > room:  # best first across cells: gftt order is by quality
             new = new[:room]
@@ -515,13 +519,7 @@ class DescriptorFrontend(KltFrontend):
         if len(pts):
             d2 = ((uv[cand, None, :] - pts[None, :, :]) ** 2).sum(-1).min(axis=1)
             cand = cand[d2 >= c.min_distance_px**2]
-        cells = c.grid_cols * c.grid_rows
-        have = np.zeros(cells, np.int64)
-        if len(pts):
-            cx = np.clip((pts[:, 0] * c.grid_cols / w).astype(np.int64), 0, c.grid_cols - 1)
-            cy = np.clip((pts[:, 1] * c.grid_rows / h).astype(np.int64), 0, c.grid_rows - 1)
-            have = np.bincount(cy * c.grid_cols + cx, minlength=cells)
-        need = np.maximum(math.ceil(c.max_features / cells) - have, 0)
+        need = self._cell_room(pts, w, h)
         sel = cand[bucket_select(uv[cand], need, c.grid_cols, c.grid_rows, w, h)][:room]
         self._desc = np.vstack([self._desc, desc[sel]])
         return uv[sel].astype(np.float32)

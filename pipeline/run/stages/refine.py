@@ -1,5 +1,6 @@
 """Stage `refine` (paper stage 2): the chosen initialisation joins the filter state; EKF or Schmidt updates with
-every range of the refinement window -> anchor_states.json, refine.npz/.mcap, the `refine` rows of anchors.csv."""
+every range of the refinement window -> anchor_states.json, refine.npz/.mcap, range_updates.npz (each range's residual,
+NIS and gate verdict), the `refine` rows of anchors.csv."""
 
 from __future__ import annotations
 
@@ -14,6 +15,16 @@ from uwbcal.pipeline.vio.estimator import Estimator
 from uwbcal.pipeline.viz import observers
 from uwbcal.pipeline.viz import runlog as rl
 from uwbcal.pipeline.viz.runlog import RunLog
+
+RANGE_UPDATES = "range_updates.npz"  # every range of the refinement: anchor, stamp, residual, NIS, rejected
+
+
+def _range_updates(per_anchor: dict) -> dict[str, np.ndarray]:
+    keys = [k for k in per_anchor if len(per_anchor[k]["t_ns"])]
+    cols = {"anchor": np.concatenate([np.full(len(per_anchor[k]["t_ns"]), str(k)) for k in keys] or [[]])}
+    for name in ("t_ns", "residual", "nis", "rejected"):
+        cols[name] = np.concatenate([per_anchor[k][name] for k in keys] or [np.zeros(0)])
+    return cols
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -40,6 +51,7 @@ def run(ctx: StageContext) -> StageResult:
     seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
     ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
     rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
+    ctx.dir.save_npz(RANGE_UPDATES, **_range_updates(updater.arrays()))
     states = _anchor_states(est, updater, results, inflation, regain, win.init_end_ns, warns)
     ctx.dir.save_json("anchor_states.json", states)
     label = f"{cfg.init_method}+{cfg.refine_method}"

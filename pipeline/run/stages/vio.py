@@ -37,7 +37,7 @@ def run(ctx: StageContext) -> StageResult:
             run_estimator(est, ctx.features_reader(), win.init_end_ns, win.end_ns, log=log)
         hist = est.history().arrays()  # the estimators log world/vio themselves
         t_end = win.end_ns if vio_only_to_end else win.init_end_ns
-        warns = list(est.warnings) + est.span_warnings("vio", win.start_ns, t_end, win.start_ns)
+        warns = list(est.warnings) + ctx.check_health("vio", est, win.start_ns, t_end)
         for w in warns:
             log.text(w, "WARN", t_end)
     ctx.dir.save_npz("vio.npz", **hist)
@@ -61,7 +61,7 @@ def _run_loose(ctx: StageContext) -> StageResult:
         log.stage("vio", win.start_ns)
         ctx.log_groundtruth(log)
         run_estimator(msckf, ctx.features_reader(), win.start_ns, win.end_ns, log=log)
-        warns = list(msckf.warnings) + msckf.span_warnings("vio", win.start_ns, win.end_ns, win.start_ns)
+        warns = list(msckf.warnings) + ctx.check_health("vio", msckf, win.start_ns, win.end_ns)
         for w in warns:
             log.text(w, "WARN", win.end_ns)
     full = msckf.history().arrays()
