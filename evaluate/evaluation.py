@@ -137,7 +137,7 @@ def _run_notes(run_dir: Path, reader: RecordingReader, traj: RunTrajectory) -> d
     if (
         run_dir / "health.json"
     ).is_file():  # the pose source's health checks per stage (context.check_health)
-        notes["vio_health"] = read_json(run_dir / "health.json")
+        notes["vio_health"] = artefacts.read_json(run_dir / "health.json")
     return notes
 
 
