@@ -16,9 +16,8 @@ import numpy as np
 import polars as pl
 
 from uwbcal.convert.recording import RecordingReader
-from uwbcal.evaluate.align import Alignment
+from uwbcal.evaluate.align import Alignment, initial_pose
 from uwbcal.evaluate.align import align as fit_alignment
-from uwbcal.evaluate.align import initial_pose
 from uwbcal.evaluate.anchor_report import (
     AnchorReference,
     RunAnchors,
