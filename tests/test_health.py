@@ -3,7 +3,7 @@
 import numpy as np
 
 from uwbcal.pipeline.vio.config import VioConfig
-from uwbcal.pipeline.vio.health import assess, speed
+from uwbcal.pipeline.vio.health import assess, speed, windowed_median_nis
 
 S = 1_000_000_000
 
@@ -37,3 +37,48 @@ def test_each_check_fires_at_its_time_and_the_earliest_is_reported():
     f = assess(g, cfg, (t, frac, np.full(len(t), 40)))
     assert f.check == "chi2" and f.t_ns == 8 * S and "vio.consistency_max_rejected" in f.message("vio", 0)
     assert assess(g, cfg, (t, frac, np.full(len(t), 40)), start_ns=16 * S).check == "covariance"
+
+
+def test_range_nis_is_the_windowed_median_and_fires_when_the_ranges_stop_fitting():
+    cfg = VioConfig()
+    t = np.arange(0, 30 * S, S // 20)  # 20 Hz
+    rng = np.random.default_rng(0)
+    nis = rng.chisquare(1, len(t))
+    nis[::10] = 1e4  # one range in ten NLOS: not a divergence
+    nis[t >= 20 * S] *= 1e4  # every range off from 20 s
+    tm, med = windowed_median_nis(t, nis, cfg.range_nis_window_s, cfg.range_nis_min_ranges)
+    assert np.isnan(med[: cfg.range_nis_min_ranges - 1]).all()
+    assert np.nanmax(med[tm < 20 * S]) < 2.0
+    f = assess(_history(400, 20.0, 0.5), cfg, None, ranges=(t, nis))
+    assert f.check == "range_nis" and 20 * S < f.t_ns < 23 * S and "vio.max_range_nis" in f.message("x", 0)
+
+
+def test_a_localisation_whose_pose_is_metres_off_is_caught_by_its_ranges(tmp_path):
+    """The odometry pose source (no visual chi2 test at all) is shifted 3 m with its covariance claiming cm
+    after refinement: the localisation's ranges tell it, the run stops (exit 3) naming the check."""
+    import json
+    import pickle
+
+    from typer.testing import CliRunner
+
+    from uwbcal.cli import app
+    from uwbcal.convert.simulator import SimConfig, simulate_to_file
+    from uwbcal.pipeline.core.state import Pose
+
+    rec = tmp_path / "sim.mcap"
+    simulate_to_file(SimConfig(duration=30.0, n_anchors=3, odometry_rate=20.0, camera=False, seed=1), rec)
+    run = tmp_path / "run"
+    stages = ["run", str(rec), "-o", str(run), "--no-log", "--stages"]
+    res = CliRunner().invoke(app, [*stages, "vio,init,refine,localize"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "health.json").read_text())["localize"] == {"failed": False}
+    ck = run / "checkpoint_refine.pkl"
+    est = pickle.loads(ck.read_bytes())
+    nav = est.state.nav
+    x = est.state.value(nav)
+    est.state.set_value(nav, Pose(x.R, x.p + np.array([3.0, 0.0, 0.0])))
+    ck.write_bytes(pickle.dumps(est))
+    res = CliRunner().invoke(app, [*stages, "localize"])
+    assert res.exit_code == 3, res.output
+    health = json.loads((run / "health.json").read_text())["localize"]
+    assert health["check"] == "range_nis" and health["value"] > VioConfig().max_range_nis

@@ -51,13 +51,16 @@ def filter_warnings(
     ctx: StageContext, stage: str, est: Estimator, updater, start_ns: int, end_ns: int, log=None
 ) -> list[str]:
     """What the filters of a UWB stage (refine, localize) say about their own consistency over the stretch the
-    stage ran, ``[start_ns, end_ns)``: the pose source's (the MSCKF's visual chi2 rejections), the range
+    stage ran, ``[start_ns, end_ns)``: the pose source's health (with anchors frozen, localisation, also judged
+    by the NIS of its range updates), the range
     updates' overall gate rate against a consistent filter's (`uwb_filter.UwbUpdater.gate_excess_warning`) and their
     windowed gate rate (`uwb_filter.UwbUpdater.gate_warnings`); times in s after the run's start. Each is also
     logged to the stage's rerun log (``log``) at ``end_ns``."""
     cfg, t0 = ctx.config.uwb, ctx.windows().start_ns
     warns = (
-        ctx.check_health(stage, est, start_ns, end_ns)
+        ctx.check_health(
+            stage, est, start_ns, end_ns, updater.range_nis() if updater.mode == "frozen" else None
+        )
         + updater.gate_excess_warning(stage)
         + updater.gate_warnings(
             stage, cfg.gate_window_s, cfg.gate_min_ranges, cfg.gate_max_rejected, cfg.chi2_quantile, t0
@@ -116,8 +119,16 @@ class StageContext:
         simulated = truth is not None and truth.get("kind", "simulated") == "simulated"
         return self.reader.time_span()[0] if simulated else None
 
-    def check_health(self, stage: str, est: Estimator, start_ns: int | None, end_ns: int | None) -> list[str]:
-        """The pose source's health over the stretch ``stage`` filtered (`health.assess`), kept in health.json.
+    def check_health(
+        self,
+        stage: str,
+        est: Estimator,
+        start_ns: int | None,
+        end_ns: int | None,
+        ranges: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> list[str]:
+        """The pose source's health over the stretch ``stage`` filtered (`health.assess`; ``ranges``: the
+        stamps and NIS of its range updates against frozen anchors), kept in health.json.
         A failure stops the run (`EstimateFailed`; metrics.json records it) or, with ``vio.on_failure = "warn"``,
         is a warning."""
         cfg = self.config.vio
@@ -127,7 +138,7 @@ class StageContext:
             rejection = stats.rejection_rate(
                 cfg.consistency_window_s, cfg.consistency_min_tracks, start_ns, end_ns
             )
-        fail = assess(est.history().arrays(), cfg, rejection, start_ns, end_ns)
+        fail = assess(est.history().arrays(), cfg, rejection, start_ns, end_ns, ranges)
         t0 = self.windows().start_ns
         record = dict(self.dir.load_json("health.json")) if self.dir.exists("health.json") else {}
         record[stage] = {"failed": False} if fail is None else fail.summary(stage, t0)

@@ -977,6 +977,16 @@ class UwbUpdater:
     def arrays(self) -> dict[Any, dict[str, np.ndarray]]:
         return {a: rec.arrays() for a, rec in self.records.items()}
 
+    def range_nis(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps, NIS) of every range the updater judged, all anchors pooled (the health check's input)."""
+        recs = list(self.records.values())
+        if not recs:
+            return np.zeros(0, np.int64), np.zeros(0)
+        return (
+            np.concatenate([np.asarray(r.t_ns, np.int64) for r in recs]),
+            np.concatenate([np.asarray(r.nis, float) for r in recs]),
+        )
+
     def gate_rates(
         self, window_s: float, min_ranges: int, quantile: float | None
     ) -> dict[Any, tuple[np.ndarray, np.ndarray, np.ndarray]]:

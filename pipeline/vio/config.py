@@ -68,8 +68,9 @@ class VioConfig(BaseModel):
     )
     on_failure: Literal["stop", "warn"] = Field(
         "stop",
-        description="when a stage's VIO fails a health check (chi2 rejection rate, speed, position sigma): stop the "
-        "run with an error (exit 3, the failure in health.json and metrics.json), or warn and keep the estimate",
+        description="when a stage's VIO fails a health check (chi2 rejection rate, speed, position sigma, range "
+        "NIS): stop the run with an error (exit 3, the failure in health.json and metrics.json), or warn and keep "
+        "the estimate",
     )
     max_speed: float = Field(
         50.0, gt=0, description="health check: a faster estimated speed is a divergence [m/s]"
@@ -79,6 +80,19 @@ class VioConfig(BaseModel):
     )
     health_speed_baseline_s: float = Field(
         0.5, gt=0, description="health check: the speed is measured over this much of the trajectory [s]"
+    )
+    max_range_nis: float = Field(
+        100.0,
+        gt=0,
+        description="health check of the localisation stage: a larger median NIS of the UWB ranges of a window "
+        "(against the frozen anchors; a consistent filter's is 0.45, the median of chi2(1)) is a diverged pose; "
+        "100: half the ranges 10 sigma off",
+    )
+    range_nis_window_s: float = Field(
+        5.0, gt=0, description="health check: the ranges' NIS is judged over trailing windows this long [s]"
+    )
+    range_nis_min_ranges: int = Field(
+        30, ge=1, description="health check: ranges a window needs for its NIS to be judged"
     )
     max_slam_features: int = Field(
         0,

@@ -8,7 +8,13 @@ stage filtered, three checks on what the filter recorded, without ground truth:
   explains its own measurements (overconfident: e.g. the IMU noise told far too small);
 - ``velocity``: the speed over ``health_speed_baseline_s`` exceeds ``vio.max_speed``: the pose runs away;
 - ``covariance``: the position sigma exceeds ``vio.max_position_sigma``: the filter says itself that it lost
-  track (e.g. no usable features for a long time).
+  track (e.g. no usable features for a long time);
+- ``range_nis``: in the localisation stage (anchors frozen), the median normalised innovation squared of the
+  UWB ranges of a trailing ``vio.range_nis_window_s`` window (all anchors pooled; `windowed_median_nis`)
+  exceeds ``vio.max_range_nis``: the ranges no longer fit the pose within the covariance the filter claims,
+  which catches a diverged pose the visual chi2 test misses (a filter whose feature tracks all fail
+  triangulation, or too few to be judged). The median: a stretch of NLOS ranges on some anchors is not a
+  divergence, every range off is.
 
 The earliest failure is the one reported (`Failure`: which check, when, the figure against its threshold).
 """
@@ -24,7 +30,7 @@ from uwbcal.pipeline.vio.config import VioConfig
 
 @dataclass(frozen=True)
 class Failure:
-    check: str  # "chi2" | "velocity" | "covariance"
+    check: str  # "chi2" | "velocity" | "covariance" | "range_nis"
     t_ns: int
     value: float
     threshold: float
@@ -35,6 +41,7 @@ class Failure:
             "chi2": f"{self.value:.0%} of the feature tracks failed the chi2 test",
             "velocity": f"speed {self.value:.3g} m/s",
             "covariance": f"position sigma {self.value:.3g} m",
+            "range_nis": f"median NIS {self.value:.3g} of the UWB ranges of a window",
         }[self.check]
         return (
             f"{stage}: the VIO diverged at {(self.t_ns - t0_ns) * 1e-9:.1f} s after the start ({self.check} check: "
@@ -75,15 +82,35 @@ def speed(t_ns: np.ndarray, p: np.ndarray, baseline_s: float) -> np.ndarray:
     return out
 
 
+def windowed_median_nis(
+    t_ns: np.ndarray, nis: np.ndarray, window_s: float, min_ranges: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps, median NIS of the ranges in the trailing ``window_s`` up to each) for the ranges ``t_ns``
+    (any order, all anchors pooled); NaN where a window holds fewer than ``min_ranges``. Evaluated at no more
+    than ~2000 stamps (a window holds hundreds of ranges: neighbouring medians barely differ)."""
+    order = np.argsort(np.asarray(t_ns, np.int64), kind="stable")
+    t, v = np.asarray(t_ns, np.int64)[order], np.asarray(nis, float)[order]
+    ok = np.isfinite(v)
+    t, v = t[ok], v[ok]
+    at = np.arange(0, len(t), max(1, len(t) // 2000))
+    lo = np.searchsorted(t, t[at] - int(window_s * 1e9), "right")
+    med = np.array(
+        [np.median(v[a : i + 1]) if i + 1 - a >= min_ranges else np.nan for a, i in zip(lo, at, strict=True)]
+    )
+    return t[at], med
+
+
 def assess(
     hist: dict[str, np.ndarray],
     config: VioConfig,
     rejection: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     start_ns: int | None = None,
     end_ns: int | None = None,
+    ranges: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Failure | None:
     """The earliest failing check over ``[start_ns, end_ns)`` of a pose history (``t_ns``, ``p``, ``cov``:
-    `TrajectoryRecord.arrays`) and, for the MSCKF, its chi2 rejection rate ``(t, fraction, tested)``."""
+    `TrajectoryRecord.arrays`), for the MSCKF its chi2 rejection rate ``(t, fraction, tested)`` and, in the
+    localisation stage, the NIS of its range updates ``(t, nis)``."""
     t = np.asarray(hist["t_ns"], np.int64)
     lo = 0 if start_ns is None else int(np.searchsorted(t, start_ns, "left"))
     hi = len(t) if end_ns is None else int(np.searchsorted(t, end_ns, "left"))
@@ -102,8 +129,15 @@ def assess(
         found.append(
             _first(tr, frac, config.consistency_max_rejected, "chi2", "vio.consistency_max_rejected")
         )
+    if ranges is not None:
+        tr, nis = ranges
+        keep = (tr >= (start_ns or 0)) & (tr < (np.iinfo(np.int64).max if end_ns is None else end_ns))
+        tm, med = windowed_median_nis(
+            tr[keep], nis[keep], config.range_nis_window_s, config.range_nis_min_ranges
+        )
+        found.append(_first(tm, med, config.max_range_nis, "range_nis", "vio.max_range_nis"))
     found = [f for f in found if f is not None]
     return min(found, key=lambda f: f.t_ns) if found else None
 
 
-__all__ = ["Failure", "assess", "speed"]
+__all__ = ["Failure", "assess", "speed", "windowed_median_nis"]
