@@ -17,6 +17,7 @@ from uwbcal.convert.recording import RecordingReader
 from uwbcal.convert.simulator import SimConfig, simulate_to_file
 from uwbcal.evaluate.evaluation import evaluate_stage
 from uwbcal.evaluate.experiments.table1 import experiment as _table1
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run.config import load_config
 from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
@@ -114,7 +115,7 @@ def _vio_mh01(work: Path, quick: bool) -> tuple[float | None, dict]:
     rec = _simulate(work, "mh01", trajectory="MH_01_easy", duration=dur, seed=0)
     timed = _pipeline(rec, work / "run", log=False, stages=["vio"])
     data_s = _span(rec)
-    frames = json.loads((work / "run" / "stages.json").read_text())
+    frames = artefacts.read_json(work / "run" / "stages.json", artefacts.STAGES)
     return data_s, {
         "timed_s": round(timed, 2),
         "ms_per_camera_update": round(1e3 * timed / (20 * data_s), 2),

@@ -25,6 +25,7 @@ import yaml
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.run import artefacts
+from uwbcal.pipeline.run.config import run_config
 
 STATES = "anchor_states.json"
 MODEL = "d = beta * |p_anchor - p_tag| + gamma (+ noise)"
@@ -86,18 +87,11 @@ def _anchor_record(aid: str, entry: dict, where: str) -> dict:
     return out
 
 
-def _config(run_dir: Path) -> dict:
-    p = run_dir / "config.toml"
-    if not p.exists():
-        raise InputError(f"{p}: missing; is {run_dir} a run directory?")
-    return artefacts.read_toml(p)
-
-
 def load_anchors(run_dir: str | Path) -> dict:
     """The run's anchors as exported: ``{"stage", "method", "model", "frame", "anchors": {id: record}}``."""
     run_dir = Path(run_dir)
-    uwb = _config(run_dir).get("uwb", {})
-    init_m, refine_m = uwb.get("init_method", "?"), uwb.get("refine_method", "?")
+    uwb = run_config(run_dir).uwb
+    init_m, refine_m = uwb.init_method, uwb.refine_method
     states_path = run_dir / STATES
     if states_path.is_file():
         states = artefacts.read_json(states_path, artefacts.ANCHOR_STATES)

@@ -10,7 +10,6 @@ bag's ``calibration.yaml`` are used when present (the summary says so). OUT gets
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +27,7 @@ from uwbcal.evaluate.evaluation import evaluate_stage
 from uwbcal.evaluate.report import write_report
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run.config import load_config
 from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
@@ -191,5 +191,9 @@ def calibrate(inp: CalibrateInput, out: str | Path, progress: Callable[[str], No
         progress(f"note: nothing exported ({exc})")
         files = []
     report = write_report(pipe.dir.path, out / "report.html", check_text=check_text)
-    metrics = json.loads(pipe.dir.file("metrics.json").read_text()) if pipe.dir.exists("metrics.json") else {}
+    metrics = (
+        artefacts.read_json(pipe.dir.file("metrics.json"), artefacts.METRICS)
+        if pipe.dir.exists("metrics.json")
+        else {}
+    )
     return "\n".join(summary_lines(out, metrics, check_text, [*files, report]))

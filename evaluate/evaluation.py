@@ -45,6 +45,7 @@ from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import quat_to_rot
 from uwbcal.pipeline.run import artefacts
+from uwbcal.pipeline.run.config import run_config
 from uwbcal.pipeline.run.resolve import imu_is_real
 from uwbcal.pipeline.viz import runlog as rl
 
@@ -188,8 +189,7 @@ def _pose_nees(
 def _anchor_section(run: _Run, ref: AnchorReference | None, fit: _TrajectoryFit) -> tuple[dict, list[str]]:
     """The anchors' part of metrics.json and its warnings: errors and NEES against the reference, the
     initialiser's verdicts, the heights refinement regained, the range check."""
-    cfg = artefacts.read_toml(run.run_dir / "config.toml")
-    run_anchors = read_run_anchors(run.run_dir, (cfg.get("uwb") or {}).get("init_method"))
+    run_anchors = read_run_anchors(run.run_dir, run_config(run.run_dir).uwb.init_method)
     own_frame = run_anchors.estimates  # the frame of the run's trajectory, which the range check uses
     run_anchors, ref, nees_states, out = _anchors_in_truth_frame(run, run_anchors, ref, fit)
     fitted_nees = None

@@ -20,6 +20,7 @@ from uwbcal.evaluate.association import Association, associate, lever_point
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.run import artefacts
+from uwbcal.pipeline.run.config import run_config
 from uwbcal.pipeline.run.provenance import check_recording
 from uwbcal.pipeline.run.rundir import RunDir
 
@@ -74,12 +75,8 @@ def run_recording_path(run_dir: str | Path) -> Path:
     """The recording of a run: ``[run] recording`` in ``run_dir/config.toml`` (relative paths tried against the
     working directory, then the run directory), which every stage recorded must have run on."""
     cfg_path = Path(run_dir) / CONFIG
-    if not cfg_path.exists():
-        raise InputError(f"{cfg_path}: missing; is {run_dir} a run directory?")
-    cfg = artefacts.read_toml(cfg_path)
-    run = cfg.get("run")
-    rec = run.get("recording") if isinstance(run, dict) else None
-    if not isinstance(rec, str) or not rec:
+    rec = run_config(Path(run_dir)).run.recording
+    if not rec:
         raise InputError(f"{cfg_path}: [run] recording: not set; the run directory is incomplete")
     p = Path(rec).expanduser()
     if not p.is_absolute() and not p.exists() and (Path(run_dir) / p).exists():

@@ -4,7 +4,7 @@ frame), the range residuals over time per anchor with the gate, the NIS against 
 chosen per anchor, the recording check's verdicts and the results table.
 
 Every input is optional: a run stopped early, or an older run without ``range_updates.npz``, still gets a page
-with what there is (and says what is missing).
+with what there is (and says what is missing); a damaged one is refused by the artefact reader, naming it.
 """
 
 from __future__ import annotations
@@ -12,8 +12,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import json
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -23,22 +21,21 @@ from matplotlib.patches import Ellipse
 
 from uwbcal.convert.recording import RecordingReader
 from uwbcal.evaluate.anchor_report import reference_anchors
-from uwbcal.evaluate.export import run_recording_path
+from uwbcal.evaluate.export import TRAJECTORY, run_recording_path
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.state import chi2_ppf
+from uwbcal.pipeline.run import artefacts
+from uwbcal.pipeline.run.config import run_config
 from uwbcal.pipeline.run.stages.refine import RANGE_UPDATES
 
 REPORT = "report.html"
 NIS_WINDOW = 25  # ranges per NIS block mean
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    return data if isinstance(data, dict) else {}
+def _read_json(path: Path, shape: artefacts.Shape) -> dict:
+    """An artefact the page shows ({} when absent: the stage did not run; damaged: `InputError` naming it)."""
+    return artefacts.read_json(path, shape) if path.exists() else {}
 
 
 def _png(fig: Figure) -> str:
@@ -49,10 +46,7 @@ def _png(fig: Figure) -> str:
 
 
 def _gate(run_dir: Path) -> float | None:
-    try:
-        q = tomllib.loads((run_dir / "config.toml").read_text()).get("uwb", {}).get("chi2_quantile", 0.95)
-    except (OSError, tomllib.TOMLDecodeError):
-        q = 0.95
+    q = run_config(run_dir).uwb.chi2_quantile if (run_dir / "config.toml").exists() else 0.95
     return chi2_ppf(float(q), 1) if q else None
 
 
@@ -208,23 +202,25 @@ def write_report(
     run_dir = Path(run_dir)
     truth = run_truth(run_dir) if truth is None else truth
     out = Path(output) if output is not None else run_dir / REPORT
-    metrics = _read_json(run_dir / "metrics.json")
-    init = _read_json(run_dir / "init.json")
+    metrics = _read_json(run_dir / "metrics.json", artefacts.METRICS)
+    init = _read_json(run_dir / "init.json", artefacts.INIT)
     parts = [
         f"<h1>{html.escape(title)}</h1>",
         f"<p>run directory: <code>{html.escape(str(run_dir))}</code></p>",
     ]
     track = None
-    if (run_dir / "trajectory.npz").is_file():
-        with np.load(run_dir / "trajectory.npz") as z:
-            track = z["p"][:: max(1, len(z["p"]) // 5000)]
-    states = _read_json(run_dir / "anchor_states.json")
+    if (run_dir / TRAJECTORY).exists():
+        p = artefacts.read_npz(
+            run_dir / TRAJECTORY, artefacts.TRAJECTORY_ARRAYS, artefacts.TRAJECTORY_REQUIRED
+        )["p"]
+        track = p[:: max(1, len(p) // 5000)]
+    states = _read_json(run_dir / "anchor_states.json", artefacts.ANCHOR_STATES)
     parts += ["<h2>Anchors</h2>", plan_view(metrics, states, truth or {}, track)]
     head = ["anchor", "method", "model", "determined", "height seen", "x y z [m]", "σ x y z [m]", "error [m]"]
     parts.append(_table(head, _model_rows(init, metrics)))
-    if (run_dir / RANGE_UPDATES).is_file():
-        with np.load(run_dir / RANGE_UPDATES) as z:
-            upd = {k: z[k] for k in z.files}
+    if (run_dir / RANGE_UPDATES).exists():
+        cols = artefacts.RANGE_UPDATES_ARRAYS
+        upd = artefacts.read_npz(run_dir / RANGE_UPDATES, cols, tuple(cols), artefacts.RANGE_UPDATES_TEXT)
         if len(upd["t_ns"]):
             parts += ["<h2>Range residuals (refinement)</h2>", residual_view(upd, _gate(run_dir))]
             parts += ["<h2>NIS</h2>", nis_view(upd)]
@@ -233,8 +229,11 @@ def write_report(
     if check_text:
         verdicts = check_text.split("verdict:\n", 1)[-1]
         parts += ["<h2>Recording check</h2>", f"<pre>{html.escape(verdicts)}</pre>"]
-    if (run_dir / "results.md").is_file():
-        parts += ["<h2>Results</h2>", f"<pre>{html.escape((run_dir / 'results.md').read_text())}</pre>"]
+    if (run_dir / "results.md").exists():
+        parts += [
+            "<h2>Results</h2>",
+            f"<pre>{html.escape(artefacts.read_text(run_dir / 'results.md'))}</pre>",
+        ]
     warns = metrics.get("warnings") or []
     if warns:
         parts += [

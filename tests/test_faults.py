@@ -959,6 +959,10 @@ def corrupt(name: str, data: bytes | Callable[[bytes], bytes], cmd: str = "evalu
             return ["export", str(run), "-o", str(c.p("tum"))]
         if cmd == "export-anchors":
             return ["export", str(run), "-o", str(c.p("tum")), "--format", "anchors-json"]
+        if cmd == "report":  # the evaluate stage: metrics.json, results.md, then report.html
+            return ["run", str(c.shared.rec), "-o", str(run), "--no-log", "--stages", "evaluate"]
+        if cmd == "diff":
+            return ["diff", str(c.shared.run), str(run)]
         return ["run", str(c.shared.rec), "-o", str(run), "--no-log", "--stages", cmd, *extra]
 
     return build
@@ -1391,6 +1395,18 @@ def json_edit(edit: Callable[[dict], object]) -> Callable[[bytes], bytes]:
     return lambda data: json.dumps(edit(json.loads(data))).encode()
 
 
+def toml_edit(edit: Callable[[dict], dict]) -> Callable[[bytes], bytes]:
+    import tomllib
+
+    import tomli_w
+
+    return lambda data: tomli_w.dumps(edit(tomllib.loads(data.decode()))).encode()
+
+
+def _uwb(**kv) -> Callable[[bytes], bytes]:
+    return toml_edit(lambda d: dict(d, uwb=dict(d["uwb"], **kv)))
+
+
 def _first(d: dict) -> dict:
     return d[next(iter(d))]
 
@@ -1403,6 +1419,9 @@ SHAPES = {
         "x-text": json_edit(lambda d: {a: dict(s, x="1,2,3,4,5") for a, s in d.items()}),
         "P-ragged": json_edit(lambda d: {a: dict(s, P=[[1.0, 0.0], [1.0]]) for a, s in d.items()}),
         "P-missing": json_edit(lambda d: {a: {k: v for k, v in s.items() if k != "P"} for a, s in d.items()}),
+        "P-1x1": json_edit(lambda d: {a: dict(s, P=[[1.0]]) for a, s in d.items()}),
+        "truncated": half,
+        "empty": b"",
         "binary": fi.junk(64, seed=3),
         "utf16": lambda data: data.decode().encode("utf-16"),
     },
@@ -1413,6 +1432,12 @@ SHAPES = {
             lambda d: dict(d, methods={m: {a: {} for a in v} for m, v in d["methods"].items()})
         ),
         "binary": b"\xff\xfe\x00{",
+        "verdict-int": json_edit(
+            lambda d: dict(
+                d, methods={m: {a: dict(e, verdict=3) for a, e in v.items()} for m, v in d["methods"].items()}
+            )
+        ),
+        "truncated": half,
     },
     "stages.json": {
         "wall-text": json_edit(lambda d: {k: dict(v, wall_s="fast") for k, v in d.items()}),
@@ -1426,16 +1451,41 @@ SHAPES = {
         "cov-3x3": npz_edit(lambda z: dict(z, cov=z["cov"][:, :3, :3])),
         "segment-short": npz_edit(lambda z: dict(z, segment=z["segment"][:-1])),
     },
-    "config.toml": {"binary": b"\xff[run]\n", "utf16": lambda data: data.decode().encode("utf-16")},
+    "config.toml": {
+        "binary": b"\xff[run]\n",
+        "utf16": lambda data: data.decode().encode("utf-16"),
+        "uwb-int": toml_edit(lambda d: dict(d, uwb=5)),
+        "init-method-int": _uwb(init_method=5),
+        "chi2-text": _uwb(chi2_quantile="x"),
+        "truncated": half,
+    },
+    "range_updates.npz": {
+        "garbage": fi.junk(400, seed=5),
+        "truncated": half,
+        "empty": b"",
+        "nis-short": npz_edit(lambda z: dict(z, nis=z["nis"][:3])),
+        "anchor-missing": npz_edit(lambda z: {k: v for k, v in z.items() if k != "anchor"}),
+        "anchor-numbers": npz_edit(lambda z: dict(z, anchor=np.arange(len(z["anchor"])))),
+        "residual-text": npz_edit(lambda z: dict(z, residual=z["residual"].astype(str))),
+        "t-2d": npz_edit(lambda z: dict(z, t_ns=z["t_ns"][:, None])),
+    },
+    "metrics.json": {
+        "binary": fi.junk(64, seed=7),
+        "truncated": half,
+        "array": b"[1, 2]",
+        "empty": b"",
+    },
     "anchors.csv": {"binary": b"\xff\xfeanchor", "no-stage-column": b"anchor,x\n0,1\n"},
 }
-READERS = {  # who reads each artefact
-    "anchor_states.json": ("evaluate", "export-anchors", "localize"),
-    "init.json": ("evaluate",),
+READERS = {  # who reads each artefact ("report": the evaluate stage, which writes report.html)
+    "anchor_states.json": ("evaluate", "export-anchors", "localize", "report"),
+    "init.json": ("evaluate", "report"),
     "stages.json": ("evaluate", "export"),
-    "trajectory.npz": ("evaluate", "export"),
-    "config.toml": ("evaluate", "export", "export-anchors"),
+    "trajectory.npz": ("evaluate", "export", "report"),
+    "config.toml": ("evaluate", "export", "export-anchors", "report"),
     "anchors.csv": ("evaluate", "init"),
+    "range_updates.npz": ("report",),
+    "metrics.json": ("diff",),
 }
 for name, variants in SHAPES.items():
     for variant, data in variants.items():
@@ -1448,6 +1498,43 @@ for name, variants in SHAPES.items():
                 names=lambda c, n=name: str(c.p("run") / n),
                 new_ok=RUN_FILES,
             )
+
+
+def report_has(*words: str, absent: tuple[str, ...] = ()):
+    def check(c: Ctx, res) -> None:
+        page = (c.p("run") / "report.html").read_text()
+        assert all(w in page for w in words) and not any(w in page for w in absent), page[:300]
+
+    return check
+
+
+case(
+    "report-range-updates-none",
+    [0],
+    "artefact shapes",
+    corrupt("range_updates.npz", npz_edit(lambda z: {k: v[:0] for k, v in z.items()}), "report"),
+    "ok",
+    check=report_has("Anchors", absent=("Range residuals",)),
+)
+
+
+def without(name: str, cmd: str):
+    def build(c: Ctx) -> list[str]:
+        args = corrupt(name, b"", cmd)(c)
+        (c.p("run") / name).unlink()
+        return args
+
+    return build
+
+
+case(
+    "report-range-updates-absent",
+    [0],
+    "artefact shapes",
+    without("range_updates.npz", "report"),
+    "ok",
+    check=report_has("no range_updates.npz"),
+)
 for variant, data in (("array", b"[1, 2]"), ("binary", b"\xff\x00"), ("utf16", '{"a": 1}'.encode("utf-16"))):
     case(
         f"diff-metrics-{variant}",

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import tempfile
 from pathlib import Path
 
@@ -15,6 +14,7 @@ from uwbcal.evaluate.evaluation import evaluate_stage
 from uwbcal.evaluate.experiments.common import PAPER_INIT, parse_overrides
 from uwbcal.evaluate.experiments.montecarlo import run_jobs, run_seeds
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run.config import load_config, merge_dicts
 from uwbcal.pipeline.run.stages.pipeline import Pipeline
 from uwbcal.pipeline.uwb.updater import add_initialised_anchors, anchor_var
@@ -78,7 +78,7 @@ def anchor_nees_job(p: dict) -> dict:
             shutil.copytree(base, d)
             mcfg = load_config(None, merge_dicts(over, {"run": run, "uwb": {"refine_method": method}}))
             Pipeline(mcfg, d, evaluate_stage).run(["refine"], progress=lambda *_: None)
-            states = json.loads((d / "anchor_states.json").read_text())
+            states = artefacts.read_json(d / "anchor_states.json", artefacts.ANCHOR_STATES)
             for a, s in states.items():
                 x, P = np.asarray(s["x"]), np.asarray(s["P"])
                 rows.append(_nees_row(p, method, a, anchor_nees(x, P, truth[int(a)]), x, truth[int(a)]))

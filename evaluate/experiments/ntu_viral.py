@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import tempfile
 from pathlib import Path
 
@@ -15,6 +14,7 @@ from uwbcal.evaluate.experiments.common import PAPER_INIT
 from uwbcal.evaluate.experiments.montecarlo import run_jobs
 from uwbcal.evaluate.tables import PAPER_TABLE2, side_by_side
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run.config import load_config
 from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
@@ -35,7 +35,7 @@ def ntu_job(p: dict) -> dict:
             },
         )
         Pipeline(cfg, Path(tmp) / "run", evaluate_stage).run(progress=lambda *_: None)
-        m = json.loads((Path(tmp) / "run" / "metrics.json").read_text())
+        m = artefacts.read_json(Path(tmp) / "run" / "metrics.json", artefacts.METRICS)
     return {
         "sequence": folder.name,
         "method": p["method"],

@@ -10,7 +10,6 @@ docs/results`` (several folders of one experiment are pooled: chunks of seeds, o
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from uwbcal.evaluate.plots import plot_ri_vs_lsi_drift, plot_table1_vs_paper
 from uwbcal.evaluate.tables import PAPER_TABLE1, render
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run import artefacts
 
 T1_KEYS = ["sigma_i", "sigma_u"]
 # (our per-run column, its short name, the paper's column it is compared with)
@@ -109,14 +109,13 @@ def table1_claims(diff: pl.DataFrame) -> pl.DataFrame:
 
 def _read(folder: Path, what: str) -> tuple[pl.DataFrame, dict, dict]:
     folder = Path(folder)
+    fix = f"not a finished `uwbcal experiment {what}` folder; rerun the experiment"
+    config = artefacts.read_json(folder / "config.json", dict, fix)
+    summary = artefacts.read_json(folder / "summary.json", dict, fix)
     try:
         per_run = pl.read_parquet(folder / "runs.parquet")
-        config = json.loads((folder / "config.json").read_text())
-        summary = json.loads((folder / "summary.json").read_text())
     except (OSError, ValueError, pl.exceptions.PolarsError) as exc:
-        raise InputError(
-            f"{folder}: not a finished `uwbcal experiment {what}` folder ({exc}); rerun the experiment"
-        ) from None
+        raise InputError(f"{folder}: {fix} ({exc})") from None
     if config.get("experiment") != what:
         raise InputError(f"{folder}/config.json: experiment {config.get('experiment')!r}, expected {what!r}")
     return per_run, config, summary

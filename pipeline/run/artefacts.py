@@ -1,7 +1,7 @@
 """The one reader of a run directory's artefacts: every problem (missing, unreadable, not UTF-8, not the format,
 the wrong shape or type) is an `InputError` that names the file, where in it, and what to do.
 
-Each artefact's shape is declared here once (`ANCHOR_STATES`, `INIT`, `STAGES`, `TRAJECTORY_ARRAYS`, ...) and
+Each artefact's shape is declared here once (`ANCHOR_STATES`, `INIT`, `STAGES`, `METRICS`, `TRAJECTORY_ARRAYS`, ...) and
 checked as it is read, so a consumer gets what it expects or a clear refusal, never a silently smaller result.
 """
 
@@ -19,13 +19,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError, field_validator, model_validator
 
 from uwbcal.pipeline.core.errors import InputError
 
 
 def corrupt(p: Path, problem: str, fix: str | None = None) -> InputError:
     """The error for a damaged artefact of a run directory (``fix``: what to do instead of re-running)."""
+    p = Path(p)
     fix = (
         fix
         or f"the run directory is damaged — re-run the stage that writes it (uwbcal run REC -o {p.parent} --stages ...)"
@@ -99,9 +100,14 @@ def read_toml(path: Path, fix: str | None = None) -> dict:
         raise corrupt(path, f"invalid TOML ({exc})", fix) from None
 
 
-def read_npz(path: Path, shapes: dict[str, tuple[int | None, ...]], required: tuple[str, ...] = ()) -> dict:
-    """The arrays of an .npz artefact: ``required`` present, each one named in ``shapes`` numeric and of its
-    shape (None: the common length n)."""
+def read_npz(
+    path: Path,
+    shapes: dict[str, tuple[int | None, ...]],
+    required: tuple[str, ...] = (),
+    text: tuple[str, ...] = (),
+) -> dict:
+    """The arrays of an .npz artefact: ``required`` present, each one named in ``shapes`` numeric (text: those
+    named in ``text``) and of its shape (None: the common length n)."""
     path = Path(path)
     read_bytes(path)  # missing / not a file: named
     try:
@@ -118,7 +124,10 @@ def read_npz(path: Path, shapes: dict[str, tuple[int | None, ...]], required: tu
             continue
         a = out[k]
         n = a.shape[0] if n is None and a.ndim else n
-        if not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+        if k in text:
+            if a.size and a.dtype.kind != "U":
+                raise corrupt(path, f"'{k}': {a.dtype} values, expected text")
+        elif not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
             raise corrupt(path, f"'{k}': {a.dtype} values, expected numbers")
         want = tuple(n if s is None else s for s in shape)
         if a.shape != want:
@@ -182,6 +191,22 @@ class AnchorState(_Open):
     def _p(cls, v: list[list[float]]) -> list[list[float]]:
         return _matrix(v)
 
+    @model_validator(mode="after")
+    def _p_of_x(self) -> AnchorState:
+        if len(self.P) != len(self.x):
+            raise ValueError(
+                f"the covariance P is {len(self.P)} x {len(self.P)}, x has {len(self.x)} components"
+            )
+        return self
+
+
+class Verdict(_Open):
+    """An initialiser's verdict on one anchor (what the report reads of it)."""
+
+    height_observable: bool = True
+    model: str | dict | None = None
+    bias: dict = {}
+
 
 class InitAnchor(_Open):
     """One anchor of one initialiser in init.json."""
@@ -191,6 +216,8 @@ class InitAnchor(_Open):
     cov: list[list[float]] | None = None
     reason: str | None = None
     warnings: list[str] = []
+    model: str | dict | None = None
+    verdict: Verdict = Verdict()
 
 
 class InitInfo(_Open):
@@ -206,6 +233,33 @@ class StageEntry(_Open):
     config: dict = {}
 
 
+def _xyz(v: list[float] | None) -> list[float] | None:
+    if v is not None and len(v) != 3:
+        raise ValueError(f"{len(v)} components, expected x, y, z")
+    return v
+
+
+class MetricAnchor(_Open):
+    """One anchor in metrics.json (what the report and the summaries read)."""
+
+    estimate: list[float] | None = None
+    sigma_xyz: list[float] | None = None
+    determined: bool = True
+    error_m: float | None = None
+    method: str | None = None
+    reason: str = ""
+
+    @field_validator("estimate", "sigma_xyz")
+    @classmethod
+    def _three(cls, v: list[float] | None) -> list[float] | None:
+        return _xyz(v)
+
+
+class Metrics(_Open):
+    anchors: dict[str, MetricAnchor] = {}
+    warnings: list[str] = []
+
+
 ANCHOR_STATES = Shape(TypeAdapter(dict[str, AnchorState]), "anchor")
 INIT = Shape(TypeAdapter(InitInfo))
 STAGES = Shape(TypeAdapter(dict[str, StageEntry]), "stage")
@@ -218,3 +272,13 @@ TRAJECTORY_ARRAYS = {
     "segment": (None,),
 }
 TRAJECTORY_REQUIRED = ("t_ns", "p", "q_xyzw")
+METRICS = Shape(TypeAdapter(Metrics))
+# range_updates.npz: every range of the refinement (its anchor as text)
+RANGE_UPDATES_ARRAYS = {
+    "t_ns": (None,),
+    "anchor": (None,),
+    "residual": (None,),
+    "nis": (None,),
+    "rejected": (None,),
+}
+RANGE_UPDATES_TEXT = ("anchor",)

@@ -143,6 +143,14 @@ def load_config(path: Path | None = None, overrides: dict | None = None) -> Pipe
     return _validate(data, src)
 
 
+def run_config(run_dir: Path) -> PipelineConfig:
+    """The config a run directory's stages ran under (its ``config.toml``), validated like any config."""
+    path = Path(run_dir) / "config.toml"
+    if not path.exists():
+        raise InputError(f"{path}: missing; is {run_dir} a run directory?")
+    return load_config(path)
+
+
 def _validate(data: dict, src: str) -> PipelineConfig:
     try:
         return PipelineConfig.model_validate(data, strict=True)
