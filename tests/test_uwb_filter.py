@@ -564,7 +564,7 @@ def test_filter_warnings_go_to_the_stage_log():
     ctx = SimpleNamespace(
         config=SimpleNamespace(uwb=UwbConfig()),
         windows=lambda: SimpleNamespace(start_ns=0),
-        check_health=lambda stage, est, a, b: [f"{stage}: inconsistent visual updates"],
+        check_health=lambda stage, est, a, b, ranges=None: [f"{stage}: inconsistent visual updates"],
     )
     est = SimpleNamespace()
     from uwbcal.pipeline.uwb.updater import AnchorRecord
