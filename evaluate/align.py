@@ -2,7 +2,11 @@
 
 An :class:`Alignment` maps estimate coordinates onto ground truth: ``p_gt ~= s R p_est + t`` and
 ``R_gt ~= R R_est``. Methods: ``none``, ``posyaw`` (4-DoF: yaw about world z + translation; the unobservable
-directions of VIO), ``se3`` and ``sim3`` (Umeyama, 1991).
+directions of VIO), ``se3`` and ``sim3`` (Umeyama, 1991). :func:`initial_pose` is the gauge of a filter that
+starts in its own gravity-aligned frame (yaw and position of its first pose), not a fit.
+
+Alignment is fitted on associated positions (`evaluate.association`) and then applied to everything estimated in
+the same frame: the trajectory and the anchors get the same :class:`Alignment`.
 """
 
 from __future__ import annotations
@@ -90,6 +94,16 @@ def posyaw(x: np.ndarray, y: np.ndarray) -> Alignment:
     cp, sp = np.cos(psi), np.sin(psi)
     R = np.array([[cp, -sp, 0.0], [sp, cp, 0.0], [0.0, 0.0, 1.0]])
     return Alignment(R=R, t=my - R @ mx, s=1.0, method="posyaw")
+
+
+def initial_pose(R_est0: np.ndarray, p_est0: np.ndarray, R_gt0: np.ndarray, p_gt0: np.ndarray) -> Alignment:
+    """The yaw rotation and offset that put the first estimated pose on the ground truth's (the gauge of a
+    filter that starts in its own gravity-aligned frame)."""
+    D = R_gt0 @ R_est0.T
+    yaw = np.arctan2(D[1, 0], D[0, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Alignment(R=Rz, t=p_gt0 - Rz @ p_est0, method="initial-pose")
 
 
 def align(p_est: np.ndarray, p_gt: np.ndarray, method: str = "none") -> Alignment:

@@ -14,7 +14,7 @@ else the chosen initialiser's ``cov`` in ``init.json``) and ``uwbcal.truth``. Pr
 - ``nees_anchor_position``: ANEES of the anchor positions over the anchors with a covariance, with the χ² bounds
   of a mean of that many 3-dof values (``consistency.chi2_bounds(n, 3)``).
   A run in a static initialiser's own frame is compared after the trajectory's fitted alignment, but its NEES
-  are taken in the filter's gauge (`evaluation.initial_pose_alignment`), as the pose NEES: the fitted alignment
+  are taken in the filter's gauge (`align.initial_pose`), as the pose NEES: the fitted alignment
   is a transform of its own, whose error (the trajectory's drift averaged over the flight) the anchors'
   covariance does not hold; ``nees_anchor_position_fitted`` keeps the ANEES after the fitted alignment.
 When the truth is not in the run's frame (``anchors_frame`` not odometry/world), only the frame-free distances

@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,10 +16,11 @@ import numpy as np
 import polars as pl
 
 from uwbcal.convert.recording import RecordingReader
-from uwbcal.evaluate.align import Alignment
+from uwbcal.evaluate.align import Alignment, initial_pose
 from uwbcal.evaluate.align import align as fit_alignment
 from uwbcal.evaluate.anchor_report import (
     AnchorReference,
+    RunAnchors,
     aligned_anchors,
     anchor_metrics,
     read_run_anchors,
@@ -52,18 +53,6 @@ if TYPE_CHECKING:
     from uwbcal.pipeline.viz.runlog import RunLog
 
 SEGMENT_NAMES = ("init", "refine", "localize")
-
-
-def initial_pose_alignment(
-    R_est0: np.ndarray, p_est0: np.ndarray, R_gt0: np.ndarray, p_gt0: np.ndarray
-) -> Alignment:
-    """The yaw rotation and offset that put the first estimated pose on the ground truth's (the gauge of a
-    filter that starts in its own gravity-aligned frame)."""
-    D = R_gt0 @ R_est0.T
-    yaw = np.arctan2(D[1, 0], D[0, 0])
-    c, s = np.cos(yaw), np.sin(yaw)
-    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return Alignment(R=Rz, t=p_gt0 - Rz @ p_est0, method="initial-pose")
 
 
 @dataclass(frozen=True)
@@ -158,7 +147,7 @@ def _trajectory_metrics(run: _Run, gt: GroundTruth, series: dict | None) -> tupl
         R_gt = quat_to_rot(cmp.q_gt)
         out["ormse_deg"] = ormse_deg_by_segment(R_al, R_gt, masks)
         if run.static_frame:
-            fit.gauge = initial_pose_alignment(R_est[0], cmp.p_est[0], R_gt[0], cmp.p_gt[0])
+            fit.gauge = initial_pose(R_est[0], cmp.p_est[0], R_gt[0], cmp.p_gt[0])
         if (run.align == "none" or run.static_frame) and traj.cov is not None:
             out.update(_pose_nees(traj, cmp, R_est, R_gt, fit.gauge, series))
     out["matched_poses"] = int(len(cmp.t_ns))
@@ -202,20 +191,10 @@ def _anchor_section(run: _Run, ref: AnchorReference | None, fit: _TrajectoryFit)
     initialiser's verdicts, the heights refinement regained, the range check."""
     run_anchors = read_run_anchors(run.run_dir, run_config(run.run_dir).uwb.init_method)
     own_frame = run_anchors.estimates  # the frame of the run's trajectory, which the range check uses
-    out: dict = {}
-    nees_states = None
+    run_anchors, ref, nees_states, out = _anchors_in_truth_frame(run, run_anchors, ref, fit)
     fitted_nees = None
-    if run.static_frame and fit.alignment is not None and ref is not None and ref.kind == "simulated":
-        # estimated in the static initialiser's frame: compared (and reported) after the trajectory's alignment;
-        # their NEES in the filter's gauge, as the pose NEES (the fitted alignment's own error, the trajectory's
-        # drift averaged over the flight, is not in the anchors' covariance)
-        if fit.gauge is not None:
-            nees_states = aligned_anchors(run_anchors, fit.gauge).states
-            out["anchor_nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
-        run_anchors = aligned_anchors(run_anchors, fit.alignment)
-        out["anchor_alignment"] = f"{run.align} alignment of the trajectory (static initialiser's frame)"
-        if nees_states is not None:
-            fitted_nees = anchor_metrics(run_anchors, ref)[1].get("nees_anchor_position")
+    if nees_states is not None:
+        fitted_nees = anchor_metrics(run_anchors, ref)[1].get("nees_anchor_position")
     if not (run_anchors.estimates or run_anchors.undetermined):
         return out, []
     anchors, top, warnings = anchor_metrics(run_anchors, ref, nees_states)
@@ -230,6 +209,27 @@ def _anchor_section(run: _Run, ref: AnchorReference | None, fit: _TrajectoryFit)
     if vals:
         out["nees_anchor"] = summarize_nees(np.asarray(vals), 5)
     return out, warnings
+
+
+def _anchors_in_truth_frame(
+    run: _Run, anchors: RunAnchors, ref: AnchorReference | None, fit: _TrajectoryFit
+) -> tuple[RunAnchors, AnchorReference | None, dict | None, dict]:
+    """(anchors, reference, the states their NEES are taken of, the notes for metrics.json). A run started from
+    the ground truth estimates in its frame: unchanged. A static-initialised run estimates in its own frame: its
+    anchors get the trajectory's alignment (the same `Alignment`, so trajectory and anchors are compared in one
+    frame) and their NEES the filter's gauge, as the pose NEES (the fitted alignment's own error, the trajectory's
+    drift averaged over the run, is not in the anchors' covariance). Without a trajectory fit there is no common
+    frame: only the frame-free inter-anchor distances are compared."""
+    if not run.static_frame or ref is None or not ref.same_frame:
+        return anchors, ref, None, {}
+    if fit.alignment is None:
+        return anchors, replace(ref, same_frame=False), None, {}
+    notes = {"anchor_alignment": f"{run.align} alignment of the trajectory (static initialiser's frame)"}
+    nees_states = None
+    if fit.gauge is not None:
+        nees_states = aligned_anchors(anchors, fit.gauge).states
+        notes["anchor_nees_alignment"] = "initial pose (yaw, position): the static initialiser's gauge"
+    return aligned_anchors(anchors, fit.alignment), ref, nees_states, notes
 
 
 def _init_verdicts(run_dir: Path, anchors: dict) -> list[str]:

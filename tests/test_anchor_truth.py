@@ -283,3 +283,53 @@ def test_undetermined_reason_stated_once(tmp_path):
     }
     (d / "init.json").write_text(json.dumps(init))
     assert read_run_anchors(d, "ri").undetermined["3"]["reason"] == why
+
+
+def _own_frame_run(tmp_path: Path, static: bool) -> tuple[Path, np.ndarray, np.ndarray]:
+    """A run whose trajectory and anchors are the truth seen from a frame turned by 0.7 rad of yaw and shifted
+    (a static initialiser's own frame) when ``static``, else the truth's frame; anchors 0.1 m off in x."""
+    from uwbcal.convert.anchor_truth import truth_record
+    from uwbcal.convert.recording import RecordingWriter
+    from uwbcal.pipeline.core.geometry import exp_so3, rot_to_quat
+
+    t = T0 + np.arange(0, 10_000_000_001, 20_000_000, dtype=np.int64)
+    s = (t - t[0]) * 1e-9
+    p_gt = np.c_[2 * np.cos(0.6 * s), 1.5 * np.sin(0.6 * s), 1.0 + 0.2 * np.sin(s)]
+    R_gt = exp_so3(np.c_[0.05 * np.sin(s), 0.02 * s, 0.6 * s])
+    rec = tmp_path / "rec.mcap"
+    with RecordingWriter(rec) as w:
+        w.write_pose_batch(t, p_gt, rot_to_quat(R_gt))
+        anchors = {a: {"position": v} for a, v in TRUTH.items()}
+        w.set_metadata("uwbcal.truth", truth_record(anchors, "surveyed", frame="world"))
+    yaw, shift = (0.7, np.array([3.0, -2.0, 0.5])) if static else (0.0, np.zeros(3))
+    Rz = exp_so3(np.array([0.0, 0.0, yaw]))
+    to_own = lambda p: (np.asarray(p) - shift) @ Rz  # noqa: E731  (Rz^T (p - shift))
+    run = tmp_path / "run"
+    run.mkdir()
+    q_est = rot_to_quat(Rz.T @ R_gt)
+    np.savez(run / "trajectory.npz", t_ns=t, p=to_own(p_gt), q_xyzw=q_est, segment=np.zeros(len(t), np.int64))
+    (run / "config.toml").write_text(f'[run]\nrecording = "{rec}"\n[uwb]\ninit_method = "ri"\n')
+    est = {a: to_own(np.asarray(v) + [0.1, 0.0, 0.0]) for a, v in TRUTH.items()}
+    rows = [f"{a},ri,init,{x},{y},{z},1.0,0.0," for a, (x, y, z) in est.items()]
+    (run / "anchors.csv").write_text("anchor,method,stage,x,y,z,beta,gamma,reason\n" + "\n".join(rows) + "\n")
+    if static:
+        (run / "static_init.json").write_text("{}")
+    return run, Rz, shift
+
+
+@pytest.mark.parametrize("static", [True, False])
+def test_anchors_get_the_trajectorys_alignment_in_a_static_initialisers_frame(tmp_path, static):
+    """Surveyed truth, a run in its own frame (known yaw + translation): the anchors are reported in the truth's
+    frame with the trajectory's alignment, their error the 0.1 m put in; a run in the truth's frame (started from
+    ground truth) is compared as it is, whatever alignment its trajectory gets."""
+    from uwbcal.evaluate.evaluation import evaluate_run
+
+    run, _, _ = _own_frame_run(tmp_path, static)
+    m = evaluate_run(run)
+    assert m["alignment"] == ("posyaw" if static else "se3")
+    assert m["prmse_m"]["all"] == pytest.approx(0.0, abs=1e-6)
+    assert m["anchor_error_m"] == pytest.approx(0.1, abs=1e-6)
+    for a, v in TRUTH.items():
+        assert m["anchors"][a]["estimate"] == pytest.approx(np.asarray(v) + [0.1, 0.0, 0.0], abs=1e-6)
+        assert m["anchors"][a]["error_xyz"] == pytest.approx([0.1, 0.0, 0.0], abs=1e-6)
+    assert ("anchor_alignment" in m) == static
