@@ -30,6 +30,7 @@ import numpy as np
 
 from uwbcal.convert import uwb_msgs
 from uwbcal.convert.anchor_truth import read_anchor_truth, truth_note, truth_record
+from uwbcal.convert.bag_recovery import Recovery, prepare
 from uwbcal.convert.calibration import Calibration, load_calibration_yaml, parse_calibration
 from uwbcal.convert.recording import (
     META_CALIBRATION,
@@ -119,11 +120,18 @@ def _is_recording(path: Path) -> bool:
         return False
 
 
-def _bag_error(path: Path, exc: BaseException) -> InputError:
+REPAIR = {  # what repairs a bag this reader cannot read, per format
+    "rosbag1": "rosbag reindex",
+    "rosbag2-mcap": "mcap recover",
+    "rosbag2-sqlite3": "a truncated sqlite3 bag cannot be read up to its damage; try sqlite3's .recover",
+}
+
+
+def _bag_error(path: Path, exc: BaseException, fmt: str) -> InputError:
     text = " ".join(str(exc).split()) or type(exc).__name__
     return InputError(
         f"{path}: unreadable ROS bag ({text[:200]}); the file is truncated, corrupt or not a bag — "
-        "re-export it (rosbag reindex for ROS 1)"
+        f"re-export or repair it ({REPAIR[fmt]})"
     )
 
 
@@ -136,11 +144,22 @@ class BagReader:
 
         self.path = Path(path)
         self.format = bag_format(self.path)
+        self.recovery: Recovery | None = None  # a truncated bag: what was read of it
+        store = get_typestore(Stores.ROS2_HUMBLE)
         try:
-            self.reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+            self.reader = AnyReader([self.path], default_typestore=store)
             self.reader.open()
         except Exception as exc:  # noqa: BLE001 (rosbags raises many kinds for a bad file)
-            raise _bag_error(self.path, exc) from None
+            self.reader = AnyReader([self.path], default_typestore=store)
+            self.recovery = prepare(self.reader, self.format)
+            if self.recovery is None:
+                raise _bag_error(self.path, exc, self.format) from None
+            try:
+                self.reader.open()
+            except Exception:  # noqa: BLE001
+                raise _bag_error(self.path, exc, self.format) from None
+            if not self.recovery.messages:
+                raise _bag_error(self.path, exc, self.format) from None
         self.ros1 = not self.reader.is2
         self._decoders: dict[int, Callable[[bytes], Any] | str] = {}
 
@@ -206,7 +225,7 @@ class BagReader:
         try:
             yield from self.reader.messages(connections=connections, start=start, stop=stop)
         except Exception as exc:  # noqa: BLE001
-            raise _bag_error(self.path, exc) from None
+            raise _bag_error(self.path, exc, self.format) from None
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -524,16 +543,22 @@ def _surveyed_truth(path: str | Path | None) -> dict | None:
     return truth_record(read_anchor_truth(path), "surveyed", path, frame="world")
 
 
-def _account_trim(accounts: dict, drops: Drops, start_s: float | None, end_s: float | None) -> None:
-    """Messages of mapped topics outside ``--start``/``--end`` were not read: count them as dropped."""
-    if start_s is None and end_s is None:
-        return
-    span = f"outside --start {start_s or 0:g} s / --end {'end' if end_s is None else f'{end_s:g} s'}"
+def _account_unread(
+    accounts: dict, drops: Drops, start_s: float | None, end_s: float | None, truncated: bool
+) -> None:
+    """Messages of mapped topics the bag counts but the conversion did not read (outside ``--start``/``--end``,
+    or lost to the truncation of the bag): counted as dropped."""
+    reasons = (
+        []
+        if start_s is None and end_s is None
+        else [f"outside --start {start_s or 0:g} s / --end {'end' if end_s is None else f'{end_s:g} s'}"]
+    )
+    reasons += ["lost after the truncation of the bag"] if truncated else []
     for t, acc in accounts.items():
         left = acc["count"] - acc["converted"] - acc["dropped"]
-        if acc["role"] is not None and left > 0:
+        if reasons and acc["role"] is not None and left > 0:
             acc["dropped"] += left
-            drops.add(t, span, left)
+            drops.add(t, " or ".join(reasons), left)
 
 
 @dataclass
@@ -595,6 +620,8 @@ def convert_bag(
                 f"{path}: no topic of a known type (found: {have}); name them with --imu/--uwb/..."
             )
         run = _BagRun(path, ant, cal, cal_source, roles, _accounts(topics, roles, drops), drops)
+        if bag.recovery is not None:
+            drops.note(bag.recovery.note())
         use = [c for c in bag.connections if c.topic in roles]
         lo, hi = bag.span_ns(start_s, end_s)
         files = [path] if path.is_file() else sorted(p for p in path.iterdir() if p.is_file())
@@ -604,7 +631,7 @@ def convert_bag(
                 w, lambda role, size, topic: check_image_size(given_cal, role, size, topic, cal_source)
             )
             _convert_messages(bag, use, conv, run, lo, hi)
-            _account_trim(run.accounts, drops, start_s, end_s)
+            _account_unread(run.accounts, drops, start_s, end_s, bag.recovery is not None)
             raw_ranges, ranges = _write_bag_ranges(w, conv, run, max_range, time_offset)
             counts = dict(w.counts)
             if not counts:
@@ -746,6 +773,8 @@ def bag_info(path: str | Path, given: dict[str, Any] | None = None) -> str:
             what += " (no definition in the bag: shipped one used)" if role == "uwb" else ""
         lines.append(f"{t:<32} {ty:<44} {n:>8}  {what}")
     lines += ["", *(f"  {n}" for n in tmap.notes)]
+    if bag.recovery is not None:
+        lines.append(f"  {bag.recovery.note()}")
     unmapped = [t for t in topics if t not in roles]
     lines.append(f"not mapped: {', '.join(sorted(unmapped)) if unmapped else 'nothing'}")
     return "\n".join(lines)

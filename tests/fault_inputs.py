@@ -177,3 +177,71 @@ def fake_ros1_bag(path: Path, *, truncated: bool) -> Path:
     rec = struct.pack("<I", len(fields)) + fields + struct.pack("<I", 10) + b" " * 10
     path.write_bytes(header + (rec[: len(rec) // 2] if truncated else rec + os.urandom(64)))
     return path
+
+
+# -- ROS bags with many small chunks (a truncation keeps some of them) ---------------------------------------------
+BAG_N = 60  # messages per topic, 10 Hz
+BAG_TOPICS = ("/imu", "/uwb/range")
+
+
+def bag_stamps(n: int = BAG_N) -> list[int]:
+    return [T0 + i * 100_000_000 for i in range(n)]
+
+
+def small_bag(fmt: str, path: Path, compression: str | None = None) -> Path:
+    """A ROS 1 ``.bag`` or a ROS 2 bag folder (``mcap`` / ``sqlite3``) with /imu (sensor_msgs/Imu) and
+    /uwb/range (sensor_msgs/Range, anchor 40 + i % 3 in its frame id), ``BAG_N`` each, in chunks of a few
+    messages. Returns the .bag file or the bag folder."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ros1 = fmt == "ros1"
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    msgs = [m for i, t in enumerate(bag_stamps()) for m in _bag_messages(store.types, i, t, ros1)]
+    ser = store.serialize_ros1 if ros1 else store.serialize_cdr
+    if ros1:
+        from rosbags.rosbag1 import Writer
+
+        w = Writer(path)
+        if compression:
+            w.set_compression(getattr(Writer.CompressionFormat, compression.upper()))
+        w.chunk_threshold = 1500  # a chunk every few messages
+        flush = lambda: None  # noqa: E731
+    else:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
+        w = Writer(path, version=9, storage_plugin=plugin)
+        flush = lambda: getattr(w.storage, "close_chunk", lambda: None)()  # noqa: E731
+    with w:
+        conns: dict = {}
+        for k, (topic, ty, t, m) in enumerate(msgs):
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, ty, typestore=store)
+            w.write(conns[topic], t, ser(m, ty))
+            if k % 8 == 7:
+                flush()
+    return path
+
+
+def _bag_messages(T, i: int, t: int, ros1: bool) -> list[tuple]:
+    seq = {"seq": i} if ros1 else {}
+    stamp = T["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9)
+    H = T["std_msgs/msg/Header"]
+    vec = T["geometry_msgs/msg/Vector3"]
+    imu = T["sensor_msgs/msg/Imu"](
+        header=H(**seq, stamp=stamp, frame_id="imu"),
+        orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=np.zeros(9), angular_velocity=vec(x=0.01 * i, y=0.0, z=0.0),
+        angular_velocity_covariance=np.zeros(9), linear_acceleration=vec(x=0.0, y=0.0, z=9.81),
+        linear_acceleration_covariance=np.zeros(9),
+    )  # fmt: skip
+    rng = T["sensor_msgs/msg/Range"](
+        header=H(**seq, stamp=stamp, frame_id=f"anchor_{40 + i % 3}"), radiation_type=2, field_of_view=0.0,
+        min_range=0.1, max_range=100.0, range=np.float32(2.0 + 0.01 * i),
+    )  # fmt: skip
+    return [("/imu", "sensor_msgs/msg/Imu", t, imu), ("/uwb/range", "sensor_msgs/msg/Range", t + 1000, rng)]
+
+
+def bag_storage(bag: Path) -> Path:
+    """The file of a bag that holds its messages (the .bag, or the storage file inside a ROS 2 bag folder)."""
+    return bag if bag.is_file() else next(p for p in sorted(bag.iterdir()) if p.suffix in (".mcap", ".db3"))

@@ -739,6 +739,91 @@ case(
     names=named("n.bag"),
 )
 
+
+# -- truncated ROS bags: read up to the last intact chunk, said in one note ---------------------------------------
+def cut_bag(fmt: str, keep: float | int, *, folder: bool = True, compression: str | None = None):
+    """A small bag (`fault_inputs.small_bag`) whose storage file keeps ``keep`` of its bytes (a fraction, or a
+    byte count); ``folder=False``: the ROS 2 storage file alone."""
+
+    def make(c: Ctx) -> Path:
+        bag = fi.small_bag(fmt, c.p("b.bag" if fmt == "ros1" else "bag"), compression)
+        store = fi.bag_storage(bag)
+        if not folder:
+            bag = store = Path(shutil.move(store, c.p(store.name)))
+            shutil.rmtree(c.p("bag"))
+        data = store.read_bytes()
+        store.write_bytes(data[: int(len(data) * keep) if isinstance(keep, float) else keep])
+        return bag
+
+    return make
+
+
+def convert_cut(make: Callable[[Ctx], Path]):
+    return lambda c: ["convert", "bag", str(make(c)), "-o", str(c.p("out.mcap")), "--uwb", "/uwb/range"]
+
+
+def recovered(lo: int, hi: int = fi.BAG_N):
+    """The recording holds the first k of the bag's messages per topic (lo <= k <= hi), nothing else, and the
+    output says the bag was truncated and what was recovered; every message of the bag accounted for."""
+
+    def check(c: Ctx, res) -> None:
+        r = RecordingReader(c.p("out.mcap"))
+        imu, rng = r.read_imu(TOPIC_IMU).t_ns.tolist(), r.read_ranges().t_ns.tolist()
+        assert lo <= len(imu) <= hi and imu == fi.bag_stamps()[: len(imu)], imu
+        assert len(rng) and rng == fi.bag_stamps()[: len(rng)], rng  # the header stamps
+        assert abs(len(imu) - len(rng)) <= 1
+        notes = [ln for ln in res.stdout.splitlines() if "truncated bag" in ln]
+        assert len(notes) == 1 and "recovered" in notes[0], res.stdout
+        for topic, acc in r.source["messages"].items():
+            assert acc["converted"] + acc["dropped"] == acc["count"], (topic, acc)
+
+    return check
+
+
+for cid, fmt, keep, kw, lo, hi in (
+    ("bag-ros1-truncated-30pct", "ros1", 0.3, {}, 5, 25),
+    ("bag-ros1-truncated-70pct", "ros1", 0.7, {}, 25, 50),
+    ("bag-ros1-truncated-in-index", "ros1", 0.97, {}, 55, 60),
+    ("bag-ros1-lz4-truncated-half", "ros1", 0.5, {"compression": "lz4"}, 10, 45),
+    ("bag-ros1-bz2-truncated-half", "ros1", 0.5, {"compression": "bz2"}, 10, 45),
+    ("bag-mcap-folder-truncated-half", "mcap", 0.5, {}, 15, 45),
+    ("bag-mcap-folder-truncated-in-summary", "mcap", 0.97, {}, 60, 60),
+    ("bag-mcap-file-truncated-30pct", "mcap", 0.3, {"folder": False}, 5, 25),
+    ("bag-mcap-file-truncated-80pct", "mcap", 0.8, {"folder": False}, 30, 55),
+):
+    case(cid, [0], "truncated bags", convert_cut(cut_bag(fmt, keep, **kw)), "ok", check=recovered(lo, hi))
+
+
+def ros1_unindexed(c: Ctx) -> Path:
+    """A complete ROS 1 bag whose header says it was never indexed (a killed `rosbag record`'s .bag.active)."""
+    bag = fi.small_bag("ros1", c.p("b.bag"))
+    data = bytearray(bag.read_bytes())
+    at = data.index(b"index_pos=") + len(b"index_pos=")
+    data[at : at + 8] = bytes(8)
+    bag.write_bytes(bytes(data))
+    return bag
+
+
+case("bag-ros1-unindexed", [0], "truncated bags", convert_cut(ros1_unindexed), "ok", check=recovered(60, 60))
+case(
+    "info-bag-ros1-truncated",
+    [0],
+    "truncated bags",
+    lambda c: ["info", str(cut_bag("ros1", 0.5)(c))],
+    "ok",
+    check=info_says("truncated bag", "recovered"),
+)
+for cid, fmt, keep, kw, name in (
+    ("bag-ros1-cut-in-first-chunk", "ros1", 4300, {}, "b.bag"),
+    ("bag-ros1-cut-in-bag-header", "ros1", 40, {}, "b.bag"),
+    ("bag-mcap-file-cut-in-header", "mcap", 20, {"folder": False}, "bag.mcap"),
+    ("bag-mcap-file-cut-before-first-chunk", "mcap", 300, {"folder": False}, "bag.mcap"),
+    ("bag-db3-truncated-half", "sqlite3", 0.5, {}, "bag"),
+    ("bag-db3-truncated-95pct", "sqlite3", 0.95, {}, "bag"),
+    ("bag-db3-file-truncated-half", "sqlite3", 0.5, {"folder": False}, "bag.db3"),
+):
+    case(cid, [0], "truncated bags", convert_cut(cut_bag(fmt, keep, **kw)), names=named(name))
+
 IMU_HEADER = "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n"
 SENSOR_YAML = (
     "sensor_type: imu\nrate_hz: 200\nT_BS:\n  cols: 4\n  rows: 4\n  data: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, "
@@ -1808,6 +1893,7 @@ def test_fault_table_covers_the_issue() -> None:
         "diff abuse",
         ONE_REC,
         "artefact shapes",
+        "truncated bags",
     ):
         assert want in cats, want
 
