@@ -151,17 +151,22 @@ class BagReader:
             self.reader.open()
         except Exception as exc:  # noqa: BLE001 (rosbags raises many kinds for a bad file)
             self.reader = AnyReader([self.path], default_typestore=store)
-            self.recovery = prepare(self.reader, self.format)
-            if self.recovery is None:
-                raise _bag_error(self.path, exc, self.format) from None
-            try:
-                self.reader.open()
-            except Exception:  # noqa: BLE001
-                raise _bag_error(self.path, exc, self.format) from None
-            if not self.recovery.messages:
+            if not self._recover():
                 raise _bag_error(self.path, exc, self.format) from None
         self.ros1 = not self.reader.is2
         self._decoders: dict[int, Callable[[bytes], Any] | str] = {}
+
+    def _recover(self) -> bool:
+        """Open the (fresh, unopened) reader by scanning the bag's records (`bag_recovery`): True when that
+        kept a message."""
+        self.recovery = prepare(self.reader, self.format)
+        if self.recovery is None:
+            return False
+        try:
+            self.reader.open()
+        except Exception:  # noqa: BLE001
+            return False
+        return self.recovery.messages > 0
 
     def close(self) -> None:
         if self.reader.stack:

@@ -17,8 +17,7 @@ from io import BytesIO
 from pathlib import Path
 from typing import Any, BinaryIO
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-_MCAP_HEADER, _MCAP_FOOTER, _MCAP_CHUNK, _MCAP_MESSAGE, _MCAP_DATA_END = 0x01, 0x02, 0x06, 0x05, 0x0F
+from uwbcal.convert.mcap_index import MCAP_MAGIC, OP_CHUNK, OP_DATA_END, OP_FOOTER, OP_HEADER, REC_HEAD, U64
 
 
 @dataclass
@@ -162,17 +161,17 @@ def _open_mcap(storage: Any, rec: Recovery) -> None:
 
     storage.bio = bio = storage.path.open("rb")
     rec.path, rec.size = storage.path, storage.path.stat().st_size
-    if bio.read(8) != MCAP_MAGIC or bio.read(1) != bytes([_MCAP_HEADER]):
+    if bio.read(8) != MCAP_MAGIC or bio.read(1) != bytes([OP_HEADER]):
         raise ReaderError("File magic is invalid.")
-    bio.seek(struct.unpack("<Q", bio.read(8))[0], 1)
+    bio.seek(U64.unpack(bio.read(8))[0], 1)
     storage.data_start = end = bio.tell()
-    while len(head := bio.read(9)) == 9:
-        op, size = head[0], struct.unpack("<Q", head[1:])[0]
-        if op in (_MCAP_DATA_END, _MCAP_FOOTER) or bio.tell() + size > rec.size:
+    while len(head := bio.read(REC_HEAD.size)) == REC_HEAD.size:
+        op, size = REC_HEAD.unpack(head)
+        if op in (OP_DATA_END, OP_FOOTER) or bio.tell() + size > rec.size:
             break
         bio.seek(size, 1)
         end = bio.tell()
-        rec.chunks += op == _MCAP_CHUNK
+        rec.chunks += op == OP_CHUNK
     storage.data_end = rec.intact = end
     storage.meta_scan()
     stats = storage.statistics
