@@ -553,6 +553,20 @@ def add_probe(state: State, t_ns: int) -> str:
     return name
 
 
+def reset_window(state: State, inflation: np.ndarray) -> None:
+    """Re-initialise a sliding-window filter from its navigation estimate (after a detected divergence): the
+    clones and landmarks are marginalised (their tracks were judged against a wrong window), the navigation
+    variable keeps its estimate and its cross-covariances, its block gains the independent error ``inflation``
+    (PSD: P stays PSD) and its first estimate becomes the current one (no Jacobian refers to the old one)."""
+    for kind in (Kind.CLONE, Kind.LANDMARK):
+        for _, n in state.of_kind(kind):
+            state.remove(n)
+    nav = state.nav
+    sl = state.slice(nav)
+    state.P[sl, sl] += inflation
+    state.set_fej(nav, state.value(nav))
+
+
 def remove_probes(state: State) -> None:
     for _, n in state.probes:
         state.remove(n)

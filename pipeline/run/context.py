@@ -27,7 +27,7 @@ from uwbcal.pipeline.run.config import PipelineConfig
 from uwbcal.pipeline.run.driver import msckf_from_recording, odometry_from_recording
 from uwbcal.pipeline.run.windows import Windows, recording_windows
 from uwbcal.pipeline.vio.estimator import Estimator
-from uwbcal.pipeline.vio.health import assess
+from uwbcal.pipeline.vio.health import Failure, assess
 from uwbcal.pipeline.vio.static_init import StaticInitConfig, static_init_from_recording
 from uwbcal.pipeline.vio.stats import VioStats
 from uwbcal.pipeline.viz import runlog as rl
@@ -70,6 +70,13 @@ def filter_warnings(
         for w in warns:
             log.text(w, "WARN", end_ns)
     return warns
+
+
+def _reinit_note(stage: str, f: Failure, t0_ns: int) -> str:
+    return (
+        f"{stage}: the VIO window was re-initialised at {(f.t_ns - t0_ns) * 1e-9:.1f} s after the start "
+        f"({f.check} check: {f.value:.3g} > {f.key} = {f.threshold:g}; at most vio.max_reinits)"
+    )
 
 
 class StageContext:
@@ -133,20 +140,32 @@ class StageContext:
         is a warning."""
         cfg = self.config.vio
         stats = getattr(est, "stats", None)
+        reinits = [
+            f
+            for f in getattr(est, "reinits", [])
+            if (start_ns is None or f.t_ns >= start_ns) and (end_ns is None or f.t_ns < end_ns)
+        ]
+        online_from = reinits[-1].t_ns if reinits else None
         rejection = None
         if isinstance(stats, VioStats):
             rejection = stats.rejection_rate(
-                cfg.consistency_window_s, cfg.consistency_min_tracks, start_ns, end_ns
+                cfg.consistency_window_s,
+                cfg.consistency_min_tracks,
+                start_ns if online_from is None else online_from + 1,  # after the one that fired
+                end_ns,
             )
-        fail = assess(est.history().arrays(), cfg, rejection, start_ns, end_ns, ranges)
+        fail = assess(est.history().arrays(), cfg, rejection, start_ns, end_ns, ranges, online_from)
         t0 = self.windows().start_ns
         record = dict(self.dir.load_json("health.json")) if self.dir.exists("health.json") else {}
         record[stage] = {"failed": False} if fail is None else fail.summary(stage, t0)
+        if reinits:
+            record[stage]["reinits"] = [f.record(t0) for f in reinits]
         self.dir.save_json("health.json", record)
+        notes = [_reinit_note(stage, f, t0) for f in reinits]
         if fail is None:
-            return []
+            return notes
         if cfg.on_failure == "warn":
-            return [fail.message(stage, t0)]
+            return notes + [fail.message(stage, t0)]
         self.dir.save_json("metrics.json", {"vio_failure": record[stage]})
         raise EstimateFailed(fail.message(stage, t0))
 

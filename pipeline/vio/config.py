@@ -72,6 +72,23 @@ class VioConfig(BaseModel):
         "NIS): stop the run with an error (exit 3, the failure in health.json and metrics.json), or warn and keep "
         "the estimate",
     )
+    max_reinits: int = Field(
+        3,
+        ge=0,
+        description="online recovery: times the MSCKF may re-initialise its window during the run when one of "
+        "the health checks (chi2 rejection rate, speed, position sigma) fires over its trailing window: the IMU "
+        "estimate is kept, the clones and SLAM features are dropped and the IMU covariance is inflated by the "
+        "vio.reinit_sigma_* (0: no recovery; when the re-initialisations are used up, vio.on_failure applies)",
+    )
+    reinit_sigma_theta: float = Field(
+        0.05, ge=0, description="re-initialisation: orientation sigma added to the IMU covariance [rad]"
+    )
+    reinit_sigma_p: float = Field(
+        0.3, ge=0, description="re-initialisation: position sigma added to the IMU covariance [m]"
+    )
+    reinit_sigma_v: float = Field(
+        0.5, ge=0, description="re-initialisation: velocity sigma added to the IMU covariance [m/s]"
+    )
     max_speed: float = Field(
         50.0, gt=0, description="health check: a faster estimated speed is a divergence [m/s]"
     )

@@ -17,15 +17,22 @@ stage filtered, three checks on what the filter recorded, without ground truth:
   divergence, every range off is.
 
 The earliest failure is the one reported (`Failure`: which check, when, the figure against its threshold).
+
+`OnlineHealth` makes the first three checks during the run, at each camera frame over the same trailing windows,
+so that the MSCKF can re-initialise its window when one fires (``vio.max_reinits``); `assess` then judges those
+three only after the last re-initialisation (what came before was judged online), the range NIS over all of it.
 """
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from dataclasses import dataclass
 
 import numpy as np
 
 from uwbcal.pipeline.vio.config import VioConfig
+from uwbcal.pipeline.vio.estimator import TrajectoryRecord
+from uwbcal.pipeline.vio.stats import VioStats
 
 
 @dataclass(frozen=True)
@@ -48,6 +55,16 @@ class Failure:
             f"{what} > {self.key} = {self.threshold:g}); check the IMU noise of the calibration, the camera "
             'calibration and the static start (or set vio.on_failure = "warn" to keep the estimate)'
         )
+
+    def record(self, t0_ns: int) -> dict:
+        """Which check fired, when (s after ``t0_ns``), the figure against its threshold."""
+        return {
+            "check": self.check,
+            "t_s": (self.t_ns - t0_ns) * 1e-9,
+            "value": self.value,
+            "threshold": self.threshold,
+            "key": self.key,
+        }
 
     def summary(self, stage: str, t0_ns: int) -> dict:
         return {
@@ -107,12 +124,18 @@ def assess(
     start_ns: int | None = None,
     end_ns: int | None = None,
     ranges: tuple[np.ndarray, np.ndarray] | None = None,
+    online_from_ns: int | None = None,
 ) -> Failure | None:
     """The earliest failing check over ``[start_ns, end_ns)`` of a pose history (``t_ns``, ``p``, ``cov``:
-    `TrajectoryRecord.arrays`), for the MSCKF its chi2 rejection rate ``(t, fraction, tested)`` and, in the
-    localisation stage, the NIS of its range updates ``(t, nis)``."""
+    `TrajectoryRecord.arrays`), for the MSCKF its chi2 rejection rate ``(t, fraction, tested)`` (computed over
+    the same stretch) and, in the localisation stage, the NIS of its range updates ``(t, nis)``.
+    ``online_from_ns``: the last online re-initialisation; the speed and position sigma are judged from it on
+    (the rejection rate is the caller's, from the same stamp)."""
     t = np.asarray(hist["t_ns"], np.int64)
-    lo = 0 if start_ns is None else int(np.searchsorted(t, start_ns, "left"))
+    pose_start = start_ns
+    if online_from_ns is not None:
+        pose_start = online_from_ns if start_ns is None else max(start_ns, online_from_ns)
+    lo = 0 if pose_start is None else int(np.searchsorted(t, pose_start, "left"))
     hi = len(t) if end_ns is None else int(np.searchsorted(t, end_ns, "left"))
     found = []
     if hi > lo:
@@ -124,7 +147,9 @@ def assess(
     if rejection is not None:
         tr, frac, _ = rejection
         big = np.iinfo(np.int64).max
-        keep = (tr >= (-big if start_ns is None else start_ns)) & (tr < (big if end_ns is None else end_ns))
+        keep = (tr >= (-big if pose_start is None else pose_start)) & (
+            tr < (big if end_ns is None else end_ns)
+        )
         tr, frac = tr[keep], frac[keep]
         found.append(
             _first(tr, frac, config.consistency_max_rejected, "chi2", "vio.consistency_max_rejected")
@@ -140,4 +165,50 @@ def assess(
     return min(found, key=lambda f: f.t_ns) if found else None
 
 
-__all__ = ["Failure", "assess", "speed", "windowed_median_nis"]
+class OnlineHealth:
+    """`assess`'s chi2, speed and position-sigma checks during the run, at a camera frame (``check``), over the
+    trailing windows `assess` uses, none reaching back before the last `restart` (a re-initialisation). Pure: it
+    reads the filter's stats, history and position sigma, keeps only the restart stamp."""
+
+    def __init__(self, config: VioConfig) -> None:
+        self.config = config
+        self.since_ns: int | None = None
+
+    def restart(self, t_ns: int) -> None:
+        self.since_ns = int(t_ns)
+
+    def check(self, t_ns: int, stats: VioStats, hist: TrajectoryRecord, pos_sigma: float) -> Failure | None:
+        c = self.config
+        since = -(2**62) if self.since_ns is None else self.since_ns
+        frac = self._rejection(t_ns, stats, since)
+        if frac is not None and frac > c.consistency_max_rejected:
+            return Failure("chi2", t_ns, frac, c.consistency_max_rejected, "vio.consistency_max_rejected")
+        t = hist.t_ns
+        j = bisect_right(t, t_ns - int(c.health_speed_baseline_s * 1e9)) - 1
+        if t and t[-1] == t_ns and j >= 0 and t[j] >= since:
+            v = float(np.linalg.norm(hist.p[-1] - hist.p[j])) / max((t_ns - t[j]) * 1e-9, 1e-9)
+            if v > c.max_speed:
+                return Failure("velocity", t_ns, v, c.max_speed, "vio.max_speed")
+        if pos_sigma > c.max_position_sigma:
+            return Failure("covariance", t_ns, pos_sigma, c.max_position_sigma, "vio.max_position_sigma")
+        return None
+
+    def _rejection(self, t_ns: int, stats: VioStats, since: int) -> float | None:
+        """The fraction of the tracks of the feature updates in ``(t_ns - window, t_ns]`` (and after ``since``)
+        that failed the chi2 gate, when the last update is at ``t_ns`` and enough were tested."""
+        c = self.config
+        ts = stats.update_t
+        if not ts or ts[-1] != t_ns:
+            return None
+        lo = max(t_ns - int(c.consistency_window_s * 1e9), since)  # the update that fired: before
+        used = rej = 0
+        i = len(ts) - 1
+        while i >= 0 and ts[i] > lo:
+            used += stats.update_used[i]
+            rej += stats.update_rejected[i]
+            i -= 1
+        n = used + rej
+        return rej / n if n >= c.consistency_min_tracks else None
+
+
+__all__ = ["Failure", "OnlineHealth", "assess", "speed", "windowed_median_nis"]

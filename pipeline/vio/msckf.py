@@ -7,7 +7,9 @@ the first span), `begin`, then `process_frame` per camera frame and `process_ran
 frame: propagate to the frame; when the interval since the last frame was static, the zero-velocity update
 (`update_zupt.ZuptUpdater`); else clone, the SLAM features seen (`update_slam.SlamUpdater`), the MSCKF update
 with the selected feature tracks (`update_msckf.MsckfUpdater`, the tracks in `features.FeatureDatabase`), and
-the oldest clone marginalised when the window is full. All updaters count into one `stats.VioStats`.
+the oldest clone marginalised when the window is full. All updaters count into one `stats.VioStats`. After
+each frame the online health checks (`health.OnlineHealth`); when one fires, the window is re-initialised from
+the IMU estimate (`state.reset_window`), at most ``vio.max_reinits`` times (``reinits``: the checks that fired).
 """
 
 from __future__ import annotations
@@ -24,12 +26,14 @@ from uwbcal.pipeline.core.state import (
     State,
     add_probe,
     remove_probes,
+    reset_window,
 )
 from uwbcal.pipeline.core.topics import TOPIC_IMU
 from uwbcal.pipeline.vio.camera import Camera
 from uwbcal.pipeline.vio.config import VioConfig
 from uwbcal.pipeline.vio.estimator import RangeHandler, RangeMeasurement, Span, TrajectoryRecord
 from uwbcal.pipeline.vio.features import FeatureDatabase, clone_name
+from uwbcal.pipeline.vio.health import Failure, OnlineHealth
 from uwbcal.pipeline.vio.imu import ImuNoise, imu_intervals, propagate, propagate_static
 from uwbcal.pipeline.vio.stats import VioStats
 from uwbcal.pipeline.vio.update_msckf import MsckfUpdater
@@ -67,6 +71,8 @@ class MsckfEstimator:
         self.msckf = MsckfUpdater(config, camera, self.stats)
         self.slam = SlamUpdater(config, camera, self.stats)
         self.zupt = ZuptUpdater(config, camera, noise, self.stats)
+        self.health = OnlineHealth(config)
+        self.reinits: list[Failure] = []  # the online failures the window was re-initialised after
         self.config = config
         self._static: tuple[int, int] | None = None  # (t0, t1): propagate with the zero-motion model in it
         self.source = source
@@ -81,7 +87,7 @@ class MsckfEstimator:
     def config(self, config: VioConfig) -> None:
         """The manager's and its updaters' settings (one config for all)."""
         self._config = config
-        for updater in (self.msckf, self.slam, self.zupt):
+        for updater in (self.msckf, self.slam, self.zupt, self.health):
             updater.config = config
 
     def initialize(self, t0_ns: int, x0: ImuState) -> None:
@@ -284,8 +290,40 @@ class MsckfEstimator:
         self._static = None
         self.zupt.after_frame(t_ns, ids, uv, self.state.value("imu").R, static)
         self._record()
+        self._recover()
         self._maybe_probe()
         self.zupt.set_reference(self.state, self.t_ns)
+
+    def _recover(self) -> None:
+        """The online health checks after a frame; a failure while re-initialisations are left: the window
+        restarts from the IMU estimate with its pose and velocity covariance inflated (vio.reinit_sigma_*)."""
+        c = self.config
+        if len(self.reinits) >= c.max_reinits:
+            return
+        sl = self.state.slice("imu")
+        pos_sigma = float(
+            np.sqrt(
+                max(np.trace(self.state.P[sl.start + 3 : sl.start + 6, sl.start + 3 : sl.start + 6]), 0.0)
+            )
+        )
+        fail = self.health.check(self.t_ns, self.stats, self._history, pos_sigma)
+        if fail is None:
+            return
+        sig = np.repeat([c.reinit_sigma_theta, c.reinit_sigma_p, c.reinit_sigma_v, 0.0, 0.0], 3)
+        reset_window(self.state, np.diag(sig**2))
+        self.db = FeatureDatabase()  # the tracks' earlier pixels belong to the dropped clones
+        self.health.restart(self.t_ns)
+        self.reinits.append(fail)
+        _log.warning(
+            "%s: VIO window re-initialised (%d of %d) after the %s check (%.3g > %s = %g)",
+            self.source,
+            len(self.reinits),
+            c.max_reinits,
+            fail.check,
+            fail.value,
+            fail.key,
+            fail.threshold,
+        )
 
     def close(self, span: Span) -> None:
         """End of a span: report, drop the span's IMU data (the estimator is pickled between stages)."""
