@@ -554,7 +554,7 @@ def evaluate(
     align: Annotated[Align | None, typer.Option(help="Trajectory alignment.")] = None,
     fmt: Annotated[TableFormat, typer.Option("--format", help="Table format.")] = TableFormat.md,
 ) -> None:
-    """Compute metrics.json and print the results table."""
+    """Compute metrics.json, results.md and report.html (rewritten together); print the results table."""
     from uwbcal.evaluate.evaluation import evaluate_run_cli
 
     typer.echo(evaluate_run_cli(run_dir, align=align and align.value, fmt=fmt.value))

@@ -617,13 +617,8 @@ def convert_bag(
     given["groundtruth"] = groundtruth
     with BagReader(path) as bag:
         topics = bag.topics()
-        tmap = detect_topics(topics, given)
+        tmap = _mapped_topics(topics, given, path)
         roles = tmap.roles()
-        if not roles:
-            have = ", ".join(f"{t} ({ty})" for t, (ty, _) in sorted(topics.items())) or "no topics"
-            raise InputError(
-                f"{path}: no topic of a known type (found: {have}); name them with --imu/--uwb/..."
-            )
         run = _BagRun(path, ant, cal, cal_source, roles, _accounts(topics, roles, drops), drops)
         if bag.recovery is not None:
             drops.note(bag.recovery.note())
@@ -646,20 +641,31 @@ def convert_bag(
             if truth is not None:
                 drops.note(truth_note(truth["anchors"], ranges.anchor, Path(anchors_truth)))
                 w.set_metadata(META_TRUTH, truth)
-            w.set_metadata(
-                META_SOURCE,
-                source_metadata(
-                    "bag",
-                    path.stem,
-                    hasher.result(),
-                    drops,
-                    format=bag.format,
-                    topic_map={t: r for t, r in sorted(roles.items())},
-                    messages=run.accounts,
-                    ranges={"decoded": len(raw_ranges), "written": len(ranges)},
-                ),
-            )
+            w.set_metadata(META_SOURCE, _bag_source(run, bag.format, hasher, len(raw_ranges), len(ranges)))
     return summary(output, counts, drops, f"{bag.format} {path.name}")
+
+
+def _mapped_topics(topics: dict[str, tuple[str, int]], given: dict[str, Any], path: Path) -> TopicMap:
+    """The bag's topics mapped to roles; a bag without a topic of a known type refused with what it holds."""
+    tmap = detect_topics(topics, given)
+    if not tmap.roles():
+        have = ", ".join(f"{t} ({ty})" for t, (ty, _) in sorted(topics.items())) or "no topics"
+        raise InputError(f"{path}: no topic of a known type (found: {have}); name them with --imu/--uwb/...")
+    return tmap
+
+
+def _bag_source(run: _BagRun, fmt: str, hasher: Hasher, decoded: int, written: int) -> dict:
+    """The recording's source record: the bag's format, topic map, message accounts and range counts."""
+    return source_metadata(
+        "bag",
+        run.path.stem,
+        hasher.result(),
+        run.drops,
+        format=fmt,
+        topic_map={t: r for t, r in sorted(run.roles.items())},
+        messages=run.accounts,
+        ranges={"decoded": decoded, "written": written},
+    )
 
 
 def _accounts(topics: dict[str, tuple[str, int]], roles: dict[str, str], drops: Drops) -> dict[str, dict]:

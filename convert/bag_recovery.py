@@ -54,6 +54,22 @@ def prepare(any_reader: Any, fmt: str) -> Recovery | None:
 
 
 # -- ROS 1 -----------------------------------------------------------------------------------------------------
+def open_ros1(reader: Any) -> Recovery | None:
+    """Open rosbags' (unopened) rosbag1 ``reader`` by scanning its chunks; None when nothing could be kept (the
+    reader then closed)."""
+    rec = Recovery(Path(reader.path))
+    try:
+        _open_ros1(reader, rec)
+    except Exception:  # noqa: BLE001 - rosbags raises many kinds for a bad file
+        rec.messages = 0
+    if rec.messages:
+        return rec
+    if reader.bio is not None:
+        reader.bio.close()
+        reader.bio = None
+    return None
+
+
 def _open_ros1(reader: Any, rec: Recovery) -> None:
     """rosbags' rosbag1 `Reader.open`, with the index rebuilt from the intact chunks."""
     from rosbags.rosbag1.reader import Chunk, ChunkInfo, Header, ReaderError, RecordType, decompressors

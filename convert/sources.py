@@ -16,13 +16,14 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata as _im
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 from rosbags.serde import SerdeError
 
 from uwbcal.convert import ros1_wire
+from uwbcal.convert.bag_recovery import Recovery, open_ros1
 from uwbcal.convert.recording import RangeData
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.progress import progress
@@ -621,21 +622,27 @@ class BagRoute:
     out_topic: str
 
 
-def open_bag(path: Path):
+def open_bag(path: Path) -> tuple[Any, Recovery | None]:
+    """rosbags' rosbag1 reader of ``path``, opened; a bag without its index (truncated, or a killed recorder's)
+    read up to its last intact chunk like `uwbcal convert bag` does (`bag_recovery`: the `Recovery` says what
+    was kept), refused when not one message could be kept."""
     from rosbags.rosbag1 import Reader
     from rosbags.rosbag1.reader import ReaderError
 
     reader = Reader(path)
     try:
         reader.open()
-    except ReaderError as exc:
+        return reader, None
+    except (ReaderError, OSError, struct.error, ValueError) as exc:
+        problem = " ".join(str(exc).split()) or type(exc).__name__
+    reader = Reader(path)
+    rec = open_ros1(reader) if path.is_file() else None
+    if rec is None:
         raise InputError(
-            f"{path}: unreadable ROS1 bag ({exc}); the file is truncated or not indexed — "
-            "run 'rosbag reindex' or re-export it"
-        ) from None
-    except (OSError, struct.error, ValueError) as exc:
-        raise InputError(f"{path}: unreadable ROS1 bag ({exc}); the file is truncated or corrupt") from None
-    return reader
+            f"{path}: unreadable ROS1 bag ({problem[:200]}); the file is truncated before its first intact chunk, "
+            "corrupt or not a bag — re-export it, or run 'rosbag reindex' on it"
+        )
+    return reader, rec
 
 
 @contextlib.contextmanager
@@ -663,7 +670,9 @@ def stream_bag(path: Path, writer, routes: dict[str, BagRoute], drops: Drops, la
 def _stream_bag(path: Path, writer, routes: dict[str, BagRoute], drops: Drops, label: str) -> dict[str, int]:
     from rosbags.rosbag1.reader import ReaderError
 
-    reader = open_bag(path)  # its index: ~3 objects per message, the garbage collector paused for them too
+    reader, recovery = open_bag(path)  # its index: ~3 objects per message, the gc paused for them too
+    if recovery is not None:
+        drops.note(recovery.note())
     seen: dict[str, int] = {}
     try:
         use = []

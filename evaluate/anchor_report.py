@@ -107,12 +107,12 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
     out = RunAnchors()
     path = run_dir / "anchors.csv"
     rows = []
-    if path.is_file():
+    if artefacts.present(path):
         rows = artefacts.read_anchor_rows(path)
     refine = [r for r in rows if r.get("stage") == "refine"]
     init = [r for r in rows if r.get("stage") == "init" and r.get("method") == init_method]
     init_json = run_dir / "init.json"
-    init_info = artefacts.read_json(init_json, artefacts.INIT) if init_json.exists() else {}
+    init_info = artefacts.read_json(init_json, artefacts.INIT) if artefacts.present(init_json) else {}
     chosen = (init_info.get("methods") or {}).get(init_info.get("chosen", init_method)) or {}
     for r in (refine or init) + (init if refine else []):
         aid = str(r["anchor"])
@@ -150,7 +150,9 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
                 "; ".join(p for p in [head, *extra] if p) or "not determined (no reason given by the run)"
             )
     states_path = run_dir / "anchor_states.json"
-    states = artefacts.read_json(states_path, artefacts.ANCHOR_STATES) if states_path.exists() else {}
+    states = (
+        artefacts.read_json(states_path, artefacts.ANCHOR_STATES) if artefacts.present(states_path) else {}
+    )
     for aid in out.estimates:
         s = states.get(aid) if refine else None
         if s is None and not refine and aid in chosen and chosen[aid].get("cov") is not None:

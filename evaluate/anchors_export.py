@@ -93,11 +93,11 @@ def load_anchors(run_dir: str | Path) -> dict:
     uwb = run_config(run_dir).uwb
     init_m, refine_m = uwb.init_method, uwb.refine_method
     states_path = run_dir / STATES
-    if states_path.is_file():
+    if artefacts.present(states_path):
         states = artefacts.read_json(states_path, artefacts.ANCHOR_STATES)
         anchors = {str(a): _anchor_record(str(a), e, str(states_path)) for a, e in states.items()}
         stage, method = "refine", f"{init_m}+{refine_m}"
-    elif (run_dir / "init.pkl").is_file():
+    elif artefacts.present(run_dir / "init.pkl"):
         results = artefacts.read_pickle(run_dir / "init.pkl")
         results = results.get(init_m, {}) if isinstance(results, dict) else {}
         anchors = {

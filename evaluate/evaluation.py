@@ -85,7 +85,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     ref = reference_anchors(reader)
     # a VIO started by the static initialiser estimates in its own frame (gravity-aligned, yaw 0, origin at
     # the start): position and yaw are a gauge, the anchors live in that frame too
-    static_frame = (run_dir / "static_init.json").is_file()
+    static_frame = artefacts.present(run_dir / "static_init.json")
     if align in (None, "auto"):
         simulated = ref is not None and ref.kind == "simulated"
         align = "posyaw" if static_frame else "none" if simulated else "se3"
@@ -114,7 +114,7 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
 def _run_notes(run_dir: Path, reader: RecordingReader, traj: RunTrajectory) -> dict:
     """The warnings of the recording (truncation, damage) and of the stages, the stages' wall time, the span."""
     summary_path = run_dir / "stages.json"
-    stages = artefacts.read_json(summary_path, artefacts.STAGES) if summary_path.exists() else {}
+    stages = artefacts.read_json(summary_path, artefacts.STAGES) if artefacts.present(summary_path) else {}
     warnings: list[str] = []
     warnings.extend(w for w in reader.verify() if w not in warnings)  # truncation, damage
     for st in stages.values():
@@ -124,9 +124,7 @@ def _run_notes(run_dir: Path, reader: RecordingReader, traj: RunTrajectory) -> d
         notes["wall_s"] = float(sum(float(st.get("wall_s", 0.0)) for st in stages.values()))
     if len(traj):
         notes["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
-    if (
-        run_dir / "health.json"
-    ).is_file():  # the pose source's health checks per stage (context.check_health)
+    if artefacts.present(run_dir / "health.json"):  # the pose source's health checks per stage (check_health)
         notes["vio_health"] = artefacts.read_json(run_dir / "health.json")
     return notes
 
@@ -236,7 +234,7 @@ def _init_verdicts(run_dir: Path, anchors: dict) -> list[str]:
     """The chosen initialiser's FIM summary and verdict into each anchor's entry; a warning per anchor it could
     not determine."""
     init_path = run_dir / "init.json"
-    if not init_path.is_file():
+    if not artefacts.present(init_path):
         return []
     warnings = []
     init = artefacts.read_json(init_path, artefacts.INIT)
@@ -254,7 +252,7 @@ def _init_verdicts(run_dir: Path, anchors: dict) -> list[str]:
 def _height_regains(run_dir: Path, anchors: dict) -> None:
     """Heights flagged at init that refinement regained (pipeline/uwb/height_regain) mark the anchor's verdict."""
     states_path = run_dir / "anchor_states.json"
-    if not states_path.is_file():
+    if not artefacts.present(states_path):
         return
     for aid, s in artefacts.read_json(states_path, artefacts.ANCHOR_STATES).items():
         if aid in anchors and isinstance(s, dict) and s.get("height_regained"):
@@ -349,16 +347,25 @@ def render_metrics(metrics: dict, fmt: str = "md") -> str:
     return "\n\n".join(parts + (["\n".join(lines)] if lines else []))
 
 
+RESULTS = {"md": "results.md", "csv": "results.csv", "latex": "results.tex"}
+
+
 def evaluate_run_cli(
     run_dir: Path, align: str | None = None, fmt: str = "md", series: dict | None = None
 ) -> str:
+    """metrics.json, the results table (results.md, and results.csv / .tex for those formats; a table of
+    another format from an earlier evaluation removed) and report.html: every view of the run from one
+    evaluation, so the page and the tables never disagree with metrics.json."""
+    run_dir = Path(run_dir)
     metrics = evaluate_run(run_dir, align, series)
-    write_text_atomic(Path(run_dir) / "metrics.json", json.dumps(metrics, indent=2) + "\n")
-    text = render_metrics(metrics, fmt)
-    write_text_atomic(
-        Path(run_dir) / f"results.{ {'md': 'md', 'csv': 'csv', 'latex': 'tex'}[fmt] }", text + "\n"
-    )
-    return text
+    write_text_atomic(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    for f, name in RESULTS.items():
+        if f in ("md", fmt):
+            write_text_atomic(run_dir / name, render_metrics(metrics, f) + "\n")
+        elif artefacts.present(run_dir / name):
+            (run_dir / name).unlink()
+    write_report(run_dir)
+    return render_metrics(metrics, fmt)
 
 
 def evaluate_stage(run_dir: Path, align: str | None, open_log: Callable[[], RunLog]) -> str:
@@ -367,7 +374,6 @@ def evaluate_stage(run_dir: Path, align: str | None, open_log: Callable[[], RunL
 
     series: dict = {}
     text = evaluate_run_cli(run_dir, align=align, series=series)
-    write_report(run_dir)
     if series:
         with open_log() as log:
             log.stage("evaluate", int(series["t_ns"][0]))

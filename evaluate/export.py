@@ -57,11 +57,11 @@ def load_run_trajectory(run_dir: str | Path) -> RunTrajectory:
     """Read ``run_dir/trajectory.npz`` (arrays ``t_ns``, ``p``, ``q_xyzw`` and optionally ``cov``, ``segment``);
     a run stopped after the vio stage has only ``vio.npz`` (same arrays, no segments), used as a fallback."""
     path = Path(run_dir) / TRAJECTORY
-    if not path.is_file() and (Path(run_dir) / VIO_TRAJECTORY).is_file():
+    if not artefacts.present(path) and artefacts.present(Path(run_dir) / VIO_TRAJECTORY):
         path = Path(run_dir) / VIO_TRAJECTORY
-    if not path.exists():
+    if not artefacts.present(path):
         raise InputError(f"{path}: missing; run the pipeline first (uwbcal run REC -o {run_dir})")
-    arr = artefacts.read_npz(path, artefacts.TRAJECTORY_ARRAYS, artefacts.TRAJECTORY_REQUIRED)
+    arr = artefacts.read_trajectory(path)
     return RunTrajectory(
         t_ns=arr["t_ns"].astype(np.int64),
         p=arr["p"].astype(float),

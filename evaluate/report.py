@@ -35,7 +35,7 @@ NIS_WINDOW = 25  # ranges per NIS block mean
 
 def _read_json(path: Path, shape: artefacts.Shape) -> dict:
     """An artefact the page shows ({} when absent: the stage did not run; damaged: `InputError` naming it)."""
-    return artefacts.read_json(path, shape) if path.exists() else {}
+    return artefacts.read_json(path, shape) if artefacts.present(path) else {}
 
 
 def _png(fig: Figure) -> str:
@@ -46,7 +46,7 @@ def _png(fig: Figure) -> str:
 
 
 def _gate(run_dir: Path) -> float | None:
-    q = run_config(run_dir).uwb.chi2_quantile if (run_dir / "config.toml").exists() else 0.95
+    q = run_config(run_dir).uwb.chi2_quantile if artefacts.present(run_dir / "config.toml") else 0.95
     return chi2_ppf(float(q), 1) if q else None
 
 
@@ -209,16 +209,14 @@ def write_report(
         f"<p>run directory: <code>{html.escape(str(run_dir))}</code></p>",
     ]
     track = None
-    if (run_dir / TRAJECTORY).exists():
-        p = artefacts.read_npz(
-            run_dir / TRAJECTORY, artefacts.TRAJECTORY_ARRAYS, artefacts.TRAJECTORY_REQUIRED
-        )["p"]
+    if artefacts.present(run_dir / TRAJECTORY):
+        p = artefacts.read_trajectory(run_dir / TRAJECTORY)["p"]
         track = p[:: max(1, len(p) // 5000)]
     states = _read_json(run_dir / "anchor_states.json", artefacts.ANCHOR_STATES)
     parts += ["<h2>Anchors</h2>", plan_view(metrics, states, truth or {}, track)]
     head = ["anchor", "method", "model", "determined", "height seen", "x y z [m]", "σ x y z [m]", "error [m]"]
     parts.append(_table(head, _model_rows(init, metrics)))
-    if (run_dir / RANGE_UPDATES).exists():
+    if artefacts.present(run_dir / RANGE_UPDATES):
         cols = artefacts.RANGE_UPDATES_ARRAYS
         upd = artefacts.read_npz(run_dir / RANGE_UPDATES, cols, tuple(cols), artefacts.RANGE_UPDATES_TEXT)
         if len(upd["t_ns"]):
@@ -229,7 +227,7 @@ def write_report(
     if check_text:
         verdicts = check_text.split("verdict:\n", 1)[-1]
         parts += ["<h2>Recording check</h2>", f"<pre>{html.escape(verdicts)}</pre>"]
-    if (run_dir / "results.md").exists():
+    if artefacts.present(run_dir / "results.md"):
         parts += [
             "<h2>Results</h2>",
             f"<pre>{html.escape(artefacts.read_text(run_dir / 'results.md'))}</pre>",

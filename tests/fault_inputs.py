@@ -188,10 +188,10 @@ def bag_stamps(n: int = BAG_N) -> list[int]:
     return [T0 + i * 100_000_000 for i in range(n)]
 
 
-def small_bag(fmt: str, path: Path, compression: str | None = None) -> Path:
-    """A ROS 1 ``.bag`` or a ROS 2 bag folder (``mcap`` / ``sqlite3``) with /imu (sensor_msgs/Imu) and
-    /uwb/range (sensor_msgs/Range, anchor 40 + i % 3 in its frame id), ``BAG_N`` each, in chunks of a few
-    messages. Returns the .bag file or the bag folder."""
+def small_bag(fmt: str, path: Path, compression: str | None = None, imu_topic: str = "/imu") -> Path:
+    """A ROS 1 ``.bag`` or a ROS 2 bag folder (``mcap`` / ``sqlite3``) with /imu (sensor_msgs/Imu; or
+    ``imu_topic``) and /uwb/range (sensor_msgs/Range, anchor 40 + i % 3 in its frame id), ``BAG_N`` each, in
+    chunks of a few messages. Returns the .bag file or the bag folder."""
     from rosbags.typesys import Stores, get_typestore
 
     ros1 = fmt == "ros1"
@@ -215,6 +215,7 @@ def small_bag(fmt: str, path: Path, compression: str | None = None) -> Path:
     with w:
         conns: dict = {}
         for k, (topic, ty, t, m) in enumerate(msgs):
+            topic = imu_topic if topic == "/imu" else topic
             if topic not in conns:
                 conns[topic] = w.add_connection(topic, ty, typestore=store)
             w.write(conns[topic], t, ser(m, ty))

@@ -274,8 +274,15 @@ def test_bag_damaged_messages_dropped_and_counted(data_dir, tmp_path):
 
 
 def test_bag_truncated(data_dir, tmp_path):
+    """A bag cut in its index (after its one chunk) is read like `convert bag` reads it: every message of the
+    intact chunk, said in a note; cut inside that chunk, nothing is left and it is refused."""
     bag = tmp_path / "t.bag"
-    _write_ntu_bag(bag, data_dir, n_ranges=50, extra_topic=False)
-    bag.write_bytes(bag.read_bytes()[:-200])
+    ref = _write_ntu_bag(bag, data_dir, n_ranges=50, extra_topic=False)
+    data = bag.read_bytes()
+    bag.write_bytes(data[:-200])
+    text = convert_ntu_viral(bag, tmp_path / "t.mcap")
+    assert "truncated bag (no index): recovered" in text
+    assert len(RecordingReader(tmp_path / "t.mcap").read_ranges()) == ref["n"]
+    bag.write_bytes(data[: len(data) // 2])
     with pytest.raises(InputError, match="t.bag: unreadable ROS1 bag"):
-        convert_ntu_viral(bag, tmp_path / "t.mcap")
+        convert_ntu_viral(bag, tmp_path / "t2.mcap")

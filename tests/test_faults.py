@@ -824,6 +824,47 @@ for cid, fmt, keep, kw, name in (
 ):
     case(cid, [0], "truncated bags", convert_cut(cut_bag(fmt, keep, **kw)), names=named(name))
 
+
+# convert euroc / ntu-viral: a truncated ROS 1 bag read like `convert bag` reads it (the IMU on the dataset's topic)
+def imu_recovered(lo: int, hi: int = fi.BAG_N):
+    def check(c: Ctx, res) -> None:
+        imu = RecordingReader(c.p("out.mcap")).read_imu(TOPIC_IMU).t_ns.tolist()
+        assert lo <= len(imu) <= hi and imu == fi.bag_stamps()[: len(imu)], imu
+        notes = [ln for ln in res.stdout.splitlines() if "truncated bag" in ln]
+        assert len(notes) == 1 and "recovered" in notes[0] and str(c.p("b.bag")) in notes[0], res.stdout
+
+    return check
+
+
+def dataset_bag(imu_topic: str, keep: float | int):
+    def make(c: Ctx) -> Path:
+        bag = fi.small_bag("ros1", c.p("b.bag"), imu_topic=imu_topic)
+        data = bag.read_bytes()
+        bag.write_bytes(data[: int(len(data) * keep) if isinstance(keep, float) else keep])
+        return bag
+
+    return make
+
+
+for conv, topic in (("euroc", "/imu0"), ("ntu-viral", "/imu/imu")):
+    for keep, lo, hi in ((0.3, 5, 25), (0.6, 20, 45), (0.97, 55, 60)):
+        case(
+            f"{conv}-bag-truncated-{int(keep * 100)}pct",
+            [0],
+            "truncated bags",
+            bag(dataset_bag(topic, keep), conv),
+            "ok",
+            check=imu_recovered(lo, hi),
+        )
+    for keep in (40, 4300):
+        case(
+            f"{conv}-bag-cut-at-{keep}-bytes",
+            [0],
+            "truncated bags",
+            bag(dataset_bag(topic, keep), conv),
+            names=named("b.bag"),
+        )
+
 IMU_HEADER = "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n"
 SENSOR_YAML = (
     "sensor_type: imu\nrate_hz: 200\nT_BS:\n  cols: 4\n  rows: 4\n  data: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, "
@@ -1164,6 +1205,53 @@ case(
 )
 
 
+def report_agrees(fmt: str):
+    """After `uwbcal evaluate` (of a run whose anchors.csv moved anchor 0 by 1 m): report.html shows the
+    results table of this evaluation, results.md is that of metrics.json, no other format's table is stale."""
+
+    def check(c: Ctx, res) -> None:
+        import html
+
+        run = c.p("run")
+        base = json.loads((c.shared.run / "metrics.json").read_text())
+        m = json.loads((run / "metrics.json").read_text())
+        assert m["anchors"]["0"]["estimate"] != base["anchors"]["0"]["estimate"], m["anchors"]["0"]
+        page, table = (run / "report.html").read_text(), (run / "results.md").read_text()
+        assert html.escape(table) in page
+        assert {p.name for p in run.glob("results.*")} == {"results.md", f"results.{fmt}"}
+
+    return check
+
+
+def moved_anchor(fmt: str, earlier: str | None = None):
+    def build(c: Ctx) -> list[str]:
+        run = c.run_copy()
+        rows = (run / "anchors.csv").read_text().splitlines()
+        out = []
+        for ln in rows:
+            f = ln.split(",")
+            if f[0] == "0" and len(f) > 3 and f[3] not in ("", "x"):
+                f[3] = str(float(f[3]) + 1.0)
+            out.append(",".join(f))
+        (run / "anchors.csv").write_text("\n".join(out) + "\n")
+        if earlier:
+            (run / f"results.{earlier}").write_text("an earlier evaluation's table")
+        return ["evaluate", str(run), "--format", fmt]
+
+    return build
+
+
+for fmt, earlier in (("md", None), ("csv", None), ("md", "csv"), ("md", "tex")):
+    case(
+        f"eval-rewrites-report-{fmt}" + (f"-after-{earlier}" if earlier else ""),
+        [0],
+        "corrupt run directory",
+        moved_anchor(fmt, earlier),
+        "ok",
+        check=report_agrees(fmt),
+    )
+
+
 def evaluated(c: Ctx, res) -> None:
     m = json.loads((c.p("run") / "metrics.json").read_text())
     base = json.loads((c.shared.run / "metrics.json").read_text())
@@ -1492,6 +1580,20 @@ def _uwb(**kv) -> Callable[[bytes], bytes]:
     return toml_edit(lambda d: dict(d, uwb=dict(d["uwb"], **kv)))
 
 
+def _at(a: np.ndarray, row: int, value) -> np.ndarray:
+    a = a.copy()
+    a[row] = value
+    return a
+
+
+def _swap(a: np.ndarray, row: int) -> np.ndarray:
+    return _at(_at(a, row, a[row + 1]), row + 1, a[row])
+
+
+def _cell(P: list, i: int, j: int, value: float) -> list:
+    return [[value if (r, c) == (i, j) else v for c, v in enumerate(row)] for r, row in enumerate(P)]
+
+
 def _first(d: dict) -> dict:
     return d[next(iter(d))]
 
@@ -1509,8 +1611,26 @@ SHAPES = {
         "empty": b"",
         "binary": fi.junk(64, seed=3),
         "utf16": lambda data: data.decode().encode("utf-16"),
+        "null": b"null",
+        "x-nan": json_edit(lambda d: {a: dict(s, x=[float("nan"), *s["x"][1:]]) for a, s in d.items()}),
+        "x-inf": json_edit(
+            lambda d: {a: dict(s, x=[*s["x"][:2], float("inf"), *s["x"][3:]]) for a, s in d.items()}
+        ),
+        "P-nan": json_edit(lambda d: {a: dict(s, P=_cell(s["P"], 1, 1, float("nan"))) for a, s in d.items()}),
+        "P-negative-variance": json_edit(
+            lambda d: {a: dict(s, P=_cell(s["P"], 0, 0, -1.0)) for a, s in d.items()}
+        ),
+        "P-text": json_edit(lambda d: {a: dict(s, P="identity") for a, s in d.items()}),
+        "x-nested": json_edit(lambda d: {a: dict(s, x=[[v] for v in s["x"]]) for a, s in d.items()}),
+        "x-strings": json_edit(lambda d: {a: dict(s, x=[str(v) for v in s["x"]]) for a, s in d.items()}),
+        "key-not-an-id": json_edit(lambda d: {f"anchor{a}": s for a, s in d.items()}),
+        "noise-inflation-nan": json_edit(
+            lambda d: {a: dict(s, noise_inflation=float("nan")) for a, s in d.items()}
+        ),
+        "anchor-null": json_edit(lambda d: dict.fromkeys(d)),
     },
     "init.json": {
+        "null": b"null",
         "methods-int": json_edit(lambda d: dict(d, methods=5)),
         "anchor-int": json_edit(lambda d: dict(d, methods={m: {"0": 3} for m in d["methods"]})),
         "status-missing": json_edit(
@@ -1525,6 +1645,7 @@ SHAPES = {
         "truncated": half,
     },
     "stages.json": {
+        "null": b"null",
         "wall-text": json_edit(lambda d: {k: dict(v, wall_s="fast") for k, v in d.items()}),
         "warnings-int": json_edit(lambda d: {k: dict(v, warnings=5) for k, v in d.items()}),
         "binary": b"\x80\x81",
@@ -1535,6 +1656,25 @@ SHAPES = {
         "t-text": npz_edit(lambda z: dict(z, t_ns=z["t_ns"].astype(str))),
         "cov-3x3": npz_edit(lambda z: dict(z, cov=z["cov"][:, :3, :3])),
         "segment-short": npz_edit(lambda z: dict(z, segment=z["segment"][:-1])),
+        "p-nan": npz_edit(lambda z: dict(z, p=_at(z["p"], 40, np.nan))),
+        "p-inf": npz_edit(lambda z: dict(z, p=_at(z["p"], 7, np.inf))),
+        "q-nan": npz_edit(lambda z: dict(z, q_xyzw=_at(z["q_xyzw"], 3, np.nan))),
+        "q-scaled-2": npz_edit(lambda z: dict(z, q_xyzw=_at(z["q_xyzw"], 9, z["q_xyzw"][9] * 2))),
+        "q-off-1pct": npz_edit(lambda z: dict(z, q_xyzw=z["q_xyzw"] * 1.01)),
+        "q-zero": npz_edit(lambda z: dict(z, q_xyzw=_at(z["q_xyzw"], 0, 0.0))),
+        "cov-nan": npz_edit(lambda z: dict(z, cov=_at(z["cov"], 5, np.nan))),
+        "t-backwards": npz_edit(lambda z: dict(z, t_ns=_swap(z["t_ns"], 20))),
+        "t-duplicate": npz_edit(lambda z: dict(z, t_ns=_at(z["t_ns"], 21, z["t_ns"][20]))),
+        "t-float": npz_edit(lambda z: dict(z, t_ns=z["t_ns"].astype(float))),
+        "p-bool": npz_edit(lambda z: dict(z, p=z["p"] > 0)),
+        "segment-7": npz_edit(lambda z: dict(z, segment=_at(z["segment"], 2, 7))),
+        "p-text": npz_edit(lambda z: dict(z, p=z["p"].astype(str))),
+    },
+    "vio.npz": {
+        "p-nan": npz_edit(lambda z: dict(z, p=_at(z["p"], 40, np.nan))),
+        "q-scaled-2": npz_edit(lambda z: dict(z, q_xyzw=_at(z["q_xyzw"], 9, z["q_xyzw"][9] * 2))),
+        "t-backwards": npz_edit(lambda z: dict(z, t_ns=_swap(z["t_ns"], 20))),
+        "t-float": npz_edit(lambda z: dict(z, t_ns=z["t_ns"].astype(float))),
     },
     "config.toml": {
         "binary": b"\xff[run]\n",
@@ -1559,6 +1699,13 @@ SHAPES = {
         "truncated": half,
         "array": b"[1, 2]",
         "empty": b"",
+        "null": b"null",
+    },
+    "recording_id.txt": {
+        "empty": b"",
+        "binary": fi.junk(40, seed=9),
+        "not-an-id": b"hello world\n",
+        "truncated": half,
     },
     "anchors.csv": {"binary": b"\xff\xfeanchor", "no-stage-column": b"anchor,x\n0,1\n"},
 }
@@ -1567,6 +1714,8 @@ READERS = {  # who reads each artefact ("report": the evaluate stage, which writ
     "init.json": ("evaluate", "report"),
     "stages.json": ("evaluate", "export"),
     "trajectory.npz": ("evaluate", "export", "report"),
+    "vio.npz": ("init",),
+    "recording_id.txt": ("localize", "report"),
     "config.toml": ("evaluate", "export", "export-anchors", "report"),
     "anchors.csv": ("evaluate", "init"),
     "range_updates.npz": ("report",),
@@ -1580,6 +1729,50 @@ for name, variants in SHAPES.items():
                 [0],
                 "artefact shapes",
                 corrupt(name, data, cmd),
+                names=lambda c, n=name: str(c.p("run") / n),
+                new_ok=RUN_FILES,
+            )
+
+
+def not_a_file(name: str, cmd: str, kind: str):
+    """``name`` in the shared run replaced by a directory (``kind`` "dir") or a dangling symbolic link."""
+
+    def build(c: Ctx) -> list[str]:
+        args = corrupt(name, b"", cmd)(c)
+        p = c.p("run") / name
+        p.unlink()
+        if kind == "dir":
+            p.mkdir()
+            (p / "x").write_text("x")
+        else:
+            p.symlink_to(c.p("run") / "gone")
+        return args
+
+    return build
+
+
+for name, cmds in (
+    ("trajectory.npz", ("evaluate", "export", "report")),
+    ("anchor_states.json", ("evaluate", "export-anchors", "localize", "report")),
+    ("init.json", ("evaluate", "report")),
+    ("stages.json", ("evaluate", "export")),
+    ("config.toml", ("evaluate", "export")),
+    ("anchors.csv", ("evaluate", "init")),
+    ("health.json", ("evaluate",)),
+    ("static_init.json", ("evaluate",)),
+    ("recording_id.txt", ("localize",)),
+    ("range_updates.npz", ("report",)),
+    ("vio.npz", ("init",)),
+    ("checkpoint_refine.pkl", ("localize",)),
+    ("metrics.json", ("diff",)),
+):
+    for cmd in cmds:
+        for kind in ("dir", "link") if cmd in ("evaluate", "localize") else ("dir",):
+            case(
+                f"artefact-{name}-is-a-{kind}-{cmd}",
+                [0],
+                "artefact shapes",
+                not_a_file(name, cmd, kind),
                 names=lambda c, n=name: str(c.p("run") / n),
                 new_ok=RUN_FILES,
             )

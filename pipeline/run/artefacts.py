@@ -10,16 +10,25 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
 import pickle
 import re
 import tomllib
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    TypeAdapter,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from uwbcal.pipeline.core.errors import InputError
 
@@ -34,10 +43,24 @@ def corrupt(p: Path, problem: str, fix: str | None = None) -> InputError:
     return InputError(f"{p}: {problem}; {fix}")
 
 
+def present(path: Path) -> bool:
+    """Whether an optional artefact is there: False when nothing is at ``path``, True for a regular file, refused
+    (naming it) for anything else — a directory or a dangling link in its place is damage, not absence."""
+    path = Path(path)
+    if not os.path.lexists(path):
+        return False
+    _regular(path)
+    return True
+
+
+def _regular(path: Path, fix: str | None = None) -> None:
+    if not path.is_file():
+        raise corrupt(path, "missing" if not os.path.lexists(path) else "not a regular file", fix)
+
+
 def read_bytes(path: Path, fix: str | None = None) -> bytes:
     path = Path(path)
-    if not path.is_file():
-        raise corrupt(path, "missing" if not path.exists() else "not a regular file", fix)
+    _regular(path, fix)
     try:
         return path.read_bytes()
     except OSError as exc:
@@ -50,6 +73,17 @@ def read_text(path: Path, fix: str | None = None) -> str:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise corrupt(path, f"byte {exc.start}: not UTF-8 text", fix) from None
+
+
+def read_log_id(path: Path) -> str:
+    """recording_id.txt: the rerun recording id the stages' logs share (32 hex digits)."""
+    fix = (
+        "delete it (the next stage makes a new one; earlier stage logs then open as another rerun recording)"
+    )
+    text = read_text(path, fix).strip()
+    if not re.fullmatch(r"[0-9a-f]{32}", text):
+        raise corrupt(path, f"{text[:40]!r} is not a log id (32 hex digits)", fix)
+    return text
 
 
 @dataclass(frozen=True)
@@ -65,8 +99,10 @@ def _where(err: ValidationError, item: str) -> str:
     loc = [str(x) for x in e["loc"]]
     if item and loc:
         loc[0] = f"{item} {loc[0]}"
+    inner = "".join(f"[{x}]" if isinstance(x, int) else f".{x}" for x in e["loc"][1:]).lstrip(".")
     msg = re.sub(r" or instance of \w+", "", e["msg"].removeprefix("Value error, "))
-    return f"{': '.join([' '.join(loc[:1]), '.'.join(loc[1:])]).strip(': ') or 'top level'}: {msg[0].lower()}{msg[1:]}"
+    msg = f"{msg[0].lower()}{msg[1:]}" if msg[1:2].islower() else msg  # "Input should ..", not "P[0][0] .."
+    return f"{': '.join([' '.join(loc[:1]), inner]).strip(': ') or 'top level'}: {msg}"
 
 
 def read_json(path: Path, schema: Shape | type = dict, fix: str | None = None) -> Any:
@@ -109,7 +145,7 @@ def read_npz(
     """The arrays of an .npz artefact: ``required`` present, each one named in ``shapes`` numeric (text: those
     named in ``text``) and of its shape (None: the common length n)."""
     path = Path(path)
-    read_bytes(path)  # missing / not a file: named
+    _regular(path)  # missing / not a file: named
     try:
         with np.load(path, allow_pickle=False) as z:
             out = {k: z[k] for k in z.files}
@@ -134,6 +170,52 @@ def read_npz(
             shown = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
             raise corrupt(path, f"'{k}': shape {a.shape}, expected {shown} with n = {n}")
     return out
+
+
+QUAT_TOL = 1e-3  # max | |q| - 1 | of a stored orientation (the filter keeps it unit to ~1e-15)
+
+
+def read_trajectory(path: Path) -> dict:
+    """A pose history (trajectory.npz, vio.npz, refine.npz, localize.npz): the arrays of `TRAJECTORY_ARRAYS`,
+    stamps integer ns strictly increasing, every value finite, orientations unit quaternions, segments 0/1/2;
+    a problem names the array and its first bad row."""
+    path = Path(path)
+    z = read_npz(path, TRAJECTORY_ARRAYS, TRAJECTORY_REQUIRED)
+    for k, kinds, what in (
+        ("t_ns", "iu", "integers"),
+        ("segment", "iu", "integers"),
+        ("p", "iuf", "numbers"),
+    ):
+        if k in z and z[k].dtype.kind not in kinds:
+            raise corrupt(path, f"'{k}': {z[k].dtype} values, expected {what}")
+    for k in ("q_xyzw", "cov"):
+        if k in z and z[k].dtype.kind != "f":
+            raise corrupt(path, f"'{k}': {z[k].dtype} values, expected floating-point numbers")
+    for k in ("p", "q_xyzw", "cov"):
+        bad = np.flatnonzero(~np.isfinite(z[k]).all(axis=tuple(range(1, z[k].ndim)))) if k in z else []
+        if len(bad):
+            raise corrupt(path, f"'{k}' row {bad[0]}: not finite ({len(bad)} row(s))")
+    off = np.abs(np.linalg.norm(z["q_xyzw"], axis=1) - 1.0)
+    bad = np.flatnonzero(off > QUAT_TOL)
+    if len(bad):
+        i = bad[0]
+        raise corrupt(
+            path, f"'q_xyzw' row {i}: not a unit quaternion (|q| off 1 by {off[i]:.3g}; {len(bad)} row(s))"
+        )
+    back = np.flatnonzero(np.diff(z["t_ns"]) <= 0)
+    if len(back):
+        i = back[0] + 1
+        raise corrupt(
+            path,
+            f"'t_ns' row {i}: stamp {z['t_ns'][i]} not after row {i - 1}'s {z['t_ns'][i - 1]} (stamps must "
+            f"increase; {len(back)} such row(s))",
+        )
+    if "segment" in z and not np.isin(z["segment"], (0, 1, 2)).all():
+        i = int(np.flatnonzero(~np.isin(z["segment"], (0, 1, 2)))[0])
+        raise corrupt(
+            path, f"'segment' row {i}: {z['segment'][i]}, expected 0 (init), 1 (refine) or 2 (localize)"
+        )
+    return z
 
 
 def read_pickle(path: Path) -> Any:
@@ -172,8 +254,10 @@ def _matrix(v: list[list[float]]) -> list[list[float]]:
 
 
 class AnchorState(_Open):
-    """One anchor in anchor_states.json: its state (position, then beta, gamma per link) and covariance."""
+    """One anchor in anchor_states.json: its state (position, then beta, gamma per link) and covariance; every
+    number finite, the covariance's variances not negative."""
 
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False, strict=True)
     x: list[float]
     P: list[list[float]]
     noise_inflation: float = 1.0
@@ -197,6 +281,9 @@ class AnchorState(_Open):
             raise ValueError(
                 f"the covariance P is {len(self.P)} x {len(self.P)}, x has {len(self.x)} components"
             )
+        neg = [i for i, r in enumerate(self.P) if r[i] < 0]
+        if neg:
+            raise ValueError(f"P[{neg[0]}][{neg[0]}] = {self.P[neg[0]][neg[0]]:g}, a negative variance")
         return self
 
 
@@ -260,7 +347,14 @@ class Metrics(_Open):
     warnings: list[str] = []
 
 
-ANCHOR_STATES = Shape(TypeAdapter(dict[str, AnchorState]), "anchor")
+def _anchor_id(v: str) -> str:
+    if not v.isdigit() or int(v) > 2**32 - 1:
+        raise ValueError(f"{v!r} is not an anchor id (an integer 0 .. 2^32-1)")
+    return v
+
+
+AnchorId = Annotated[str, AfterValidator(_anchor_id)]
+ANCHOR_STATES = Shape(TypeAdapter(dict[AnchorId, AnchorState]), "anchor")
 INIT = Shape(TypeAdapter(InitInfo))
 STAGES = Shape(TypeAdapter(dict[str, StageEntry]), "stage")
 # trajectory.npz and the stages' histories (vio.npz, refine.npz, localize.npz): a pose per stamp, its covariance

@@ -22,6 +22,7 @@ from uwbcal.pipeline.core.topics import (
     TOPIC_GT_POSE,
     TOPIC_GT_POSITION,
 )
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.config import PipelineConfig
 from uwbcal.pipeline.run.driver import msckf_from_recording, odometry_from_recording
@@ -103,9 +104,9 @@ class StageContext:
 
     def recording_id(self) -> str:
         p = self.dir.file("recording_id.txt")
-        if not p.exists():
+        if not artefacts.present(p):
             rd.write_text(p, uuid.uuid4().hex)
-        return p.read_text().strip()
+        return artefacts.read_log_id(p)
 
     def runlog(self, stage: str) -> rl.RunLog:
         path = self.dir.stage_rrd(STAGE_NUMBER[stage], stage) if self.config.run.log else None

@@ -63,6 +63,8 @@ ARTEFACTS = (
     TRAJECTORY,
     METRICS,
     "results.md",
+    "results.csv",
+    "results.tex",
     "report.html",
     "recording_id.txt",
     LOGS,
@@ -83,11 +85,12 @@ class RunDir:
         return self.path / name
 
     def exists(self, name: str) -> bool:
-        return (self.path / name).exists()
+        """Whether artefact ``name`` is there (`artefacts.present`: something else in its place is refused)."""
+        return artefacts.present(self.path / name)
 
     def require(self, name: str, stage: str) -> Path:
         p = self.path / name
-        if not p.exists():
+        if not artefacts.present(p):
             raise InputError(
                 f"{p}: missing; run the stage that produces it before '{stage}' "
                 f"(e.g. uwbcal run REC -o {self.path} --stages <earlier>,{stage})"
@@ -111,9 +114,8 @@ class RunDir:
                 np.savez_compressed(f, **arrays)
 
     def load_npz(self, name: str, stage: str) -> dict[str, np.ndarray]:
-        return artefacts.read_npz(
-            self.require(name, stage), artefacts.TRAJECTORY_ARRAYS, artefacts.TRAJECTORY_REQUIRED
-        )
+        """A pose history (`artefacts.read_trajectory`)."""
+        return artefacts.read_trajectory(self.require(name, stage))
 
     def save_pickle(self, name: str, obj: Any) -> None:
         with atomic_path(self.path / name) as tmp:
@@ -277,7 +279,9 @@ def write_anchors(run_dir: RunDir, rows: list[dict], replace_stage: str) -> None
     """anchors.csv: this stage's rows replace the stage's earlier rows; other stages' rows stay."""
     path = run_dir.file(ANCHORS)
     old = (
-        [r for r in artefacts.read_anchor_rows(path) if r["stage"] != replace_stage] if path.exists() else []
+        [r for r in artefacts.read_anchor_rows(path) if r["stage"] != replace_stage]
+        if artefacts.present(path)
+        else []
     )
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=ANCHOR_COLUMNS, lineterminator="\n", extrasaction="ignore")

@@ -19,6 +19,7 @@ from uwbcal.convert.recording import TOPIC_IMU, TOPIC_ODOM, TOPIC_RANGE, Recordi
 from uwbcal.pipeline.core.atomic import sweep_stale
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.names import STAGES
+from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.config import PipelineConfig, load_config
 from uwbcal.pipeline.run.context import Evaluator, StageContext, StageResult
@@ -140,7 +141,7 @@ def _resumed_config(output: Path, overrides: dict) -> Path | None:
     recording is refused by `provenance.claim`)."""
     stages = overrides["run"].get("stages")
     cfg_path = output / rd.CONFIG
-    if not stages or "vio" in stages or not cfg_path.is_file():
+    if not stages or "vio" in stages or not artefacts.present(cfg_path):
         return None
     return cfg_path
 
