@@ -44,7 +44,7 @@ def test_the_chi2_check_fires_on_its_window_and_restarts_after_a_reinit():
     assert det.check(t[-1], st, hist, 0.1) is None
     # the same figure after the fact: assess from the re-initialisation on finds nothing either
     t_r, frac, n = st.rejection_rate(cfg.consistency_window_s, cfg.consistency_min_tracks, t[-1] + 1)
-    assert assess(hist.arrays(), cfg, (t_r, frac, n), online_from_ns=t[-1]) is None
+    assert assess(hist.arrays(), cfg, (t_r, frac, n), online_from_ns=t[-1] + 1) is None
     f2 = assess(hist.arrays(), cfg, st.rejection_rate(cfg.consistency_window_s, cfg.consistency_min_tracks))
     assert f2.check == "chi2" and t[20] <= f2.t_ns <= t[-1]
 

@@ -146,13 +146,14 @@ class StageContext:
             for f in getattr(est, "reinits", [])
             if (start_ns is None or f.t_ns >= start_ns) and (end_ns is None or f.t_ns < end_ns)
         ]
-        online_from = reinits[-1].t_ns if reinits else None
+        # after the last re-initialisation: its stamp's pose and update were judged online (they fired)
+        online_from = reinits[-1].t_ns + 1 if reinits else None
         rejection = None
         if isinstance(stats, VioStats):
             rejection = stats.rejection_rate(
                 cfg.consistency_window_s,
                 cfg.consistency_min_tracks,
-                start_ns if online_from is None else online_from + 1,  # after the one that fired
+                start_ns if online_from is None else online_from,
                 end_ns,
             )
         fail = assess(est.history().arrays(), cfg, rejection, start_ns, end_ns, ranges, online_from)
