@@ -2036,6 +2036,28 @@ case(
     "ok",
     check=holds_only("rec60"),
 )
+
+
+def with_stale_table(c: Ctx) -> Path:
+    """The shared run with an earlier `uwbcal evaluate --format csv` table (results.csv) of its recording."""
+    run = c.run_copy()
+    (run / "results.csv").write_text((run / "results.md").read_text())
+    return run
+
+
+def no_stale_table(c: Ctx, res) -> None:
+    holds_only("rec60")(c, res)
+    assert not (c.p("run") / "results.csv").exists()
+
+
+case(
+    "dir-other-recording-overwritten-stale-table",
+    [0],
+    ONE_REC,
+    run_into(with_stale_table, "rec60", "--overwrite"),
+    "ok",
+    check=no_stale_table,
+)
 for cid, keep in (
     ("dir-unknown-artefacts-refused", ("anchors.csv", "vio.npz")),
     ("dir-no-stages-refused", ("config.toml", "trajectory.npz")),
