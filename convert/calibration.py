@@ -26,6 +26,7 @@ from pydantic import (
     PrivateAttr,
     ValidationError,
     field_validator,
+    model_validator,
 )
 
 from uwbcal.convert.sources import load_yaml
@@ -166,7 +167,22 @@ class CameraCalibration(BaseModel):
     def _focal(cls, v: list[float]) -> list[float]:
         if v[0] <= 0 or v[1] <= 0:
             raise ValueError(f"focal lengths fu = {v[0]}, fv = {v[1]}; give positive focal lengths in pixels")
+        if v[2] < 0 or v[3] < 0:
+            raise ValueError(
+                f"principal point cu = {v[2]}, cv = {v[3]}; give it in pixels from the top-left corner"
+            )
         return v
+
+    @model_validator(mode="after")
+    def _centre_in_image(self) -> CameraCalibration:
+        if self.resolution is not None and (
+            self.intrinsics[2] > self.resolution[0] or self.intrinsics[3] > self.resolution[1]
+        ):
+            raise ValueError(
+                f"principal point ({self.intrinsics[2]}, {self.intrinsics[3]}) outside the {self.resolution[0]}x"
+                f"{self.resolution[1]} image; check intrinsics [fu, fv, cu, cv] and resolution [width, height]"
+            )
+        return self
 
     @field_validator("resolution")
     @classmethod
@@ -234,6 +250,13 @@ class GroundTruthCalibration(BaseModel):
         description="the ground-truth point in the IMU frame [x, y, z] in metres (e.g. a prism)",
     )
     frame: str = Field("body", description="what the ground truth tracks: body, prism, ...")
+
+    @field_validator("lever_arm")
+    @classmethod
+    def _near(cls, v: list[float]) -> list[float]:
+        if np.linalg.norm(v) > MAX_OFFSET_M:
+            raise ValueError(f"lever arm {v} is > {MAX_OFFSET_M:g} m long; give it in metres")
+        return v
 
 
 class OdometryCalibration(BaseModel):

@@ -343,16 +343,33 @@ def normalise_quaternions(
     return q / np.where(keep, n, 1.0)[:, None], keep
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: set = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if isinstance(key, str | int | float | bool) and key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice (line {key_node.start_mark.line + 1})", None
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def load_yaml(path: str | Path, what: str) -> dict:
-    """YAML, tolerating OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix`` tags."""
+    """YAML, tolerating OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix`` tags; a key given twice in one
+    mapping is refused."""
     path = Path(path)
     text = read_text(path, what)
     lines = [ln for ln in text.splitlines() if not ln.startswith("%YAML")]
     text = "\n".join(lines).replace("!!opencv-matrix", "")
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
-        raise InputError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+        first = next((ln for ln in str(exc).splitlines() if "twice" in ln), str(exc).splitlines()[0])
+        raise InputError(f"{path}: invalid YAML ({first.strip()}); give each key once") from None
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a YAML mapping ({what})")
     return data

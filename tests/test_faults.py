@@ -8,6 +8,7 @@ names the user's file (never a temporary file); never a traceback (an internal e
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import shutil
@@ -22,6 +23,7 @@ from pathlib import Path
 import fault_inputs as fi
 import numpy as np
 import pytest
+import yaml
 from typer.testing import CliRunner
 
 from uwbcal.cli import app
@@ -864,6 +866,140 @@ for conv, topic in (("euroc", "/imu0"), ("ntu-viral", "/imu/imu")):
             bag(dataset_bag(topic, keep), conv),
             names=named("b.bag"),
         )
+
+# -- convert bag --calibration: one validated calibration model (the YAML, the key and the fix named) ------------
+R_IMU_CAM = [
+    [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
+    [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
+    [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
+    [0.0, 0.0, 0.0, 1.0],
+]
+CALIBRATION = {
+    "imu": {
+        "gyroscope_noise_density": 1.7e-4,
+        "gyroscope_random_walk": 1.9e-5,
+        "accelerometer_noise_density": 2.0e-3,
+        "accelerometer_random_walk": 3.0e-3,
+        "rate_hz": 10,
+    },
+    "cameras": {
+        "cam0": {
+            "intrinsics": [458.6, 457.3, 367.2, 248.4],
+            "distortion": [-0.28, 0.07, 0.0002, 0.00002],
+            "resolution": [752, 480],
+            "T_imu_cam": R_IMU_CAM,
+        }
+    },
+    "uwb": {"tags": {"0": {"antennas": [[0.1, 0.0, 0.05]]}}, "sigma_range": 0.1},
+    "groundtruth": {"lever_arm": [0.0, 0.0, 0.0]},
+}
+
+
+def cal_set(*path, value=KeyError):
+    """The calibration with ``path`` set to ``value`` (KeyError: removed)."""
+
+    def edit(d: dict) -> dict:
+        cur = d
+        for k in path[:-1]:
+            cur = cur[k]
+        cur.pop(path[-1]) if value is KeyError else cur.__setitem__(path[-1], value)
+        return d
+
+    return edit
+
+
+def rot(f: Callable[[list], object]):
+    return cal_set("cameras", "cam0", "T_imu_cam", value=f([list(r) for r in R_IMU_CAM]))
+
+
+def with_calibration(edit=None, raw: str | bytes | None = None):
+    def build(c: Ctx) -> list[str]:
+        bag = fi.small_bag("ros1", c.p("b.bag"))
+        text = raw if raw is not None else yaml.safe_dump(edit(copy.deepcopy(CALIBRATION)))
+        c.write("cal.yaml", text)
+        return ["convert", "bag", str(bag), "-o", str(c.p("out.mcap")), "--uwb", "/uwb/range", "--calibration",
+                str(c.p("cal.yaml"))]  # fmt: skip
+
+    return build
+
+
+def scaled(s: float):
+    return rot(
+        lambda M: [[v * s if i < 3 and j < 3 else v for j, v in enumerate(r)] for i, r in enumerate(M)]
+    )
+
+
+CAL_BAD = {
+    "rotation-skewed-1e-2": rot(
+        lambda M: [[v + (0.01 if (i, j) == (0, 1) else 0) for j, v in enumerate(r)] for i, r in enumerate(M)]
+    ),  # fmt: skip
+    "rotation-scaled-1.01": scaled(1.01),
+    "rotation-scaled-0.5": scaled(0.5),
+    "rotation-zero": rot(lambda M: [[0.0, 0.0, 0.0, r[3]] for r in M[:3]] + [M[3]]),
+    "rotation-axes-swapped": rot(lambda M: [[r[1], r[0], r[2], r[3]] for r in M[:3]] + [M[3]]),
+    "translation-inf": rot(lambda M: [[*M[0][:3], float("inf")], *M[1:]]),
+    "translation-1km": rot(lambda M: [[*M[0][:3], 1000.0], *M[1:]]),
+    "transform-string-entry": rot(lambda M: [[str(v) for v in M[0]], *M[1:]]),
+    "transform-last-row": rot(lambda M: [*M[:3], [0.0, 0.0, 1.0, 1.0]]),
+    "transform-15-numbers": rot(lambda M: sum(M, [])[:15]),
+    "transform-opencv-12": rot(lambda M: {"rows": 4, "cols": 4, "data": sum(M, [])[:12]}),
+    "transform-null": cal_set("cameras", "cam0", "T_imu_cam", value=None),
+    "transform-missing": cal_set("cameras", "cam0", "T_imu_cam"),
+    "intrinsics-string": cal_set("cameras", "cam0", "intrinsics", value=["458", 457.3, 367.2, 248.4]),
+    "intrinsics-inf": cal_set("cameras", "cam0", "intrinsics", value=[float("inf"), 457.3, 367.2, 248.4]),
+    "intrinsics-3": cal_set("cameras", "cam0", "intrinsics", value=[458.6, 457.3, 367.2]),
+    "principal-point-negative": cal_set("cameras", "cam0", "intrinsics", value=[458.6, 457.3, -367.2, 248.4]),
+    "principal-point-outside": cal_set("cameras", "cam0", "intrinsics", value=[458.6, 457.3, 900.0, 248.4]),
+    "distortion-nan": cal_set("cameras", "cam0", "distortion", value=[float("nan"), 0.0, 0.0, 0.0]),
+    "resolution-float": cal_set("cameras", "cam0", "resolution", value=[752.0, 480.0]),
+    "cameras-list": cal_set("cameras", value=[1, 2]),
+    "imu-noise-string": cal_set("imu", "gyroscope_noise_density", value="1.7e-4"),
+    "imu-noise-inf": cal_set("imu", "gyroscope_noise_density", value=float("inf")),
+    "imu-noise-zero": cal_set("imu", "accelerometer_random_walk", value=0.0),
+    "imu-noise-missing": cal_set("imu", "gyroscope_random_walk"),
+    "imu-noise-bool": cal_set("imu", "gyroscope_random_walk", value=True),
+    "imu-unknown-key": cal_set("imu", "gyro_noise", value=1.0),
+    "uwb-tags-int": cal_set("uwb", "tags", value=5),
+    "uwb-tag-id-text": cal_set("uwb", "tags", value={"tagA": {"antennas": [[0.0, 0.0, 0.0]]}}),
+    "uwb-antenna-nan": cal_set("uwb", "tags", value={"0": {"antennas": [[float("nan"), 0.0, 0.0]]}}),
+    "uwb-sigma-negative": cal_set("uwb", "sigma_range", value=-0.1),
+    "uwb-sigma-string": cal_set("uwb", "sigma_range", value="0.1"),
+    "uwb-gamma-prior-number": cal_set("uwb", "gamma_prior", value=0.1),
+    "groundtruth-lever-far": cal_set("groundtruth", "lever_arm", value=[1e9, 0.0, 0.0]),
+    "groundtruth-lever-nan": cal_set("groundtruth", "lever_arm", value=[float("nan"), 0.0, 0.0]),
+    "section-typo": cal_set("imuu", value={}),
+}
+for cid, edit in CAL_BAD.items():
+    case(f"calibration-{cid}", [0], "calibration YAML", with_calibration(edit), names=named("cal.yaml"))
+for cid, raw in (
+    ("empty", ""),
+    ("a-list", "- 1\n- 2\n"),
+    ("null", "null\n"),
+    ("garbage", "{[: \x00"),
+    ("latin1", b"imu: {}\n# caf\xe9\n"),
+    ("utf16", "imu: {}\n".encode("utf-16")),
+    ("tabs", "imu:\n\tgyroscope_noise_density: 1\n"),
+    ("key-twice", "uwb:\n  sigma_range: 0.1\nuwb:\n  sigma_range: 0.2\n"),
+):
+    case(
+        f"calibration-raw-{cid}", [0], "calibration YAML", with_calibration(raw=raw), names=named("cal.yaml")
+    )
+
+
+def calibrated(c: Ctx, res) -> None:
+    cal = RecordingReader(c.p("out.mcap")).calibration
+    assert cal["uwb"]["tags"]["0"]["antennas"] == [[0.1, 0.0, 0.05]] and cal["imu"]["rate_hz"] == 10, cal
+
+
+case("calibration-ok", [0], "calibration YAML", with_calibration(lambda d: d), "ok", check=calibrated)
+case(
+    "calibration-opencv-header",
+    [0],
+    "calibration YAML",
+    with_calibration(raw="%YAML:1.0\n---\n" + yaml.safe_dump(CALIBRATION)),
+    "ok",
+    check=calibrated,
+)
 
 IMU_HEADER = "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n"
 SENSOR_YAML = (
