@@ -81,7 +81,10 @@ class VioConfig(BaseModel):
         "vio.reinit_sigma_* (0: no recovery; when the re-initialisations are used up, vio.on_failure applies)",
     )
     reinit_sigma_theta: float = Field(
-        0.05, ge=0, description="re-initialisation: orientation sigma added to the IMU covariance [rad]"
+        0.15,
+        ge=0,
+        description="re-initialisation: orientation sigma added to the IMU covariance [rad] (the orientation "
+        "error of a diverged window is some degrees: a smaller one leaves the re-initialised filter overconfident)",
     )
     reinit_sigma_p: float = Field(
         0.3, ge=0, description="re-initialisation: position sigma added to the IMU covariance [m]"
