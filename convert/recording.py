@@ -530,6 +530,9 @@ class RecordingReader(McapIndex):
     def __init__(self, path: str | os.PathLike) -> None:
         super().__init__(path)
         self._topics: dict[str, TopicInfo] | None = None
+        self.range_shift_ns = (
+            0  # added to every range stamp read (a range-to-pose clock offset the run estimated)
+        )
 
     # -- summary and metadata ------------------------------------------------------------------------------------
     def topics(self) -> dict[str, TopicInfo]:
@@ -670,11 +673,18 @@ class RecordingReader(McapIndex):
         *,
         file_order: bool = False,
     ) -> RangeData:
-        c = self._raw(topic, start_ns, end_ns, file_order)
+        """The ranges, stamps shifted by ``range_shift_ns`` (``start_ns``/``end_ns`` on the shifted stamps)."""
+        sh = self.range_shift_ns
+        c = self._raw(
+            topic,
+            None if start_ns is None else start_ns - sh,
+            None if end_ns is None else end_ns - sh,
+            file_order,
+        )
         o = c.align(c.after_header(), 4)
         o_anchor = c.align(o + 5, 4)
         return RangeData(
-            c.stamp_ns(),
+            c.stamp_ns() + sh,
             c.u32(o).astype(np.int64),
             c.u8(o + 4).astype(np.int64),
             c.u32(o_anchor).astype(np.int64),

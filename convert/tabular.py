@@ -16,7 +16,7 @@ import numpy as np
 
 from uwbcal.convert.anchor_truth import read_anchor_truth, truth_note, truth_record
 from uwbcal.convert.attitude_check import planar_attitude_note
-from uwbcal.convert.ntu_viral import find_antennas, uwb_section
+from uwbcal.convert.ntu_viral import find_antennas
 from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
@@ -34,6 +34,7 @@ from uwbcal.convert.sources import (
     RawStamps,
     anchors_note,
     clean_ranges,
+    default_tags,
     normalise_quaternions,
     order_and_dedup,
     parse_antennas,
@@ -49,6 +50,7 @@ from uwbcal.convert.sources import (
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.progress import progress
 
+STATED_BIAS_SIGMA = 0.05  # [m] a ranging bias the antenna file states is known to a few centimetres
 MAX_POSITION_M = 1e5  # a pose farther than 100 km from the origin is a unit error or garbage
 TYPICAL_LINK_INTERVAL_S = (
     0.04  # per-link UWB rates are 1-1000 Hz: one unit puts the median within 31x of 25 Hz
@@ -180,9 +182,17 @@ def _usable_ranges(
 def _uwb_calibration(
     antenna_file: Path | None, r: RangeData, p: np.ndarray, q: np.ndarray, poses: Path, drops: Drops
 ) -> dict:
-    """The calibration's uwb section (tags and antennas from the antenna file, else from the ranges); with
-    antennas, the note on attitudes a planar trajectory leaves unobserved."""
-    uwb = uwb_section(antenna_file, r.tag, r.antenna, drops)
+    """The calibration's uwb section: what the files state, nothing more (tags and antennas from the antenna
+    file, else zero lever arms from the ranges; a stated ranging_bias as the offset prior); the range noise and the
+    priors of the hardware class are the run's (`uwb` config). With antennas, the note on attitudes a planar
+    trajectory leaves unobserved."""
+    if antenna_file is None:
+        return {"tags": default_tags(r.tag, r.antenna)}
+    tags, bias = parse_antennas(antenna_file)
+    uwb: dict = {"tags": tags}
+    if bias:
+        uwb["gamma_prior"] = {"mean": -float(np.mean(list(bias.values()))), "sigma": STATED_BIAS_SIGMA}
+        drops.note(f"{antenna_file}: ranging_bias: range offset prior {uwb['gamma_prior']['mean']:+.3f} m")
     if antenna_file is not None:
         levers = [a for t in parse_antennas(antenna_file)[0].values() for a in t.get("antennas", [])]
         note = planar_attitude_note(p, q, np.asarray(levers, float), str(poses))

@@ -310,6 +310,7 @@ class InitAnchor(_Open):
 class InitInfo(_Open):
     chosen: str | None = None
     methods: dict[str, dict[str, InitAnchor]] = {}
+    range_clock: dict | None = None
 
 
 class StageEntry(_Open):

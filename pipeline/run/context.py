@@ -175,6 +175,18 @@ class StageContext:
         run = self.config.run
         return recording_windows(self.reader, run.init_window_s, run.refine_window_s)
 
+    def bounded_poses(self) -> bool:
+        """The pose source is an external one of bounded error (motion capture, RTK-GNSS, a SLAM with a map)."""
+        return self.pose_source() == "odometry" and self.config.odometry.error_model == "bounded"
+
+    def apply_range_clock(self) -> None:
+        """Re-stamp the ranges read from now on by the clock offset the init stage used (init.json)."""
+        if self.dir.exists("init.json"):
+            clock = artefacts.read_json(self.dir.file("init.json"), artefacts.INIT).get("range_clock") or {}
+            self.reader.range_shift_ns = (
+                round(float(clock.get("offset_s", 0.0)) * 1e9) if clock.get("used") else 0
+            )
+
     def pose_source(self) -> str:
         """The resolved ``run.pose_source`` (`resolve`)."""
         choice = self.config.run.pose_source

@@ -88,13 +88,20 @@ class UwbConfig(BaseModel):
         "X_I; 1, 2 and 5 s give the same anchor NEES); None: random-walk approximation from the poses' marginal "
         "covariances",
     )
-    range_model: Literal["search", "evidence"] = Field(
-        "search",
-        description="how an anchor's range model and observability are decided with search on: search (the global "
-        "search's rules: height verdict, mirror test, beta likelihood ratio, per-link cross-validation) or "
-        "evidence (a soft-L1 position fit from the linear multilateration; an offset, scale or per-link offsets "
-        "enter only when time-blocked cross-validation of held-out ranges demands them; weak directions from the "
-        "information's eigen-decomposition, not determined when one is horizontal)",
+    range_model: Literal["auto", "search", "evidence"] = Field(
+        "auto",
+        description="how an anchor's range model and observability are decided: evidence (a robust position fit; "
+        "an offset, a scale or per-link offsets enter only when their log evidence, the ranges' likelihood "
+        "deflated for correlated errors, beats the simpler model's by a Bayes factor of 3; the covariance is the "
+        "evidence-weighted mixture of the models; not determined when the horizontal sigma exceeds "
+        "max_sigma_horizontal_m) or search (the global search's rules, for the paper's simulated experiments); "
+        "auto: evidence on real ranges, search on simulated ones",
+    )
+    clock_scan_s: float = Field(
+        0.5,
+        ge=0,
+        description="evidence range model: the range-to-pose clock offset is scanned over +-this [s] and used "
+        "when its evidence demands it (the ranges re-stamped by it in every later stage); 0: off",
     )
     search: bool = Field(
         True,

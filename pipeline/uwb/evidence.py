@@ -1,211 +1,220 @@
-"""One anchor from its ranges alone: a robust position fit, and every optional parameter by the same evidence rule.
+"""One anchor from its ranges: a robust position fit, and every optional parameter by one evidence rule.
 
 Model: d_k = beta ||x_k - p|| + gamma_l(k) + n_k, with x_k the tag position and l(k) the range's link. The base
-model is the position alone (beta = 1, no offset), fitted by a soft-L1 robust Gauss-Newton from the linear
-least-squares multilateration (and from its mirror across the motion plane). The optional families
+family is the position alone (beta = 1, no offset), fitted by a soft-L1 robust Gauss-Newton from the linear
+least-squares multilateration and from its mirror across the motion plane. The optional families
 
-- ``gamma``: one range offset per anchor, prior N(0, gamma_sigma^2) (what UWB hardware has: decimetres),
-- ``beta``: the range scale, prior N(1, beta_sigma^2),
+- ``gamma``: one range offset per anchor, prior N(gamma_mean, gamma_sigma^2) (what UWB hardware has: decimetres),
+- ``gamma+beta``: and the range scale, prior N(1, beta_sigma^2) (a TWR clock's error: parts per million),
 - ``link``: one offset per (tag, antenna) link, each under the offset prior,
 
-enter only by one rule (`choose_model`): time-blocked K-fold cross-validation of the robust loss of held-out
-ranges; the simplest model within one standard error of the best one wins (one-standard-error rule), so a
-parameter that trades against the distance on the training folds, and predicts the held-out ones worse, stays out.
+enter by one rule (`choose`): each family's log evidence (the Laplace approximation of its marginal likelihood,
+i.e. the ranges' sequential one-step-ahead predictive probability, with its parameters integrated over their
+priors) with the ranges' likelihood deflated by how much less they tell than independent ranges do (`deflation`:
+the residual spread over the nominal sigma, squared, times the variance factor of block means over time and over
+directions of arrival). The simplest family within a Bayes factor `BAYES_FACTOR` of the best one is chosen; the
+two basins of the mirror across the motion plane are told apart by the same rule, and both are reported when it
+cannot tell them apart.
 
-Observability is read from the eigen-decomposition of the position's covariance: the information's (ranges
-weighted by their noise plus the pose covariance along the line of sight, offsets and scale marginalised,
-inflated by the residuals' time correlation and scaled by their spread), with a prior that limits every direction
-to the largest range (the anchor is within reach of the tag), plus the block jackknife of the leave-one-block-out
-fits (what time-correlated errors and a direction-dependent bias do to the estimate). A direction whose sigma exceeds ``max_sigma`` is weak: the anchor is
-not determined when a weak direction has a horizontal component (the horizontal position is what is asked for);
-a weak vertical is reported as an undetermined height with its prior-limited sigma. Two basins (the mirror
-across the motion plane) are told apart by the same held-out rule; when they cannot be, both are reported.
+The covariance is the evidence-weighted mixture of every family and basin fitted (each one's covariance plus the
+spread of its estimate about the chosen one): what the chosen model leaves out (an offset it did not fit, the
+other basin) stays in the sigma. Observability is read from the eigen-decomposition of the position's covariance:
+an anchor whose horizontal sigma exceeds ``max_sigma`` in any direction is not determined (with that direction); a
+weak vertical is an open height with its prior-limited sigma.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.cluster.vq import kmeans2
 
+from uwbcal.pipeline.core.state import chi2_ppf
+from uwbcal.pipeline.uwb.initializer import InitResult, InitWindow
 from uwbcal.pipeline.uwb.search import SearchResult, noise_inflation, plane_frame, subsample
 
 FAMILIES = ("position", "gamma", "gamma+beta", "link")
+BAYES_FACTOR = 3.0  # Jeffreys' "substantial" evidence: a richer model must beat a simpler one by this factor
+CAUCHY_SCALE = 2.0  # [range sigmas] of the robust fit's redescending loss
 VERTICAL_COS = 0.9  # a weak direction this close to vertical is a height the geometry leaves open
+TWR_SCALE_SIGMA = 1e-3  # range scale of two-way ranging: the clocks' error, parts per million (unless stated)
+# the priors that hold an offset / the scale at its mean when the evidence leaves it out of an anchor's model
+FIXED_OFFSET_SIGMA = 1e-3  # [m]
+FIXED_BETA_SIGMA = 1e-5
 
 
-@dataclass
+@dataclass(frozen=True)
 class FitSpec:
     """Priors and thresholds of `fit_anchor` (the hardware class' priors; the UWB layer's config)."""
 
     sigma_range: float = 0.1  # nominal range noise [m]; also the soft-L1 scale
     gamma_mean: float = 0.0  # prior mean of a range offset [m]
     gamma_sigma: float = 0.3  # prior sigma of a range offset [m]
-    beta_sigma: float = 0.05  # prior sigma of the range scale
-    max_sigma: float = 1.0  # a direction with a larger sigma [m] is weak
-    folds: int = 10
+    beta_sigma: float = TWR_SCALE_SIGMA  # prior sigma of the range scale
+    max_sigma: float = 1.0  # a horizontal sigma [m] above this: not determined
     min_ranges: int = 30
     max_ranges: int = 2000
     static_extent_m: float = 0.3
-    # how much less a range tells than the nominal noise says: (residual spread / sigma_range)^2 x kappa (time
-    # correlation) of the position fit; the priors weigh this much more against the ranges
-    deflate: float = 1.0
+    block_s: float = 10.0  # time blocks of the deflation's batch means [s]
+    robust: bool = True  # soft-L1 loss (False: least squares)
+    deflate: float = 1.0  # set by `fit_anchor` from the base fit (`deflation`)
 
 
 @dataclass
-class _Model:
+class Model:
+    """One family fitted from one basin's start."""
+
     name: str
+    basin: int  # 0: the basin of the lower-cost position fit, 1: its mirror
     p: np.ndarray
     beta: float
     g: np.ndarray  # (L,) offset per link
-    cost: float
-    info: np.ndarray  # Gauss-Newton information of the parameters (position first), priors included
-    r: np.ndarray  # residuals over the fitted ranges
+    cost: float  # deflated robust data cost + prior terms
+    info: np.ndarray  # information of (p, [beta], offsets), deflated, priors included
+    r: np.ndarray  # residuals [m]
     w: np.ndarray  # robust weights
+    log_evidence: float = float("nan")
+
+    @property
+    def n_offsets(self) -> int:
+        return 0 if self.name == "position" else len(self.g) if self.name == "link" else 1
 
 
-@dataclass
-class Evidence:
-    """The held-out robust loss of each family (lower is better) and the one chosen."""
-
-    chosen: str
-    cv_loss: dict = field(default_factory=dict)
-    cv_se: dict = field(default_factory=dict)
-
-    def summary(self) -> dict:
-        return {
-            "model": self.chosen,
-            "cv_loss": {k: round(float(v), 3) for k, v in self.cv_loss.items()},
-            "cv_se": {k: round(float(v), 3) for k, v in self.cv_se.items()},
-        }
+def _loss(e: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """rho(e) (e^2 near 0) of whitened residuals and the IRLS weights rho'(e) / (2 e): ``l2``; ``soft_l1``
+    2 (sqrt(1 + e^2) - 1), convex, the robust start; ``cauchy`` c^2 log(1 + (e/c)^2) with c = `CAUCHY_SCALE`,
+    redescending: one-sided NLOS junk pulls a convex loss's fit away by a constant influence per range, not
+    this one's."""
+    if kind == "soft_l1":
+        q = np.sqrt(1.0 + e**2)
+        return 2.0 * (q - 1.0), 1.0 / q
+    if kind == "cauchy":
+        u = (e / CAUCHY_SCALE) ** 2
+        return CAUCHY_SCALE**2 * np.log1p(u), 1.0 / (1.0 + u)
+    return e**2, np.ones_like(e)
 
 
-def _soft_l1(r: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
-    """rho(r) = 2 c^2 (sqrt(1 + (r/c)^2) - 1) (r^2 near 0) and its IRLS weight rho'(r) / (2 r)."""
-    q = np.sqrt(1.0 + (r / c) ** 2)
-    return 2.0 * c**2 * (q - 1.0), 1.0 / q
+def _losses(spec: FitSpec) -> tuple[str, ...]:
+    """The losses a fit runs through: the convex soft-L1 first, then the redescending Cauchy from its optimum."""
+    return ("soft_l1", "cauchy") if spec.robust else ("l2",)
 
 
-def _columns(name: str) -> tuple[bool, bool, bool]:
-    """(offset, scale, per-link) of a family."""
-    return name != "position", name == "gamma+beta", name == "link"
+def _prior(name: str, L: int, spec: FitSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, precision) of the family's parameters (position first, flat; then beta; then the offsets)."""
+    scale = name == "gamma+beta"
+    ng = 0 if name == "position" else L if name == "link" else 1
+    mu = np.r_[np.zeros(3), [1.0] * scale, np.full(ng, spec.gamma_mean)]
+    prec = np.r_[np.zeros(3), [spec.beta_sigma**-2] * scale, np.full(ng, spec.gamma_sigma**-2)]
+    return mu, prec
 
 
-def _fit(
-    xyz: np.ndarray,
-    d: np.ndarray,
-    li: np.ndarray,
-    L: int,
-    s2: np.ndarray,
-    name: str,
-    p0: np.ndarray,
-    spec: FitSpec,
-    max_iter: int = 30,
-    g0: np.ndarray | None = None,
-) -> _Model:
-    """Soft-L1 Levenberg-damped IRLS of one family from ``p0``; ``s2`` (N,) the ranges' variances."""
-    off, scale, per_link = _columns(name)
-    ng = (L if per_link else 1) if off else 0
-    theta = np.r_[
-        p0, 1.0 if scale else [], np.full(ng, spec.gamma_mean) if g0 is None or not off else g0[:ng]
-    ]
+def fit_family(
+    xyz: np.ndarray, d: np.ndarray, li: np.ndarray, L: int, s2: np.ndarray, name: str, p0, spec: FitSpec
+) -> Model:
+    """Levenberg-damped IRLS of one family from ``p0`` (priors as residuals, data deflated by ``spec.deflate``)
+    through the losses of `_losses`; ``s2`` (N,) the ranges' variances, ``li`` their link index."""
+    mu, prec = _prior(name, L, spec)
+    scale, per_link, ng = name == "gamma+beta", name == "link", len(mu) - 3 - (name == "gamma+beta")
     gi = li if per_link else np.zeros(len(d), np.int64)
-    prior_sd = np.r_[np.full(3, np.inf), [spec.beta_sigma] if scale else [], np.full(ng, spec.gamma_sigma)]
-    prior_mu = np.r_[np.zeros(3), [1.0] if scale else [], np.full(ng, spec.gamma_mean)]
-    pw = np.where(np.isfinite(prior_sd), spec.deflate / prior_sd**2, 0.0)
-    c = spec.sigma_range
+    sd, f = np.sqrt(s2), 1.0 / spec.deflate
 
-    def evaluate(th):
+    def evaluate(th, kind):
         diff = th[:3] - xyz
         rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
         b = th[3] if scale else 1.0
-        g = th[3 + scale :][gi] if off else spec.gamma_mean
-        r = d - b * rho - g
-        loss, w = _soft_l1(r / np.sqrt(s2), c / spec.sigma_range)
-        cost = float(np.sum(loss)) + float(np.sum(pw * (th - prior_mu) ** 2))
-        J = [b * diff / rho[:, None]]
-        if scale:
-            J.append(rho[:, None])
-        if off:
-            E = np.zeros((len(d), ng))
-            E[np.arange(len(d)), gi] = 1.0
-            J.append(E)
-        return cost, np.hstack(J), r, w
+        r = d - b * rho - (th[3 + scale :][gi] if ng else 0.0)
+        loss, w = _loss(r / sd, kind)
+        J = [b * diff / rho[:, None]] + ([rho[:, None]] if scale else [])
+        if ng:
+            J.append(np.eye(ng)[gi])
+        cost = f * float(np.sum(loss)) + float(np.sum(prec * (th - mu) ** 2))
+        return cost, np.hstack(J) / sd[:, None], r, w
 
-    cost, J, r, w = evaluate(theta)
+    theta = np.r_[np.asarray(p0, float), mu[3:]]
+    for kind in _losses(spec):
+        theta, (cost, J, r, w) = _irls(lambda th, k=kind: evaluate(th, k), theta, mu, prec, f, sd)
+    info = (J * (f * w)[:, None]).T @ J + np.diag(prec)
+    g = theta[3 + scale :] if ng else np.zeros(0)
+    g_links = g.copy() if per_link else np.full(L, g[0] if ng else spec.gamma_mean)
+    return Model(name, 0, theta[:3].copy(), float(theta[3]) if scale else 1.0, g_links, cost, info, r, w)
+
+
+def _irls(evaluate, theta, mu, prec, f, sd, max_iter: int = 60):
+    """Levenberg-damped IRLS of ``evaluate(theta) -> (cost, J, r, w)`` from ``theta``."""
+    res = evaluate(theta)
     lam = 1e-3
     for _ in range(max_iter):
-        W = w / s2
-        A = (J * W[:, None]).T @ J + np.diag(pw)
-        gr = (J * W[:, None]).T @ r - pw * (theta - prior_mu)
-        done = True
+        cost, J, r, w = res
+        A = (J * (f * w)[:, None]).T @ J + np.diag(prec)
+        grad = (J * (f * w)[:, None]).T @ (r / sd) - prec * (theta - mu)
+        step = np.zeros_like(theta)
         while lam < 1e10:
-            step = np.linalg.solve(A + lam * np.diag(np.maximum(np.diag(A), 1e-9)), gr)
-            res = evaluate(theta + step)
-            if res[0] <= cost:
-                theta, (cost, J, r, w) = theta + step, res
+            step = np.linalg.solve(A + lam * np.diag(np.maximum(np.diag(A), 1e-9)), grad)
+            cand = evaluate(theta + step)
+            if cand[0] <= cost:
+                theta, res = theta + step, cand
                 lam = max(lam / 10, 1e-9)
-                done = np.linalg.norm(step) < 1e-6 * (1 + np.linalg.norm(theta[:3]))
                 break
             lam *= 10
-        if done:
+        if lam >= 1e10 or np.linalg.norm(step) < 1e-7 * (1 + np.linalg.norm(theta[:3])):
             break
-    W = w / s2
-    info = (J * W[:, None]).T @ J + np.diag(pw)
-    g = theta[3 + scale :] if off else np.zeros(0)
-    g_links = (g if per_link else np.full(L, g[0] if ng else spec.gamma_mean)).copy()
-    return _Model(name, theta[:3].copy(), float(theta[3]) if scale else 1.0, g_links, cost, info, r, w)
+    return theta, res
 
 
-def _held_out(xyz, d, li, L, s2, name: str, full: _Model, spec: FitSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Per fold (contiguous time blocks of the time-ordered ranges): the soft-L1 loss of the held-out ranges
-    under the family fitted to the others (started at the full fit), and that fit's position (K, 3)."""
-    K = spec.folds
-    fold = np.minimum(np.arange(len(d)) * K // len(d), K - 1)
-    out, pos = np.zeros(K), np.zeros((K, 3))
-    for k in range(K):
-        tr, te = fold != k, fold == k
-        m = _fit(xyz[tr], d[tr], li[tr], L, s2[tr], name, full.p, spec, max_iter=15, g0=full.g)
-        rho = np.linalg.norm(xyz[te] - m.p, axis=1)
-        r = d[te] - m.beta * rho - m.g[li[te]]
-        out[k] = float(np.sum(_soft_l1(r / np.sqrt(s2[te]), 1.0)[0]))
-        pos[k] = m.p
-    return out, pos
+def log_evidence(m: Model, spec: FitSpec, reach: float) -> float:
+    """Laplace log marginal likelihood of a fit, up to the constant every family of the anchor shares: the
+    deflated cost, the Occam factor of the information against the priors (the position's prior keeps the anchor
+    within ``reach`` of the tags)."""
+    _, prec = _prior(m.name, len(m.g), spec)
+    A = m.info.copy()
+    A[:3, :3] += np.eye(3) / reach**2
+    logdet = np.linalg.slogdet(A)[1]
+    return float(-0.5 * m.cost - 0.5 * logdet + 0.5 * np.sum(np.log(prec[3:])) + 1.5 * np.log(reach**-2))
 
 
-def _spread(r: np.ndarray) -> float:
-    return float(max(1.4826 * np.median(np.abs(r - np.median(r))), 1e-3))
+def choose(models: list[Model]) -> Model:
+    """The simplest family (in `FAMILIES` order) whose log evidence is within log `BAYES_FACTOR` of the best
+    model's; of its basins, the one of higher evidence."""
+    best = max(m.log_evidence for m in models)
+    near = [m for m in models if m.log_evidence >= best - np.log(BAYES_FACTOR)]
+    return min(near, key=lambda m: (FAMILIES.index(m.name), -m.log_evidence))
 
 
-def _deflation(m: _Model, spec: FitSpec, t_ns: np.ndarray | None) -> float:
-    """(residual spread / nominal sigma)^2 x kappa of a fit (`FitSpec.deflate`), at least 1."""
-    sig = _spread(m.r)
-    kappa = noise_inflation(t_ns, m.r / sig, (m.w > 0.5).astype(float)) if t_ns is not None else 1.0
-    return max(sig / spec.sigma_range, 1.0) ** 2 * kappa
+def _group_inflation(e: np.ndarray, groups: np.ndarray, quantile: float = 0.99) -> float:
+    """Variance factor of a mean of ``e`` over what the groups share (one-way ANOVA: the between-group mean
+    square over the variance), >= 1; used only beyond the ``quantile`` of its chi2 distribution under
+    independence (white residuals keep 1)."""
+    _, inv, cnt = np.unique(groups, return_inverse=True, return_counts=True)
+    G = len(cnt)
+    v = float(np.var(e))
+    if G < 4 or v <= 0:
+        return 1.0
+    m = np.bincount(inv, e) / cnt
+    k = float(np.sum(cnt * (m - e.mean()) ** 2) / (G - 1) / v)
+    return k if k > chi2_ppf(quantile, G - 1) / (G - 1) else 1.0
 
 
-def _jackknife(pos: np.ndarray) -> np.ndarray:
-    """Block-jackknife covariance of the position from the leave-one-block-out fits: what time-correlated range
-    errors (multipath, pose error, an antenna pattern met along the path) do to the estimate."""
-    K = len(pos)
-    dp = pos - pos.mean(axis=0)
-    return (K - 1) / K * dp.T @ dp
+def direction_cells(u: np.ndarray, cells: int = 16) -> np.ndarray:
+    """A cell per line-of-sight direction (unit vectors ``u``, anchor to tag): k-means of the directions, so that
+    the cells split whatever cone of directions the motion spans (a loop around the anchor, an arc, a climb)."""
+    if len(u) < 2 * cells:
+        return np.zeros(len(u), np.int64)
+    _, lab = kmeans2(u, cells, seed=np.random.default_rng(0), minit="++")
+    return lab.astype(np.int64)
 
 
-def choose_model(scores: dict[str, np.ndarray]) -> Evidence:
-    """The simplest family (in `FAMILIES` order) whose held-out loss is within one standard error of the best
-    family's (the standard error of the per-fold differences)."""
-    total = {k: float(np.sum(v)) for k, v in scores.items()}
-    best = min(total, key=total.get)
-    se = {}
-    for k, v in scores.items():
-        diff = v - scores[best]
-        se[k] = float(np.std(diff, ddof=1) * np.sqrt(len(diff))) if len(diff) > 1 else 0.0
-    tie = 1e-6 * max(abs(total[best]), 1.0)
-    for k in FAMILIES:
-        if k in total and total[k] - total[best] <= se[k] + tie:
-            return Evidence(k, total, se)
-    return Evidence(best, total, se)
+def deflation(m: Model, xyz: np.ndarray, s2: np.ndarray, t_ns: np.ndarray | None, spec: FitSpec) -> float:
+    """How much less the ranges tell than independent ones at their nominal noise: (robust residual spread /
+    nominal sigma)^2 times the larger variance factor of block means over time and over directions of arrival
+    (multipath, a pose error and an antenna pattern make neighbouring ranges err alike), at least 1."""
+    e = m.r / np.sqrt(s2)
+    spread = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+    ec = np.clip(e / max(spread, 1e-6), -3.0, 3.0)
+    u = xyz - m.p
+    u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
+    kt = noise_inflation(t_ns, ec, block_s=spec.block_s) if t_ns is not None else 1.0
+    return max(spread, 1.0) ** 2 * max(kt, _group_inflation(ec, direction_cells(u)))
 
 
 def _linear_start(xyz: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -216,6 +225,7 @@ def _linear_start(xyz: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 def _nd(reason: str, n: int, links: np.ndarray, **kw) -> SearchResult:
     L = len(links)
+    nan = np.full((3 + L, 3 + L), np.nan)
     return SearchResult(
         "not determined",
         reason,
@@ -224,26 +234,45 @@ def _nd(reason: str, n: int, links: np.ndarray, **kw) -> SearchResult:
         links,
         np.zeros(n, bool),
         float("nan"),
-        np.full((3 + L, 3 + L), np.nan),
+        nan,
         **kw,
     )
 
 
-def _position_cov(m: _Model, spec: FitSpec, reach: float) -> np.ndarray:
-    """Covariance of (position, links' offsets): the ranges' information deflated by ``spec.deflate``, the priors,
-    and the prior that keeps the anchor within ``reach`` of the tags."""
-    n = m.info.shape[0]
-    has_beta = m.name == "gamma+beta"
-    prior = np.zeros(n)
-    prior[3 + has_beta :] = 1.0 / spec.gamma_sigma**2
-    if has_beta:
-        prior[3] = 1.0 / spec.beta_sigma**2
-    f = spec.deflate
-    A = (m.info - np.diag(prior * f)) / f + np.diag(prior)
-    A[:3, :3] += np.eye(3) / reach**2
-    cov = np.linalg.inv(A)
-    keep = [0, 1, 2] + list(range(3 + has_beta, n))
-    return cov[np.ix_(keep, keep)]
+def _psd(A: np.ndarray) -> np.ndarray:
+    lam, V = np.linalg.eigh(0.5 * (A + A.T))
+    return (V * np.maximum(lam, 0.0)) @ V.T
+
+
+def mixture_cov(models: list[Model], chosen: Model, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance of (p, offsets per link) of the chosen model, its position block widened to the evidence-weighted
+    mixture of every model (their covariances plus the spread of their positions about the chosen one); and that
+    widening alone (3x3, PSD: what the chosen model leaves out)."""
+    z = np.array([m.log_evidence for m in models])
+    wts = np.exp(z - z.max())
+    wts /= wts.sum()
+
+    def pos_cov(m: Model) -> np.ndarray:
+        A = m.info.copy()
+        A[:3, :3] += np.eye(3) / reach**2
+        return np.linalg.inv(A)
+
+    C = pos_cov(chosen)
+    mix = sum(
+        w * (pos_cov(m)[:3, :3] + np.outer(m.p - chosen.p, m.p - chosen.p))
+        for m, w in zip(models, wts, strict=True)
+    )
+    L = len(chosen.g)
+    out = np.zeros((3 + L, 3 + L))
+    excess = _psd(mix - C[:3, :3])
+    out[:3, :3] = C[:3, :3] + excess
+    k = 3 + (chosen.name == "gamma+beta")  # the offsets' rows in C
+    if chosen.name == "link":
+        out[:3, 3:], out[3:, 3:] = C[:3, k:], C[k:, k:]
+    elif chosen.name != "position":  # one offset shared by every link
+        out[:3, 3:] = C[:3, k : k + 1]
+        out[3:, 3:] = C[k, k]
+    return 0.5 * (out + out.T), excess
 
 
 def fit_anchor(
@@ -257,7 +286,7 @@ def fit_anchor(
 ) -> SearchResult:
     """The anchor ranged by tag positions ``xyz`` (N, 3) with ranges ``d`` over links ``link``: position, offsets
     (per link, in ``links`` order) and their covariance, the family the evidence chose (``costs["evidence"]``),
-    or "not determined" with the reason. ``pos_cov`` (N, 3, 3): the tag positions' covariance."""
+    or "not determined" with the reason. ``pos_cov`` (N, 3, 3): the tag positions' covariance (RI weighting)."""
     spec = spec or FitSpec()
     xyz = np.asarray(xyz, float).reshape(-1, 3)
     d = np.asarray(d, float).reshape(-1)
@@ -272,6 +301,7 @@ def fit_anchor(
         sel = sel[np.argsort(np.asarray(t_ns)[sel], kind="stable")]
     sel = sel[subsample(len(sel), spec.max_ranges)]
     x, dd = xyz[sel], d[sel]
+    t = None if t_ns is None else np.asarray(t_ns)[sel]
     c, Vt, ext = plane_frame(x)
     if ext[0] < spec.static_extent_m:
         reason = f"static: the tag moved {ext[0]:.2f} m (std) while ranging it (< {spec.static_extent_m} m)"
@@ -280,86 +310,101 @@ def fit_anchor(
     L = len(links)
     s2 = np.full(len(dd), spec.sigma_range**2)
     p0 = _linear_start(x, dd)
-    if pos_cov is not None:  # the pose's uncertainty along the line of sight, at the start
+    if pos_cov is not None:  # the pose's uncertainty along the line of sight (RI)
         u = (p0 - x) / np.maximum(np.linalg.norm(p0 - x, axis=1), 1e-9)[:, None]
         s2 = s2 + np.maximum(np.einsum("ni,nij,nj->n", u, np.asarray(pos_cov, float)[sel], u), 0.0)
     n = Vt[2]
-    mirror0 = p0 - 2.0 * n * float(n @ (p0 - c))
-    fams = [f for f in FAMILIES if f != "link" or L > 1]
-    base = min((_fit(x, dd, li, L, s2, "position", s, spec) for s in (p0, mirror0)), key=lambda m: m.cost)
-    spec = replace(spec, deflate=_deflation(base, spec, None if t_ns is None else np.asarray(t_ns)[sel]))
-    fits = {}
-    for f in fams:
-        a, b = (_fit(x, dd, li, L, s2, f, s, spec) for s in (p0, mirror0))
-        fits[f] = (a, b) if a.cost <= b.cost else (b, a)
-    if t_ns is None:
-        ev = Evidence("position")
-        best, other = fits["position"]
-        return _verdict(
-            best, other, ev, np.zeros((3, 3)), False, x, dd, sel, n_all, links, Vt, ext, spec, None
-        )
-    scores = {f: _held_out(x, dd, li, L, s2, f, fits[f][0], spec) for f in fams}
-    ev = choose_model({f: v[0] for f, v in scores.items()})
-    best, other = fits[ev.chosen]
-    held, pos = scores[ev.chosen]
-    # the other basin by the same rule: the evidence picks one only when it can
-    held_o, pos_o = _held_out(x, dd, li, L, s2, ev.chosen, other, spec)
-    basin = choose_model(
-        {"position": held, "gamma": held_o}
-    )  # the first name stands for the lower-cost basin
-    mirror = bool(
-        np.linalg.norm(other.p - best.p) > 1e-3 and np.sum(held_o) - np.sum(held) <= basin.cv_se["gamma"]
-    )
-    if basin.chosen == "gamma" and not mirror:
-        best, other, pos = other, best, pos_o
-    ev.cv_loss["other_basin"] = float(np.sum(held_o))
-    return _verdict(best, other, ev, _jackknife(pos), mirror, x, dd, sel, n_all, links, Vt, ext, spec, t_ns)
-
-
-def _verdict(best, other, ev, cov_jk, mirror, x, dd, sel, n_all, links, Vt, ext, spec, t_ns) -> SearchResult:
-    """The SearchResult of the chosen fit: weak directions from the eigen-decomposition of its covariance (the
-    information's plus the block jackknife's), the other basin when the evidence cannot tell them apart."""
-    sig = _spread(best.r)
-    kappa = spec.deflate / max(sig / spec.sigma_range, 1.0) ** 2
+    starts = (p0, p0 - 2.0 * n * float(n @ (p0 - c)))
+    base = [fit_family(x, dd, li, L, s2, "position", s, spec) for s in starts]
+    if base[1].cost < base[0].cost:
+        starts = starts[::-1]
+    spec = replace(spec, deflate=deflation(min(base, key=lambda m: m.cost), x, s2, t, spec))
     reach = float(np.max(dd)) + float(np.max(ext))
-    cov = _position_cov(best, spec, reach)
-    cov[:3, :3] += cov_jk
+    models = []
+    for name in (f for f in FAMILIES if f != "link" or L > 1):
+        for k, s in enumerate(starts):
+            m = replace(fit_family(x, dd, li, L, s2, name, s, spec), basin=k)
+            m.log_evidence = log_evidence(m, spec, reach)
+            models.append(m)
+    best = choose(models)
+    return _verdict(best, models, (x, dd, li, s2), sel, n_all, links, Vt, ext, spec, reach)
+
+
+def likelihood_widening(m: Model, data: tuple, spec: FitSpec, cov: np.ndarray, reach: float) -> np.ndarray:
+    """The position covariance widened, along each of its axes, to the likelihood's own 1-sigma interval (where the
+    deflated cost rises by 1 along the axis from the estimate, within ``reach``): the quadratic approximation
+    fails where the cost is flat far beyond its curvature (a height seen from a plane: d = sqrt(rho^2 + h^2)
+    hardly changes with h near 0)."""
+    xyz, d, li, s2 = data
+    lam, V = np.linalg.eigh(cov[:3, :3])
+    sd = np.sqrt(np.maximum(lam, 1e-12))
+    g = m.g[li] if m.name == "link" else (m.g[0] if m.n_offsets else spec.gamma_mean)
+    out = cov.copy()
+    for i in range(3):
+        steps = sd[i] * 2.0 ** np.arange(0.0, 12.0)
+        s = np.r_[-steps[steps <= reach][::-1], 0.0, steps[steps <= reach]]
+        P = m.p + s[:, None] * V[:, i]
+        r = (d - m.beta * np.linalg.norm(xyz[None] - P[:, None], axis=2) - g) / np.sqrt(s2)
+        c = np.sum(_loss(r, _losses(spec)[-1])[0], axis=1) / spec.deflate
+        within = np.abs(s[c - c[len(s) // 2] <= 1.0])
+        half = float(within.max()) if len(within) else 0.0
+        if half > sd[i]:
+            out[:3, :3] += (half**2 - sd[i] ** 2) * np.outer(V[:, i], V[:, i])
+    return out
+
+
+def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> SearchResult:
+    """The SearchResult of the chosen model: weak directions from the eigen-decomposition of its covariance
+    (widened to the likelihood's intervals), the other basin when the evidence cannot tell them apart."""
+    dd = data[1]
+    cov, excess = mixture_cov(models, best, reach)
+    wide = likelihood_widening(best, data, spec, cov, reach)
+    excess = excess + (wide - cov)[:3, :3]
+    cov = wide
     lam, V = np.linalg.eigh(cov[:3, :3])
     sd = np.sqrt(np.maximum(lam, 0.0))
-    weak = sd > spec.max_sigma
-    dcost = (other.cost - best.cost) / spec.deflate
-    planar = bool(ext[2] < 0.1 * ext[0])
+    sig = 1.4826 * float(np.median(np.abs(best.r - np.median(best.r))))
+    twin = [m for m in models if m.name == best.name and m.basin != best.basin]
+    other = twin[0] if twin else best
+    mirror = bool(
+        np.linalg.norm(other.p - best.p) > 1e-3
+        and other.log_evidence >= best.log_evidence - np.log(BAYES_FACTOR)
+    )
     inl = np.zeros(n_all, bool)
-    inl[sel] = np.abs(best.r) < 4.0 * sig
-    axes = [{"direction": np.round(V[:, i], 3).tolist(), "sigma_m": float(sd[i])} for i in range(3)]
+    inl[sel] = np.abs(best.r) < 4.0 * max(sig, 1e-3)
+    evidence = {
+        "model": best.name,
+        "log_evidence": {f"{m.name}/{m.basin}": round(m.log_evidence - best.log_evidence, 2) for m in models},
+        "deflation": round(spec.deflate, 2),
+        "axes": [{"direction": np.round(V[:, i], 3).tolist(), "sigma_m": float(sd[i])} for i in range(3)],
+    }
     kw = dict(
-        planar=planar,
+        planar=bool(ext[2] < 0.1 * ext[0]),
         n_used=len(dd),
         costs={
             "best": best.cost,
             "mirror": other.cost,
-            "kappa": kappa,
-            "evidence": ev.summary() | {"axes": axes, "mirror_delta_chi2": float(dcost)},
+            "kappa": spec.deflate,
+            "evidence": evidence,
+            "excess_cov": excess,
         },
         beta=best.beta,
         residuals=best.r.copy(),
     )
-    horiz = [i for i in np.flatnonzero(weak) if abs(V[2, i]) < VERTICAL_COS]
-    if horiz:
-        i = max(horiz, key=lambda j: sd[j])
-        v = V[:, i] * np.sign(V[np.argmax(np.abs(V[:, i])), i])
+    H = _psd(cov[:2, :2])
+    lam_h, V_h = np.linalg.eigh(H)
+    if np.sqrt(lam_h[-1]) > spec.max_sigma:
+        v = V_h[:, -1] * np.sign(V_h[np.argmax(np.abs(V_h[:, -1])), -1])
         reason = (
-            f"weak direction ({v[0]:.2f}, {v[1]:.2f}, {v[2]:.2f}): sigma {sd[i]:.2f} m > {spec.max_sigma:g} m "
-            "(the motion does not pin the anchor down along it)"
+            f"weak horizontal direction ({v[0]:.2f}, {v[1]:.2f}): sigma {np.sqrt(lam_h[-1]):.2f} m > "
+            f"{spec.max_sigma:g} m (the motion does not pin the anchor down along it)"
         )
         return _nd(reason, n_all, links, **kw)
-    height_ok = not weak.any() and not mirror
-    normal = V[:, int(np.argmax(sd))] if weak.any() else Vt[2]
+    i = int(np.argmax(sd))
+    vertical = abs(V[2, i]) >= VERTICAL_COS and sd[i] > spec.max_sigma
+    normal = V[:, i] if vertical else Vt[2]
     normal = normal * np.sign(normal[2] if abs(normal[2]) > 1e-9 else 1.0)
-    reach_h = 0.5 * float(abs(normal @ (other.p - best.p))) if mirror else 0.0
-    sigma_h = float(max(np.sqrt(max(normal @ cov[:3, :3] @ normal, 0.0)), reach_h))
-    if mirror:  # the height's sigma reaches the other basin
-        cov[:3, :3] += max(sigma_h**2 - float(normal @ cov[:3, :3] @ normal), 0.0) * np.outer(normal, normal)
+    sigma_h = float(np.sqrt(max(normal @ cov[:3, :3] @ normal, 0.0)))
     return SearchResult(
         "ok",
         "",
@@ -370,10 +415,75 @@ def _verdict(best, other, ev, cov_jk, mirror, x, dd, sel, n_all, links, Vt, ext,
         sig,
         cov,
         normal_spread=float(ext[2]),
-        height_observable=bool(height_ok),
+        height_observable=not (vertical or mirror),
         mirror=mirror,
         mirror_p=other.p.copy() if mirror else None,
         sigma_h=sigma_h,
         normal=normal,
         **kw,
     )
+
+
+def init_result(window: InitWindow, sr: SearchResult, method: str, anchor: str, spec: FitSpec) -> InitResult:
+    """The initialiser's result from an evidence fit (`fit_anchor` on ``window``): x = (p, beta, mean offset), its
+    covariance (a parameter the model left out at its prior mean with the sigma that holds it there), the links'
+    offsets relative to their mean, the chosen model and its evidence in the verdict."""
+    nan5 = np.full(5, np.nan)
+    verdict = {"status": sr.status, "reason": sr.reason, "height_observable": bool(sr.height_observable)}
+    ev = sr.costs.get("evidence")
+    if ev:
+        verdict["model"] = ev
+    if not sr.ok:
+        msg = f"{anchor}: not determined: {sr.reason}"
+        return InitResult(
+            anchor,
+            method,
+            "not determined",
+            nan5,
+            np.full((5, 5), np.nan),
+            warnings=[msg],
+            window=window,
+            verdict=verdict,
+        )
+    model = ev["model"]
+    L = len(sr.links)
+    wts = np.full(L, 1.0 / L)
+    x = np.r_[sr.p, sr.beta, float(wts @ sr.gamma)]
+    cov = np.zeros((5, 5))
+    cov[:3, :3] = sr.cov[:3, :3]
+    offsets = model != "position"
+    if offsets:
+        cov[:3, 4] = cov[4, :3] = sr.cov[:3, 3:] @ wts
+        cov[4, 4] = float(wts @ sr.cov[3:, 3:] @ wts)
+    else:
+        cov[4, 4] = FIXED_OFFSET_SIGMA**2
+    cov[3, 3] = spec.beta_sigma**2 if model == "gamma+beta" else FIXED_BETA_SIGMA**2
+    keep = np.zeros(len(window), bool)
+    keep[subsample(len(window), spec.max_ranges)] = True
+    res = InitResult(
+        anchor,
+        method,
+        "ok",
+        x,
+        cov,
+        n_used=sr.n_used,
+        noise_inflation=float(sr.costs.get("kappa", 1.0)),
+        residual_rms=float(np.sqrt(np.mean(sr.residuals**2))),
+        residual_robust_sigma=sr.scale,
+        window=window.subset(keep),
+        params=(0, 1, 2, 3, 4) if model == "gamma+beta" else (0, 1, 2, 4),
+        verdict=verdict,
+    )
+    if model == "link":
+        T = np.eye(L) - 1.0 / L
+        res.link_offsets = {int(k): float(g - x[4]) for k, g in zip(sr.links, sr.gamma, strict=True)}
+        res.link_cov = T @ sr.cov[3:, 3:] @ T
+    res.excess_cov = np.zeros((5, 5))
+    res.excess_cov[:3, :3] = sr.costs["excess_cov"]
+    gamma = (spec.gamma_mean, spec.gamma_sigma if offsets else FIXED_OFFSET_SIGMA)
+    res.model_priors = (gamma, (1.0, spec.beta_sigma if model == "gamma+beta" else FIXED_BETA_SIGMA))
+    if not sr.height_observable:
+        why = "the mirror across the motion plane fits as well" if sr.mirror else "weak vertical direction"
+        res.warnings.append(f"{anchor}: height not determined ({why}): {sr.p[2]:.2f} +- {sr.sigma_h:.2f} m")
+        res.status = "warning"
+    return res

@@ -30,7 +30,7 @@ from uwbcal.pipeline.core.state import (
     schmidt_update,
 )
 from uwbcal.pipeline.uwb.config import UwbConfig
-from uwbcal.pipeline.uwb.evidence import FitSpec, fit_anchor
+from uwbcal.pipeline.uwb.evidence import TWR_SCALE_SIGMA, FitSpec, fit_anchor, init_result
 from uwbcal.pipeline.uwb.initializer import InitResult, InitWindow, initialize_anchor
 from uwbcal.pipeline.uwb.link_bias import bias_evidence
 from uwbcal.pipeline.uwb.model import jacobians, range_model, range_variance
@@ -174,38 +174,33 @@ def initialize_anchors(
     searches: dict[Any, SearchResult] | None = None,
 ) -> dict[Any, InitResult]:
     """Run the configured initialiser on every anchor window (``auto``: see `auto_init_method`; the pipeline
-    resolves it from the recording's source, here it means ri)."""
+    resolves it from the recording's source, here it means ri). ``range_model = "evidence"``: the evidence fit is
+    the initialiser (`evidence.init_result`), with the method's weighting and loss."""
     sigma = config.sigma(calibration) * config.sigma_scale
+    method = _method(method or config.init_method)
     out = {}
     searches = searches if searches is not None else {}
     for a, w in windows.items():
         if config.pose_sigma_floor_m > 0:
             w = InitWindow(w.d, w.p_T, w.R, w.p, w.P_pose.copy(), w.t_ns, w.link)
             w.P_pose[:, 3:6, 3:6] += np.eye(3) * config.pose_sigma_floor_m**2
-        sr = None
-        if config.search:
-            sr = searches.get(a)
-            if sr is None:
-                sr = searches[a] = search_window(w, config, sigma, calibration)
-        model = _chosen_model(sr)
-        gp, bp = config.gamma_prior(calibration), config.init_beta_prior(calibration)
-        beta_sigma = config.beta_prior(calibration)[1]
-        if model is not None:  # the range model the held-out ranges chose (evidence.fit_anchor)
-            gp = config.offset_prior(calibration)
-            gp = gp if model != "position" else (gp[0], FIXED_OFFSET_SIGMA)
-            bp = config.beta_prior(calibration) if model == "gamma+beta" else None
-            beta_sigma = beta_sigma if model == "gamma+beta" else FIXED_BETA_SIGMA
+        sr = searches.get(a) if config.search or config.range_model == "evidence" else None
+        if sr is None and (config.search or config.range_model == "evidence"):
+            sr = searches[a] = search_window(w, config, sigma, calibration, method)
+        if config.range_model == "evidence":
+            out[a] = init_result(w, sr, method, str(a), evidence_spec(config, sigma, calibration, method))
+            continue
         evidence = None
-        if sr is not None and model is None:
+        if sr is not None:
             evidence = bias_evidence(sr, w.tag_xyz, w.d, w.links(), w.t_ns, w.R)
         out[a] = initialize_anchor(
             w,
-            _method(method or config.init_method),
+            method,
             anchor=str(a),
             sigma_range=sigma,
-            gamma_prior=gp,
-            beta_sigma=beta_sigma,
-            beta_prior=bp,
+            gamma_prior=config.gamma_prior(calibration),
+            beta_sigma=config.beta_prior(calibration)[1],
+            beta_prior=config.init_beta_prior(calibration),
             robust_loss=config.robust_loss,
             robust_scale=config.robust_scale,
             min_ranges=config.min_ranges,
@@ -214,53 +209,51 @@ def initialize_anchors(
             residual_factor=config.residual_factor,
             correlation_block_s=config.correlation_block_s,
             search=sr,
-            per_link=model == "link"
-            or config.bias == "per-link"
+            per_link=config.bias == "per-link"
             or (config.bias == "auto" and evidence is not None and evidence["model"] == "per-link"),
             max_ranges=config.max_init_ranges,
             z_prior=config.z_prior(a),
         )
-        if model is not None:  # the range model, its evidence and the axes, for init/metrics.json
-            out[a].verdict["model"] = sr.costs["evidence"]
-            b0 = config.beta_prior(calibration)
-            out[a].model_priors = (gp, b0 if model == "gamma+beta" else (1.0, FIXED_BETA_SIGMA))
-        elif evidence is not None and out[a].ok:  # the bias model used and the evidence
+        if evidence is not None and out[a].ok:  # the bias model used and the evidence
             out[a].verdict["bias"] = evidence | {"model": "per-link" if out[a].link_offsets else "per-anchor"}
     return out
 
 
-# the priors that hold an offset / the scale at its mean when the evidence leaves it out of an anchor's model
-FIXED_OFFSET_SIGMA = 1e-3  # [m]
-FIXED_BETA_SIGMA = 1e-5
-
-
-def _chosen_model(sr: SearchResult | None) -> str | None:
-    """The range model `evidence.fit_anchor` chose for the anchor (None: the search decided, or none ran)."""
-    if sr is None:
-        return None
-    return (sr.costs.get("evidence") or {}).get("model")
-
-
-def _evidence_fit(
-    w: InitWindow, config: UwbConfig, sigma: float, calibration: Mapping | None
-) -> SearchResult:
-    """`evidence.fit_anchor` on an init window: the robust position fit, the range model the held-out ranges
-    choose, the anchor's weak directions (or "not determined" with the reason)."""
-    spec = FitSpec(
+def evidence_spec(config: UwbConfig, sigma: float, calibration: Mapping | None, method: str) -> FitSpec:
+    """The evidence fit's priors and thresholds: the offset prior of the calibration (else the hardware's), the
+    range scale's stated prior (else a TWR clock's), the method's loss (robust for ri-robust)."""
+    stated = ((calibration or {}).get("uwb") or {}).get("beta_prior") or {}
+    return FitSpec(
         sigma_range=sigma,
         gamma_mean=config.offset_prior(calibration)[0],
         gamma_sigma=config.offset_prior(calibration)[1],
-        beta_sigma=config.beta_prior(calibration)[1],
+        beta_sigma=float(config.beta_sigma or stated.get("sigma") or TWR_SCALE_SIGMA),
         max_sigma=config.max_sigma_horizontal_m,
         min_ranges=max(config.min_ranges, 30),
         max_ranges=config.max_init_ranges,
+        robust=method == "ri-robust",
     )
-    pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
+
+
+def _evidence_fit(
+    w: InitWindow, config: UwbConfig, sigma: float, calibration: Mapping | None, method: str
+) -> SearchResult:
+    """`evidence.fit_anchor` on an init window: the robust position fit, the range model the evidence chooses,
+    the anchor's weak directions (or "not determined" with the reason); RI and RI-robust weigh each range by the
+    pose's uncertainty along its line of sight, LSI does not."""
+    spec = evidence_spec(config, sigma, calibration, method)
+    pos_cov = None
+    if method != "lsi":
+        pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
     return fit_anchor(w.tag_xyz, w.d, w.links(), t_ns=w.t_ns, pos_cov=pos_cov, spec=spec)
 
 
 def search_window(
-    w: InitWindow, config: UwbConfig, sigma: float, calibration: Mapping | None = None
+    w: InitWindow,
+    config: UwbConfig,
+    sigma: float,
+    calibration: Mapping | None = None,
+    method: str = "ri-robust",
 ) -> SearchResult:
     """`anchor_search.search_anchor` on an init window with the configured thresholds and the recording's
     gamma prior."""
@@ -273,7 +266,7 @@ def search_window(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
     if config.range_model == "evidence":
-        return _evidence_fit(w, config, sigma, calibration)
+        return _evidence_fit(w, config, sigma, calibration, method)
     pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
     kw = dict(
         t_ns=w.t_ns,
@@ -578,6 +571,8 @@ def add_anchor_to_state(
         Q = Q.copy()
         Q[2, :] = Q[:, 2] = 0.0
         Q[2, 2] = float(result.cov[2, 2])
+    if result.excess_cov is not None:  # what the chosen range model leaves out (evidence.mixture_cov)
+        Q = Q + result.excess_cov
     state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
 
 

@@ -10,9 +10,15 @@ from uwbcal.pipeline.core.names import INIT_METHODS
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.context import StageContext, StageResult
 from uwbcal.pipeline.run.windows import Windows
+from uwbcal.pipeline.uwb.clock import NO_OFFSET, ClockOffset, estimate_clock
 from uwbcal.pipeline.uwb.planar_levers import planar_windows, refit_searches
 from uwbcal.pipeline.uwb.schedule import join_time
-from uwbcal.pipeline.uwb.updater import initialize_anchors, search_window, windows_from_trajectory
+from uwbcal.pipeline.uwb.updater import (
+    evidence_spec,
+    initialize_anchors,
+    search_window,
+    windows_from_trajectory,
+)
 from uwbcal.pipeline.viz import runlog as rl
 from uwbcal.pipeline.viz.runlog import RunLog
 
@@ -22,42 +28,84 @@ def run(ctx: StageContext) -> StageResult:
     win = ctx.windows()
     vio = ctx.dir.load_npz("vio.npz", "init")
     cal = ctx.reader.calibration
-    rng = ctx.reader.read_ranges(start_ns=win.start_ns, end_ns=win.init_end_ns)
-    if len(rng) == 0:
+    cfg = ctx.config.uwb
+    per_anchor = ctx.config.run.schedule == "per-anchor"
+    end = win.end_ns + 1 if per_anchor else win.init_end_ns  # the late anchors' windows run up to their join
+    rng = vars(ctx.reader.read_ranges(start_ns=win.start_ns, end_ns=end))
+    if not np.any(np.asarray(rng["t_ns"]) < win.init_end_ns):
         raise InputError(
             f"{ctx.recording}: no UWB ranges in the initialisation window "
             f"({win.start_ns * 1e-9:.1f}-{win.init_end_ns * 1e-9:.1f} s)"
         )
-    per_anchor = ctx.config.run.schedule == "per-anchor"
-    if per_anchor:  # the late anchors' windows run up to their join time
-        rng = ctx.reader.read_ranges(start_ns=win.start_ns, end_ns=win.end_ns + 1)
-    end = win.end_ns + 1 if per_anchor else win.init_end_ns
-    windows = windows_from_trajectory(vio, vars(rng), cal, win.start_ns, end)
+    clock = _range_clock(ctx, vio, rng, win.start_ns, end)
+    if clock.used:
+        rng = {**rng, "t_ns": np.asarray(rng["t_ns"]) + round(clock.offset_s * 1e9)}
+    windows = windows_from_trajectory(vio, rng, cal, win.start_ns, end)
     windows, levers = _lever_arms(ctx, windows)
-    windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor, levers is not None)
-    if levers is not None and searches:
-        sigma = ctx.config.uwb.sigma(cal) * ctx.config.uwb.sigma_scale
-        searches = refit_searches(levers, windows, searches, sigma)
+    whole = levers is not None or (cfg.range_model == "evidence" and ctx.bounded_poses())
+    windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor, whole)
+    if levers is not None and searches and cfg.range_model != "evidence":
+        searches = refit_searches(levers, windows, searches, cfg.sigma(cal) * cfg.sigma_scale)
+    methods = (cfg.init_method,) if cfg.range_model == "evidence" else INIT_METHODS
     results = {
-        m: initialize_anchors(windows, ctx.config.uwb, cal, method=m, searches=searches) for m in INIT_METHODS
+        m: initialize_anchors(windows, cfg, cal, method=m, searches=_for(searches, m, cfg)) for m in methods
     }
     for res in results.values():
         for a, r in res.items():
             j = joins.get(a)
             r.join_ns = j if (j is not None and j > win.init_end_ns) else None
     ctx.dir.save_pickle("init.pkl", results)
-    chosen = ctx.config.uwb.init_method
+    chosen = cfg.init_method
     summary = {m: {str(a): rd.init_summary(r) for a, r in res.items()} for m, res in results.items()}
     info = {"chosen": chosen, "window": win.as_dict(), "methods": summary}
     if levers is not None:
         info["lever_arms"] = levers.summary()
+    if clock.anchors:
+        info["range_clock"] = clock.summary()
     ctx.dir.save_json("init.json", info)
+    return _report(ctx, results, chosen, win, levers, clock)
+
+
+def _for(searches: dict | None, method: str, cfg) -> dict | None:
+    """The schedule's fits serve the method they were made for (the evidence fit weighs per method)."""
+    return searches if cfg.range_model != "evidence" or method == cfg.init_method else None
+
+
+def _range_clock(ctx: StageContext, vio, rng: dict, start_ns: int, end_ns: int) -> ClockOffset:
+    """The range-to-pose clock offset (`clock.estimate_clock`) on the evidence path, else none; the reader of the
+    later stages re-stamps the ranges by it when it is used."""
+    cfg = ctx.config.uwb
+    ctx.reader.range_shift_ns = 0
+    if cfg.range_model != "evidence" or cfg.clock_scan_s <= 0:
+        return NO_OFFSET
+    cal = ctx.reader.calibration
+    margin = round(cfg.clock_scan_s * 1e9)
+    t = np.asarray(rng["t_ns"])
+    t0, t1 = int(vio["t_ns"][0]) + margin, int(vio["t_ns"][-1]) - margin
+    keep = (t >= t0) & (t <= t1)  # the same ranges at every offset
+    sub = {k: np.asarray(v)[keep] for k, v in rng.items()}
+
+    def windows_at(tau: float) -> dict:
+        shifted = {**sub, "t_ns": sub["t_ns"] + round(tau * 1e9)}
+        return windows_from_trajectory(vio, shifted, cal, None, None)
+
+    sigma = cfg.sigma(cal) * cfg.sigma_scale
+    spec = evidence_spec(cfg, sigma, cal, cfg.init_method)
+    clock = estimate_clock(windows_at, spec, max_s=cfg.clock_scan_s)
+    ctx.reader.range_shift_ns = round(clock.applied_s * 1e9)
+    return clock
+
+
+def _report(ctx: StageContext, results: dict, chosen: str, win: Windows, levers, clock) -> StageResult:
+    """anchors.csv's init rows, the warnings, the run log and the stage's one-line summary."""
     rows = [rd.anchor_row(a, m, "init", r.x) for m, res in results.items() for a, r in res.items() if r.ok]
     rows += [rd.undetermined_row(a, chosen, "init") for a, r in results[chosen].items() if not r.ok]
     rd.write_anchors(ctx.dir, rows, replace_stage="init")
     warns = [f"init {chosen} anchor {a}: {w}" for a, r in results[chosen].items() for w in r.warnings]
     if levers is not None:
         warns.insert(0, f"init: {levers.message()}")
+    if clock.used:
+        warns.insert(0, f"init: {clock.message()}")
     warns += [
         f"init {chosen} anchor {a}: {r.status}"
         for a, r in results[chosen].items()
@@ -70,15 +118,16 @@ def run(ctx: StageContext) -> StageResult:
         _log_initialisers(log, results, chosen, win)
         for w in warns:
             log.text(w, "WARN", win.init_end_ns)
-    ok = sum(r.ok for r in results[chosen].values())
-    errs = ctx.anchor_errors({a: r.x for a, r in results[chosen].items() if r.ok})
     res = results[chosen]
+    ok = sum(r.ok for r in res.values())
+    errs = ctx.anchor_errors({a: r.x for a, r in res.items() if r.ok})
     late = sum(r.join_ns is not None for r in res.values() if r.ok)
     weak = sum(not r.verdict.get("height_observable", True) for r in res.values() if r.ok)
     nd = [str(a) for a, r in res.items() if not r.ok]
     extra = f" ({late} joining later)" if late else ""
     extra += f"; height unobservable for {weak}" if weak else ""
     extra += f"; not determined: {', '.join(nd)}" if nd else ""
+    extra += f"; range clock {clock.offset_s:+.3f} s" if clock.used else ""
     sched = ctx.config.run.schedule
     return StageResult("init", f"{chosen} [{sched}]: {ok}/{len(res)} anchors initialised{extra}{errs}", warns)
 
@@ -125,12 +174,14 @@ def _lever_arms(ctx: StageContext, windows: dict):
 def _schedule(ctx: StageContext, windows: dict, init_end_ns: int, per_anchor: bool, whole: bool = False):
     """Per anchor: the window its initialisation uses, its search result and its join time
     (`schedule.join_time`); without the search (the paper's multi-start) the first window for every anchor.
-    ``whole`` (per-anchor schedule with estimated planar lever arms): every anchor from all its ranges, at the
-    end; the arms come from every anchor's ranges over the whole recording, so an anchor initialised from a
-    prefix would already lean on the later ranges and its refinement would count them twice."""
+    ``whole`` (per-anchor schedule with estimated planar lever arms, or poses of bounded error on the evidence
+    path): every anchor from all its ranges, at the end. The arms come from every anchor's ranges over the whole
+    recording, so an anchor initialised from a prefix would already lean on the later ranges and its refinement
+    would count them twice; poses that do not drift leave the filter nothing to add to one robust fit over all
+    the ranges, which relinearises where the filter's first-estimate Jacobians cannot."""
 
     cfg = ctx.config.uwb
-    if not cfg.search:
+    if not cfg.search and cfg.range_model != "evidence":
         return {a: w.subset(w.t_ns < init_end_ns) for a, w in windows.items()}, None, {}
     sigma = cfg.sigma(ctx.reader.calibration) * cfg.sigma_scale
     out_w, searches, joins = {}, {}, {}
@@ -141,7 +192,7 @@ def _schedule(ctx: StageContext, windows: dict, init_end_ns: int, per_anchor: bo
         j = join_time(
             w,
             end,
-            lambda sub: search_window(sub, cfg, sigma, ctx.reader.calibration),
+            lambda sub: search_window(sub, cfg, sigma, ctx.reader.calibration, cfg.init_method),
             per_anchor=per_anchor and not whole,
             min_ranges=max(cfg.min_ranges, 30),
             join_sigma=cfg.join_sigma_m if per_anchor else None,

@@ -13,6 +13,7 @@ from uwbcal.pipeline.viz import observers
 
 
 def run(ctx: StageContext) -> StageResult:
+    ctx.apply_range_clock()
 
     win = ctx.windows()
     if win.refine_end_ns >= win.end_ns:

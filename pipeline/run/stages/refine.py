@@ -28,6 +28,7 @@ def _range_updates(per_anchor: dict) -> dict[str, np.ndarray]:
 
 
 def run(ctx: StageContext) -> StageResult:
+    ctx.apply_range_clock()
 
     win = ctx.windows()
     est = ctx.dir.load_pickle("checkpoint_init.pkl", "refine")
