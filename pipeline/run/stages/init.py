@@ -44,7 +44,7 @@ def run(ctx: StageContext) -> StageResult:
     windows, levers = _lever_arms(ctx, windows)
     whole = levers is not None or (cfg.range_model == "evidence" and ctx.bounded_poses())
     windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor, whole)
-    if levers is not None and searches and cfg.range_model != "evidence":
+    if levers is not None and searches:
         searches = refit_searches(levers, windows, searches, cfg.sigma(cal) * cfg.sigma_scale)
     methods = (cfg.init_method,) if cfg.range_model == "evidence" else INIT_METHODS
     results = {
