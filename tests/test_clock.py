@@ -27,7 +27,9 @@ def _windows(latency_s: float, seed: int = 0):
         n = len(t)
         ident = np.broadcast_to(np.eye(3), (n, 3, 3))
         return {
-            a: InitWindow(d[a], np.zeros(3), ident, xyz, np.zeros((6, 6)), ((stamps + tau) * 1e9).astype(np.int64))
+            a: InitWindow(
+                d[a], np.zeros(3), ident, xyz, np.zeros((6, 6)), ((stamps + tau) * 1e9).astype(np.int64)
+            )
             for a in ANCHORS
         }
 
