@@ -318,15 +318,23 @@ def fit_anchor(
     base = [fit_family(x, dd, li, L, s2, "position", s, spec) for s in starts]
     if base[1].cost < base[0].cost:
         starts = starts[::-1]
-    spec = replace(spec, deflate=deflation(min(base, key=lambda m: m.cost), x, s2, t, spec))
     reach = float(np.max(dd)) + float(np.max(ext))
-    models = []
-    for name in (f for f in FAMILIES if f != "link" or L > 1):
-        for k, s in enumerate(starts):
-            m = replace(fit_family(x, dd, li, L, s2, name, s, spec), basin=k)
-            m.log_evidence = log_evidence(m, spec, reach)
-            models.append(m)
-    best = choose(models)
+    families = [f for f in FAMILIES if f != "link" or L > 1]
+    best = min(base, key=lambda m: m.cost)
+    for _ in range(2):  # the deflation is what the chosen model leaves unexplained: measured on its residuals
+        d_new = deflation(best, x, s2, t, spec)
+        if best.name != "position" and abs(np.log(d_new / spec.deflate)) < 0.1:
+            break
+        spec = replace(spec, deflate=d_new)
+        models = []
+        for name in families:
+            for k, s in enumerate(starts):
+                m = replace(fit_family(x, dd, li, L, s2, name, s, spec), basin=k)
+                m.log_evidence = log_evidence(m, spec, reach)
+                models.append(m)
+        best = choose(models)
+        if best.name == "position":
+            break
     return _verdict(best, models, (x, dd, li, s2), sel, n_all, links, Vt, ext, spec, reach)
 
 
