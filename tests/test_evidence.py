@@ -52,6 +52,19 @@ def test_offset_enters_only_when_the_ranges_have_one(seed):
         assert _nees(r, p) < CHI2_3_999
 
 
+
+def test_stated_offset_holds_in_the_base_family():
+    """A stated offset prior (mean 0.75 m, sigma 0.01 m, as NTU-VIRAL's converter states it) holds the base
+    family's offset at its mean: far from a small loop the offset trades against the radial distance, and a base
+    fit at offset 0 would sit 0.75 m off radially (and, evaluated at the stated mean, widen to metres)."""
+    t, xyz, rng = _track()
+    p = np.array([-3.0, -30.0, 1.4])
+    d = np.linalg.norm(xyz - p, axis=1) + 0.75 + rng.normal(0, 0.1, len(t))
+    r = fit_anchor(xyz, d, t_ns=t * 1e9, spec=FitSpec(sigma_range=0.1, gamma_mean=0.75, gamma_sigma=0.01))
+    assert r.ok and r.costs["evidence"]["model"] == "position"
+    assert np.hypot(*(r.p - p)[:2]) < 0.1 and r.sigma_horizontal < 0.5
+    assert _nees(r, p) < CHI2_3_999
+
 def test_deflation_measures_correlated_errors():
     """White range errors at the nominal sigma tell what they say (deflation 1); errors that drift slowly along
     the path (multipath, pose error) tell far less, and the fit's covariance says so."""

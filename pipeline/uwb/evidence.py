@@ -1,7 +1,7 @@
 """One anchor from its ranges: a robust position fit, and every optional parameter by one evidence rule.
 
 Model: d_k = beta ||x_k - p|| + gamma_l(k) + n_k, with x_k the tag position and l(k) the range's link. The base
-family is the position alone (beta = 1, no offset), fitted by a soft-L1 robust Gauss-Newton from the linear
+family is the position alone (beta = 1, the offset held at its prior mean, as `init_result` reports it), fitted by a soft-L1 robust Gauss-Newton from the linear
 least-squares multilateration and from its mirror across the motion plane. The optional families
 
 - ``gamma``: one range offset per anchor, prior N(gamma_mean, gamma_sigma^2) (what UWB hardware has: decimetres),
@@ -123,7 +123,7 @@ def fit_family(
         diff = th[:3] - xyz
         rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
         b = th[3] if scale else 1.0
-        r = d - b * rho - (th[3 + scale :][gi] if ng else 0.0)
+        r = d - b * rho - (th[3 + scale :][gi] if ng else spec.gamma_mean)  # no offset family: held at its mean
         loss, w = _loss(r / sd, kind)
         J = [b * diff / rho[:, None]] + ([rho[:, None]] if scale else [])
         if ng:
@@ -309,7 +309,7 @@ def fit_anchor(
     li = np.searchsorted(links, link[sel])
     L = len(links)
     s2 = np.full(len(dd), spec.sigma_range**2)
-    p0 = _linear_start(x, dd)
+    p0 = _linear_start(x, dd - spec.gamma_mean)
     if pos_cov is not None:  # the pose's uncertainty along the line of sight (RI)
         u = (p0 - x) / np.maximum(np.linalg.norm(p0 - x, axis=1), 1e-9)[:, None]
         s2 = s2 + np.maximum(np.einsum("ni,nij,nj->n", u, np.asarray(pos_cov, float)[sel], u), 0.0)
