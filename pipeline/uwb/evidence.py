@@ -123,7 +123,9 @@ def fit_family(
         diff = th[:3] - xyz
         rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
         b = th[3] if scale else 1.0
-        r = d - b * rho - (th[3 + scale :][gi] if ng else spec.gamma_mean)  # no offset family: held at its mean
+        r = (
+            d - b * rho - (th[3 + scale :][gi] if ng else spec.gamma_mean)
+        )  # no offset family: held at its mean
         loss, w = _loss(r / sd, kind)
         J = [b * diff / rho[:, None]] + ([rho[:, None]] if scale else [])
         if ng:

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR
 from uwbcal.pipeline.uwb.initializer import InitWindow
 from uwbcal.pipeline.uwb.search import noise_inflation, plane_frame, subsample
 
@@ -381,10 +382,12 @@ def estimate_planar_levers(
     except np.linalg.LinAlgError:
         lam_sigma = np.full((K, 2), np.inf)
     whit = 1.0 / max(sig, 1e-6) ** 2
+    dchi2 = float((fixed["cost"] - best["cost"]) * whit / kappa)
     info = {
         "residual_sigma_m": round(sig, 4),
         "residual_sigma_given_m": round(_robust_sigma(fixed["r"]), 4),
-        "delta_chi2": round(float((fixed["cost"] - best["cost"]) * whit / kappa), 1),
+        "delta_chi2": round(dchi2, 1),
+        "log_bayes_factor": round(_log_bayes(best, dchi2, whit / kappa, lam_given, prior_sigma_m), 1),
         "noise_inflation": round(float(kappa), 2),
         "n_ranges": int(len(data.d)),
         "anchors": [str(a) for a in keep_a],
@@ -398,6 +401,20 @@ def estimate_planar_levers(
         for i, a in enumerate(keep_a)
     }
     return PlanarLevers(head, sense, e1, e2, links, best["lam"], height, lam_given, lam_sigma, info, joint)
+
+
+def _log_bayes(fit: dict, dchi2: float, whit: float, lam_given: np.ndarray, prior_sigma: float) -> float:
+    """Log evidence of the estimated arms over the given ones (Laplace; prior N(given, ``prior_sigma``^2) per
+    in-plane coordinate): half the deflated chi2 drop, less the prior's penalty and the Occam factor of the arms'
+    information (the anchors' and offsets' marginalised)."""
+    nb, I = fit["nb"], fit["info"] * whit
+    try:
+        S = I[nb:, nb:] - I[nb:, :nb] @ np.linalg.solve(I[:nb, :nb], I[:nb, nb:])
+    except np.linalg.LinAlgError:
+        return float("-inf")
+    occam = np.linalg.slogdet(np.eye(len(S)) + prior_sigma**2 * S)[1]
+    penalty = float(np.sum((fit["lam"] - lam_given) ** 2)) / prior_sigma**2
+    return 0.5 * dchi2 - 0.5 * penalty - 0.5 * float(occam)
 
 
 def _robust_sigma(r: np.ndarray) -> float:
@@ -461,7 +478,9 @@ def planar_windows(
         t_ns=t,
         sigma_range=sigma_range,
     )
-    if pl is None:
+    if pl is None or pl.info["log_bayes_factor"] <= np.log(
+        BAYES_FACTOR
+    ):  # the arms enter by the evidence rule
         return windows, None
     out = {
         a: InitWindow(w.d, pl.body_arms(w.R, w.links()), w.R, w.p, w.P_pose, w.t_ns, w.link) if len(w) else w
