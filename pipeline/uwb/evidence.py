@@ -36,6 +36,8 @@ from uwbcal.pipeline.uwb.search import SearchResult, noise_inflation, plane_fram
 
 FAMILIES = ("position", "gamma", "gamma+beta", "link")
 BAYES_FACTOR = 3.0  # Jeffreys' "substantial" evidence: a richer model must beat a simpler one by this factor
+JACKKNIFE_BLOCKS = 10
+PIN_PRECISION = 1e8  # [1/m^2] a profile's pinned coordinate
 CAUCHY_SCALE = 2.0  # [range sigmas] of the robust fit's redescending loss
 VERTICAL_COS = 0.9  # a weak direction this close to vertical is a height the geometry leaves open
 TWR_SCALE_SIGMA = 1e-3  # range scale of two-way ranging: the clocks' error, parts per million (unless stated)
@@ -110,11 +112,26 @@ def _prior(name: str, L: int, spec: FitSpec) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_family(
-    xyz: np.ndarray, d: np.ndarray, li: np.ndarray, L: int, s2: np.ndarray, name: str, p0, spec: FitSpec
+    xyz: np.ndarray,
+    d: np.ndarray,
+    li: np.ndarray,
+    L: int,
+    s2: np.ndarray,
+    name: str,
+    p0,
+    spec: FitSpec,
+    pin: tuple[np.ndarray, float] | None = None,
 ) -> Model:
     """Levenberg-damped IRLS of one family from ``p0`` (priors as residuals, data deflated by ``spec.deflate``)
-    through the losses of `_losses`; ``s2`` (N,) the ranges' variances, ``li`` their link index."""
+    through the losses of `_losses`; ``s2`` (N,) the ranges' variances, ``li`` their link index. ``pin`` (v, c):
+    the position's component along the unit vector v held at c (a profile of the cost along v)."""
     mu, prec = _prior(name, L, spec)
+    Lam = np.diag(prec)
+    if pin is not None:
+        v, c = np.asarray(pin[0], float), float(pin[1])
+        Lam[:3, :3] += PIN_PRECISION * np.outer(v, v)
+        mu = mu.copy()
+        mu[:3] = c * v
     scale, per_link, ng = name == "gamma+beta", name == "link", len(mu) - 3 - (name == "gamma+beta")
     gi = li if per_link else np.zeros(len(d), np.int64)
     sd, f = np.sqrt(s2), 1.0 / spec.deflate
@@ -130,26 +147,28 @@ def fit_family(
         J = [b * diff / rho[:, None]] + ([rho[:, None]] if scale else [])
         if ng:
             J.append(np.eye(ng)[gi])
-        cost = f * float(np.sum(loss)) + float(np.sum(prec * (th - mu) ** 2))
+        dt = th - mu
+        cost = f * float(np.sum(loss)) + float(dt @ Lam @ dt)
         return cost, np.hstack(J) / sd[:, None], r, w
 
     theta = np.r_[np.asarray(p0, float), mu[3:]]
     for kind in _losses(spec):
-        theta, (cost, J, r, w) = _irls(lambda th, k=kind: evaluate(th, k), theta, mu, prec, f, sd)
+        theta, (cost, J, r, w) = _irls(lambda th, k=kind: evaluate(th, k), theta, mu, Lam, f, sd)
     info = (J * (f * w)[:, None]).T @ J + np.diag(prec)
     g = theta[3 + scale :] if ng else np.zeros(0)
     g_links = g.copy() if per_link else np.full(L, g[0] if ng else spec.gamma_mean)
     return Model(name, 0, theta[:3].copy(), float(theta[3]) if scale else 1.0, g_links, cost, info, r, w)
 
 
-def _irls(evaluate, theta, mu, prec, f, sd, max_iter: int = 60):
-    """Levenberg-damped IRLS of ``evaluate(theta) -> (cost, J, r, w)`` from ``theta``."""
+def _irls(evaluate, theta, mu, Lam, f, sd, max_iter: int = 60):
+    """Levenberg-damped IRLS of ``evaluate(theta) -> (cost, J, r, w)`` from ``theta``; prior (mu, precision
+    matrix Lam)."""
     res = evaluate(theta)
     lam = 1e-3
     for _ in range(max_iter):
         cost, J, r, w = res
-        A = (J * (f * w)[:, None]).T @ J + np.diag(prec)
-        grad = (J * (f * w)[:, None]).T @ (r / sd) - prec * (theta - mu)
+        A = (J * (f * w)[:, None]).T @ J + Lam
+        grad = (J * (f * w)[:, None]).T @ (r / sd) - Lam @ (theta - mu)
         step = np.zeros_like(theta)
         while lam < 1e10:
             step = np.linalg.solve(A + lam * np.diag(np.maximum(np.diag(A), 1e-9)), grad)
@@ -337,30 +356,56 @@ def fit_anchor(
         best = choose(models)
         if best.name == "position":
             break
-    return _verdict(best, models, (x, dd, li, s2), sel, n_all, links, Vt, ext, spec, reach)
+    return _verdict(best, models, (x, dd, li, s2, t), sel, n_all, links, Vt, ext, spec, reach)
 
 
 def likelihood_widening(m: Model, data: tuple, spec: FitSpec, cov: np.ndarray, reach: float) -> np.ndarray:
-    """The position covariance widened, along each of its axes, to the likelihood's own 1-sigma interval (where the
-    deflated cost rises by 1 along the axis from the estimate, within ``reach``): the quadratic approximation
-    fails where the cost is flat far beyond its curvature (a height seen from a plane: d = sqrt(rho^2 + h^2)
-    hardly changes with h near 0)."""
+    """The position covariance widened, along each of its axes, to the likelihood's own 1-sigma interval: the
+    profile of the deflated cost along the axis (the position pinned there, everything else refitted) rises by 1
+    within it (searched in doubling steps up to ``reach``). The quadratic approximation fails where the cost is
+    flat far beyond its curvature, along a curved valley (a height seen from a plane: d = sqrt(rho^2 + h^2) trades
+    h against rho)."""
     xyz, d, li, s2 = data
     lam, V = np.linalg.eigh(cov[:3, :3])
     sd = np.sqrt(np.maximum(lam, 1e-12))
-    g = m.g[li] if m.name == "link" else (m.g[0] if m.n_offsets else spec.gamma_mean)
     out = cov.copy()
     for i in range(3):
-        steps = sd[i] * 2.0 ** np.arange(0.0, 12.0)
-        s = np.r_[-steps[steps <= reach][::-1], 0.0, steps[steps <= reach]]
-        P = m.p + s[:, None] * V[:, i]
-        r = (d - m.beta * np.linalg.norm(xyz[None] - P[:, None], axis=2) - g) / np.sqrt(s2)
-        c = np.sum(_loss(r, _losses(spec)[-1])[0], axis=1) / spec.deflate
-        within = np.abs(s[c - c[len(s) // 2] <= 1.0])
-        half = float(within.max()) if len(within) else 0.0
+        v = V[:, i]
+        c0 = float(v @ m.p)
+        half = 0.0
+        for sign in (1.0, -1.0):
+            for step in sd[i] * 2.0 ** np.arange(0.0, 12.0):
+                if step > reach:
+                    break
+                p0 = m.p + sign * step * v
+                prof = fit_family(xyz, d, li, len(m.g), s2, m.name, p0, spec, pin=(v, c0 + sign * step))
+                if prof.cost - m.cost > 1.0:
+                    break
+                half = max(half, step)
         if half > sd[i]:
-            out[:3, :3] += (half**2 - sd[i] ** 2) * np.outer(V[:, i], V[:, i])
+            out[:3, :3] += (half**2 - sd[i] ** 2) * np.outer(v, v)
     return out
+
+
+def jackknife_cov(m: Model, data: tuple, spec: FitSpec, blocks: int = JACKKNIFE_BLOCKS) -> np.ndarray:
+    """Block-jackknife covariance of the position: the chosen family refitted without each of ``blocks``
+    contiguous stretches of time, (K - 1) / K times the scatter of those fits. What errors shared by neighbouring
+    ranges do to the estimate (a pose error, multipath, an antenna pattern met along one part of the path), and
+    how much it leans on one stretch (the one pass near the anchor that sets its height); zero without stamps."""
+    xyz, d, li, s2, t = data
+    if t is None or len(d) < 3 * blocks:
+        return np.zeros((3, 3))
+    fold = np.minimum(np.argsort(np.argsort(t, kind="stable")) * blocks // len(d), blocks - 1)
+    pos = np.array(
+        [
+            fit_family(
+                xyz[fold != k], d[fold != k], li[fold != k], len(m.g), s2[fold != k], m.name, m.p, spec
+            ).p
+            for k in range(blocks)
+        ]
+    )
+    dp = pos - pos.mean(axis=0)
+    return (blocks - 1) / blocks * dp.T @ dp
 
 
 def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> SearchResult:
@@ -368,7 +413,8 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> Sea
     (widened to the likelihood's intervals), the other basin when the evidence cannot tell them apart."""
     dd = data[1]
     cov, excess = mixture_cov(models, best, reach)
-    wide = likelihood_widening(best, data, spec, cov, reach)
+    wide = likelihood_widening(best, data[:4], spec, cov, reach)
+    wide[:3, :3] += _psd(jackknife_cov(best, data, spec) - wide[:3, :3])
     excess = excess + (wide - cov)[:3, :3]
     cov = wide
     lam, V = np.linalg.eigh(cov[:3, :3])
