@@ -66,8 +66,8 @@ def _check(truth, counts, rows, states, metrics, min_ranges=200):
         eh.append(float(np.hypot(e[0], e[1])))
         verdict = metrics["anchors"][a].get("verdict", {})
         sz = float(np.sqrt(np.asarray(states[a]["P"])[2][2]))
-        if not verdict.get("height_observable", True):
-            assert abs(e[2]) <= 2 * sz, (a, e[2], sz)
+        if not verdict.get("height_observable", True):  # an open height: its sigma covers it (99.7 %)
+            assert abs(e[2]) <= 3 * sz, (a, e[2], sz)
         out[a] = (round(eh[-1], 3), round(float(e[2]), 3), round(sz, 3))
         if np.linalg.norm(e) > 0.3:  # far off only where it says it is uncertain
             nees = float(e @ np.linalg.solve(np.asarray(states[a]["P"])[:3, :3], e))

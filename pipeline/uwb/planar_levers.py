@@ -114,6 +114,15 @@ class PlanarLevers:
         R = np.asarray(R, float).reshape(-1, 3, 3)
         return np.einsum("nji,nj->ni", R, self.world_offsets(R, link))
 
+    def apply(self, windows: dict) -> dict:
+        """The init windows with each range's body-frame arm from the estimated in-plane arms."""
+        return {
+            a: InitWindow(w.d, self.body_arms(w.R, w.links()), w.R, w.p, w.P_pose, w.t_ns, w.link)
+            if len(w)
+            else w
+            for a, w in windows.items()
+        }
+
     def summary(self) -> dict:
         """For init.json and the run summary: per link the estimated and given in-plane arms, the shift."""
         out = {
@@ -482,11 +491,7 @@ def planar_windows(
         BAYES_FACTOR
     ):  # the arms enter by the evidence rule
         return windows, None
-    out = {
-        a: InitWindow(w.d, pl.body_arms(w.R, w.links()), w.R, w.p, w.P_pose, w.t_ns, w.link) if len(w) else w
-        for a, w in windows.items()
-    }
-    return out, pl
+    return pl.apply(windows), pl
 
 
 def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_range: float) -> dict:

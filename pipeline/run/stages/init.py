@@ -11,6 +11,7 @@ from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.context import StageContext, StageResult
 from uwbcal.pipeline.run.windows import Windows
 from uwbcal.pipeline.uwb.clock import NO_OFFSET, ClockOffset, estimate_clock
+from uwbcal.pipeline.uwb.initializer import InitWindow
 from uwbcal.pipeline.uwb.planar_levers import planar_windows, refit_searches
 from uwbcal.pipeline.uwb.schedule import join_time
 from uwbcal.pipeline.uwb.updater import (
@@ -37,15 +38,18 @@ def run(ctx: StageContext) -> StageResult:
             f"{ctx.recording}: no UWB ranges in the initialisation window "
             f"({win.start_ns * 1e-9:.1f}-{win.init_end_ns * 1e-9:.1f} s)"
         )
-    clock = _range_clock(ctx, vio, rng, win.start_ns, end)
-    if clock.used:
+    windows, levers = _lever_arms(ctx, windows_from_trajectory(vio, rng, cal, win.start_ns, end))
+    clock = _range_clock(ctx, vio, rng, win.start_ns, end, levers)
+    if clock.used:  # the ranges re-stamped, the arms as estimated
         rng = {**rng, "t_ns": np.asarray(rng["t_ns"]) + round(clock.offset_s * 1e9)}
-    windows = windows_from_trajectory(vio, rng, cal, win.start_ns, end)
-    windows, levers = _lever_arms(ctx, windows)
+        windows = windows_from_trajectory(vio, rng, cal, win.start_ns, end)
+        windows = levers.apply(windows) if levers is not None else windows
     whole = levers is not None or (cfg.range_model == "evidence" and ctx.bounded_poses())
     windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor, whole)
     if levers is not None and searches:
         searches = refit_searches(levers, windows, searches, cfg.sigma(cal) * cfg.sigma_scale)
+        if cfg.range_model == "evidence":  # the lever model's link offsets correct the ranges; then the rule
+            windows, searches = _link_corrected(windows, searches), None
     methods = (cfg.init_method,) if cfg.range_model == "evidence" else INIT_METHODS
     results = {
         m: initialize_anchors(windows, cfg, cal, method=m, searches=_for(searches, m, cfg)) for m in methods
@@ -66,14 +70,25 @@ def run(ctx: StageContext) -> StageResult:
     return _report(ctx, results, chosen, win, levers, clock)
 
 
+def _link_corrected(windows: dict, searches: dict) -> dict:
+    """Each anchor's ranges less its links' offsets as the joint lever-arm fit estimated them."""
+    out = {}
+    for a, w in windows.items():
+        sr = searches.get(a)
+        corr = sr.gamma_of(w.links()) if sr is not None and sr.ok else np.zeros(len(w))
+        out[a] = InitWindow(w.d - corr, w.p_T, w.R, w.p, w.P_pose, w.t_ns, w.link)
+    return out
+
+
 def _for(searches: dict | None, method: str, cfg) -> dict | None:
     """The schedule's fits serve the method they were made for (the evidence fit weighs per method)."""
     return searches if cfg.range_model != "evidence" or method == cfg.init_method else None
 
 
-def _range_clock(ctx: StageContext, vio, rng: dict, start_ns: int, end_ns: int) -> ClockOffset:
-    """The range-to-pose clock offset (`clock.estimate_clock`) on the evidence path, else none; the reader of the
-    later stages re-stamps the ranges by it when it is used."""
+def _range_clock(ctx: StageContext, vio, rng: dict, start_ns: int, end_ns: int, levers) -> ClockOffset:
+    """The range-to-pose clock offset (`clock.estimate_clock`) on the evidence path, else none, on the ranges
+    with the estimated lever arms (an arm error turning with the carrier would pass for a clock); the reader of
+    the later stages re-stamps the ranges by it when it is used."""
     cfg = ctx.config.uwb
     ctx.reader.range_shift_ns = 0
     if cfg.range_model != "evidence" or cfg.clock_scan_s <= 0:
@@ -87,7 +102,8 @@ def _range_clock(ctx: StageContext, vio, rng: dict, start_ns: int, end_ns: int) 
 
     def windows_at(tau: float) -> dict:
         shifted = {**sub, "t_ns": sub["t_ns"] + round(tau * 1e9)}
-        return windows_from_trajectory(vio, shifted, cal, None, None)
+        ws = windows_from_trajectory(vio, shifted, cal, None, None)
+        return levers.apply(ws) if levers is not None else ws
 
     sigma = cfg.sigma(cal) * cfg.sigma_scale
     spec = evidence_spec(cfg, sigma, cal, cfg.init_method)
