@@ -396,6 +396,19 @@ def likelihood_widening(m: Model, data: tuple, spec: FitSpec, cov: np.ndarray, r
     return out
 
 
+def _open_height(cov: np.ndarray, max_sigma: float, reach: float) -> np.ndarray:
+    """A height the ranges leave open (the weakest direction near vertical, its sigma over ``max_sigma``) gets
+    the prior's sigma, the reach of the ranges: far beyond its curvature, the likelihood of a height seen from a
+    nearly flat motion is shaped by what the model leaves out (a range-dependent error, the other basin), not by
+    the ranges' noise."""
+    lam, V = np.linalg.eigh(cov[:3, :3])
+    if abs(V[2, -1]) < VERTICAL_COS or np.sqrt(max(lam[-1], 0.0)) <= max_sigma:
+        return cov
+    out = cov.copy()
+    out[2, 2] += max(reach**2 - out[2, 2], 0.0)
+    return out
+
+
 def jackknife_cov(m: Model, data: tuple, spec: FitSpec, blocks: int = JACKKNIFE_BLOCKS) -> np.ndarray:
     """Block-jackknife covariance of the position: the chosen family refitted without each of ``blocks``
     contiguous stretches of time, (K - 1) / K times the scatter of those fits. What errors shared by neighbouring
@@ -424,6 +437,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> Sea
     cov, excess = mixture_cov(models, best, reach)
     wide = likelihood_widening(best, data[:4], spec, cov, reach)
     wide[:3, :3] += _psd(jackknife_cov(best, data, spec) - wide[:3, :3])
+    wide = _open_height(wide, spec.max_sigma, reach)
     excess = excess + (wide - cov)[:3, :3]
     cov = wide
     lam, V = np.linalg.eigh(cov[:3, :3])
