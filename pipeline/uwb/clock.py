@@ -56,13 +56,15 @@ NO_OFFSET = ClockOffset(0.0, float("inf"), False, float("-inf"), 0)
 
 
 def _costs(windows_at, fits: Mapping, specs: Mapping, grid: np.ndarray) -> np.ndarray:
-    """Summed deflated cost of every anchor's position refitted at each offset of ``grid``."""
+    """Summed deflated cost of every anchor's position refitted (from its fit at tau = 0) at each offset of
+    ``grid``."""
     out = np.zeros(len(grid))
     for i, tau in enumerate(grid):
         for a, w in windows_at(float(tau)).items():
             s2 = np.full(len(w), specs[a].sigma_range ** 2)
             li = np.zeros(len(w), np.int64)
-            out[i] += fit_family(w.tag_xyz, w.d, li, 1, s2, "position", fits[a], specs[a]).cost
+            m = fits[a]
+            out[i] += fit_family(w.tag_xyz, w.d, li, 1, s2, "position", m.p, specs[a], warm=m).cost
     return out
 
 
@@ -84,8 +86,10 @@ def estimate_clock(
         sub = w.subset(np.isin(np.arange(len(w)), k))
         sr = fit_anchor(sub.tag_xyz, sub.d, t_ns=sub.t_ns, spec=replace(spec, max_ranges=max_ranges))
         if sr.ok:
-            keep[a], fits[a] = k, sr.p
-            specs[a] = replace(spec, deflate=float(sr.costs.get("kappa", 1.0)))
+            keep[a], specs[a] = k, replace(spec, deflate=float(sr.costs.get("kappa", 1.0)))
+            s2 = np.full(len(sub), spec.sigma_range**2)
+            li = np.zeros(len(sub), np.int64)
+            fits[a] = fit_family(sub.tag_xyz, sub.d, li, 1, s2, "position", sr.p, specs[a])
     if not keep:
         return NO_OFFSET
 

@@ -37,6 +37,7 @@ from uwbcal.pipeline.uwb.search import SearchResult, noise_inflation, plane_fram
 FAMILIES = ("position", "gamma", "gamma+beta", "link")
 BAYES_FACTOR = 3.0  # Jeffreys' "substantial" evidence: a richer model must beat a simpler one by this factor
 JACKKNIFE_BLOCKS = 10
+WARM_ITERATIONS = 10  # a refit from a fit of nearly the same problem (profiles, jackknife, clock scan)
 PIN_PRECISION = 1e8  # [1/m^2] a profile's pinned coordinate
 CAUCHY_SCALE = 2.0  # [range sigmas] of the robust fit's redescending loss
 VERTICAL_COS = 0.9  # a weak direction this close to vertical is a height the geometry leaves open
@@ -121,10 +122,13 @@ def fit_family(
     p0,
     spec: FitSpec,
     pin: tuple[np.ndarray, float] | None = None,
+    warm: Model | None = None,
 ) -> Model:
     """Levenberg-damped IRLS of one family from ``p0`` (priors as residuals, data deflated by ``spec.deflate``)
     through the losses of `_losses`; ``s2`` (N,) the ranges' variances, ``li`` their link index. ``pin`` (v, c):
-    the position's component along the unit vector v held at c (a profile of the cost along v)."""
+    the position's component along the unit vector v held at c (a profile of the cost along v). ``warm``: a fit of
+    the same family on nearly the same problem to start from (its offsets too; the final loss only, a few
+    iterations)."""
     mu, prec = _prior(name, L, spec)
     Lam = np.diag(prec)
     if pin is not None:
@@ -152,8 +156,13 @@ def fit_family(
         return cost, np.hstack(J) / sd[:, None], r, w
 
     theta = np.r_[np.asarray(p0, float), mu[3:]]
-    for kind in _losses(spec):
-        theta, (cost, J, r, w) = _irls(lambda th, k=kind: evaluate(th, k), theta, mu, Lam, f, sd)
+    losses, iters = _losses(spec), 60
+    if warm is not None:
+        g = warm.g if per_link else warm.g[:1]
+        theta = np.r_[np.asarray(p0, float), [warm.beta] * scale, g if ng else []]
+        losses, iters = losses[-1:], WARM_ITERATIONS
+    for kind in losses:
+        theta, (cost, J, r, w) = _irls(lambda th, k=kind: evaluate(th, k), theta, mu, Lam, f, sd, iters)
     info = (J * (f * w)[:, None]).T @ J + np.diag(prec)
     g = theta[3 + scale :] if ng else np.zeros(0)
     g_links = g.copy() if per_link else np.full(L, g[0] if ng else spec.gamma_mean)
@@ -387,7 +396,9 @@ def likelihood_widening(m: Model, data: tuple, spec: FitSpec, cov: np.ndarray, r
                 if step > reach:
                     break
                 p0 = m.p + sign * step * v
-                prof = fit_family(xyz, d, li, len(m.g), s2, m.name, p0, spec, pin=(v, c0 + sign * step))
+                prof = fit_family(
+                    xyz, d, li, len(m.g), s2, m.name, p0, spec, pin=(v, c0 + sign * step), warm=m
+                )
                 if prof.cost - m.cost > 1.0:
                     break
                 half = max(half, step)
@@ -421,7 +432,15 @@ def jackknife_cov(m: Model, data: tuple, spec: FitSpec, blocks: int = JACKKNIFE_
     pos = np.array(
         [
             fit_family(
-                xyz[fold != k], d[fold != k], li[fold != k], len(m.g), s2[fold != k], m.name, m.p, spec
+                xyz[fold != k],
+                d[fold != k],
+                li[fold != k],
+                len(m.g),
+                s2[fold != k],
+                m.name,
+                m.p,
+                spec,
+                warm=m,
             ).p
             for k in range(blocks)
         ]
