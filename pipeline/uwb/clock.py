@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR, FitSpec, fit_anchor, fit_family
+from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR, FitSpec, Model, fit_anchor, fit_family, range_losses
 from uwbcal.pipeline.uwb.initializer import InitWindow
 from uwbcal.pipeline.uwb.search import subsample
 
@@ -55,17 +55,39 @@ class ClockOffset:
 NO_OFFSET = ClockOffset(0.0, float("inf"), False, float("-inf"), 0)
 
 
-def _costs(windows_at, fits: Mapping, specs: Mapping, grid: np.ndarray) -> np.ndarray:
-    """Summed deflated cost of every anchor's position refitted (from its fit at tau = 0) at each offset of
-    ``grid``."""
-    out = np.zeros(len(grid))
+@dataclass(frozen=True)
+class _Anchor:
+    keep: np.ndarray  # indices of the scanned ranges in the anchor's window
+    links: np.ndarray  # the fit's link ids
+    spec: FitSpec  # with the anchor's deflation
+    fit: Model  # its chosen family at tau = 0
+    block: np.ndarray  # the time block of each scanned range (blocks common to every anchor)
+
+
+def _block_costs(windows_at, anchors: Mapping, grid: np.ndarray, blocks: int) -> np.ndarray:
+    """(len(grid), blocks): the deflated robust cost of each time block's ranges (over every anchor) with each
+    anchor's chosen family refitted (from its fit at tau = 0) at each offset of ``grid``."""
+    out = np.zeros((len(grid), blocks))
     for i, tau in enumerate(grid):
-        for a, w in windows_at(float(tau)).items():
-            s2 = np.full(len(w), specs[a].sigma_range ** 2)
-            li = np.zeros(len(w), np.int64)
-            m = fits[a]
-            out[i] += fit_family(w.tag_xyz, w.d, li, 1, s2, "position", m.p, specs[a], warm=m).cost
+        ws = windows_at(float(tau))
+        for a, an in anchors.items():
+            w = ws[a].subset(an.keep)
+            li = np.searchsorted(an.links, w.links()).clip(0, len(an.links) - 1)
+            s2 = np.full(len(w), an.spec.sigma_range**2)
+            m = fit_family(w.tag_xyz, w.d, li, len(an.links), s2, an.fit.name, an.fit.p, an.spec, warm=an.fit)
+            out[i] += np.bincount(an.block, range_losses(m, s2, an.spec), minlength=blocks)
     return out
+
+
+def _vertex(grid: np.ndarray, c: np.ndarray) -> tuple[float, float]:
+    """The minimum of ``c`` over ``grid`` refined by the parabola through it and its neighbours, and the
+    curvature there (nan when it is not a minimum)."""
+    step = grid[1] - grid[0]
+    k = int(np.clip(np.argmin(c), 1, len(grid) - 2))
+    a2 = (c[k + 1] - 2 * c[k] + c[k - 1]) / step**2
+    if not np.isfinite(a2) or a2 <= 0:
+        return float(grid[k]), float("nan")
+    return float(np.clip(grid[k] - (c[k + 1] - c[k - 1]) / (2 * a2 * step), grid[0], grid[-1])), float(a2)
 
 
 def estimate_clock(
@@ -76,36 +98,44 @@ def estimate_clock(
     step_s: float = 0.02,
     prior_s: float = PRIOR_S,
     max_ranges: int = 500,
+    blocks: int = 10,
 ) -> ClockOffset:
     """The clock offset from ``windows_at(tau)``: each anchor's ranges re-stamped by tau (the same ranges at every
-    tau). Only anchors the evidence fit determines at tau = 0 take part, each with its deflation."""
+    tau). Only anchors the evidence fit determines at tau = 0 take part, each with its chosen family and its
+    deflation. The offset's own deflation is measured by a block jackknife over time (the anchors share the pose's
+    error, so their evidence is not independent): the scatter of the offsets with each time block left out over
+    the curvature's variance."""
+    anchors = {}
     base = windows_at(0.0)
-    keep, fits, specs = {}, {}, {}
+    stamps = np.concatenate([w.t_ns for w in base.values()]) if base else np.zeros(0, np.int64)
+    edges = np.quantile(stamps, np.linspace(0.0, 1.0, blocks + 1)[1:-1]) if len(stamps) else np.zeros(0)
     for a, w in base.items():
-        k = subsample(len(w), max_ranges)
-        sub = w.subset(np.isin(np.arange(len(w)), k))
-        sr = fit_anchor(sub.tag_xyz, sub.d, t_ns=sub.t_ns, spec=replace(spec, max_ranges=max_ranges))
-        if sr.ok:
-            keep[a], specs[a] = k, replace(spec, deflate=float(sr.costs.get("kappa", 1.0)))
-            s2 = np.full(len(sub), spec.sigma_range**2)
-            li = np.zeros(len(sub), np.int64)
-            fits[a] = fit_family(sub.tag_xyz, sub.d, li, 1, s2, "position", sr.p, specs[a])
-    if not keep:
+        keep = subsample(len(w), max_ranges)
+        sub = w.subset(keep)
+        sr = fit_anchor(
+            sub.tag_xyz, sub.d, sub.links(), t_ns=sub.t_ns, spec=replace(spec, max_ranges=max_ranges)
+        )
+        if not sr.ok:
+            continue
+        sa = replace(spec, deflate=float(sr.costs.get("kappa", 1.0)))
+        li = np.searchsorted(sr.links, sub.links()).clip(0, len(sr.links) - 1)
+        s2 = np.full(len(sub), spec.sigma_range**2)
+        name = sr.costs["evidence"]["model"]
+        fit = fit_family(sub.tag_xyz, sub.d, li, len(sr.links), s2, name, sr.p, sa)
+        anchors[a] = _Anchor(keep, sr.links, sa, fit, np.searchsorted(edges, sub.t_ns))
+    if not anchors:
         return NO_OFFSET
-
-    def sub_at(tau: float) -> dict[int, InitWindow]:
-        ws = windows_at(tau)
-        return {a: ws[a].subset(np.isin(np.arange(len(ws[a])), k)) for a, k in keep.items()}
-
     grid = np.arange(-max_s, max_s + 0.5 * step_s, step_s)
-    c = _costs(sub_at, fits, specs, grid)
-    k = int(np.clip(np.argmin(c), 1, len(grid) - 2))
-    a2 = (c[k + 1] - 2 * c[k] + c[k - 1]) / step_s**2  # the cost's curvature
-    if not np.isfinite(a2) or a2 <= 0:
+    C = _block_costs(windows_at, anchors, grid, blocks)
+    tau, a2 = _vertex(grid, C.sum(axis=1))
+    if not np.isfinite(a2):
         return NO_OFFSET
-    tau = float(np.clip(grid[k] - (c[k + 1] - c[k - 1]) / (2 * a2 * step_s), -max_s, max_s))
-    c_tau, c0 = _costs(sub_at, fits, specs, np.array([tau, 0.0]))
+    loo = np.array([_vertex(grid, C.sum(axis=1) - C[:, b])[0] for b in range(blocks)])
+    var_jk = (blocks - 1) / blocks * float(np.sum((loo - loo.mean()) ** 2))
     info = 0.5 * a2  # -log likelihood = cost / 2
-    log_bf = 0.5 * (c0 - c_tau) - 0.5 * tau**2 / prior_s**2 - 0.5 * np.log(1.0 + info * prior_s**2)
+    deflate = max(var_jk * info, 1.0)
+    c_tau, c0 = _block_costs(windows_at, anchors, np.array([tau, 0.0]), blocks).sum(axis=1)
+    info /= deflate
+    log_bf = 0.5 * (c0 - c_tau) / deflate - 0.5 * tau**2 / prior_s**2 - 0.5 * np.log(1.0 + info * prior_s**2)
     used = bool(log_bf > np.log(BAYES_FACTOR))
-    return ClockOffset(tau, float(1.0 / np.sqrt(info)), used, float(log_bf), len(keep))
+    return ClockOffset(tau, float(1.0 / np.sqrt(info)), used, float(log_bf), len(anchors))

@@ -103,6 +103,11 @@ def _losses(spec: FitSpec) -> tuple[str, ...]:
     return ("soft_l1", "cauchy") if spec.robust else ("l2",)
 
 
+def range_losses(m: Model, s2: np.ndarray, spec: FitSpec) -> np.ndarray:
+    """Each range's deflated robust loss under the fit ``m`` (its share of the data cost)."""
+    return _loss(m.r / np.sqrt(s2), _losses(spec)[-1])[0] / spec.deflate
+
+
 def _prior(name: str, L: int, spec: FitSpec) -> tuple[np.ndarray, np.ndarray]:
     """(mean, precision) of the family's parameters (position first, flat; then beta; then the offsets)."""
     scale = name == "gamma+beta"
