@@ -184,13 +184,18 @@ _SimScenario = Annotated[
     str | None,
     typer.Option(
         help="A class of real setup: planar (ground trolley, coplanar anchors), large-area (~400 m, anchors "
-        "ranged late or briefly), per-link (3 tags, an offset per link), nlos (NLOS junk on some links). "
-        "Ranges + odometry, no camera unless --camera; other options override the scenario's."
+        "ranged late or briefly), per-link (3 tags, an offset per link), nlos (NLOS junk on some links), "
+        "climbing-drone (a drone climbing on the spot), far-cluster (a drive out to ~55 m from a clustered "
+        "constellation, ranges ~0.2 s late), clock-offset (ranges 0.1-0.2 s late), antenna-pattern (a handheld rig, "
+        "a direction-dependent range bias per anchor). Ranges + odometry, no camera unless --camera; other options "
+        "override the scenario's."
     ),
 ]
 _SimTrajectory = Annotated[
     str | None,
-    typer.Option(help="EuRoC ground-truth name (MH_01_easy) or file, or built-in: default, planar, campus."),
+    typer.Option(
+        help="EuRoC ground-truth name (MH_01_easy) or file, or built-in: default, planar, campus, climb, far-field, handheld."
+    ),
 ]
 _SimDuration = Annotated[float | None, typer.Option(help="Seconds to simulate (default: whole trajectory).")]
 _SimNlosRate = Annotated[

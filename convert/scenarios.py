@@ -24,6 +24,24 @@ the anchors, per-link offsets and NLOS rates (``links``) and the visibility wind
   drawn from U(0.1, 0.5) m (`link_gamma_offset`), anchor gamma 0.
 - ``nlos``: the 3-D figure-8 with 6 anchors where the links of anchors 1 and 4 carry 30 % NLOS junk (positive
   Exp bias, mean 1.5 m) and the others none.
+
+The classes of real recordings the evidence range model (``uwb.range_model = "evidence"``) is built for, each with
+beta 1 and the offsets real hardware has:
+
+- ``climbing-drone``: a quadrotor climbing and descending on the spot (`trajectory.climb_trajectory`, 100 s,
+  height 0.1-1.9 m, ~0.2 m horizontal extent) amid 4 anchors at the corners of a 2 m x 2 m square at 0.6-1.1 m,
+  each with a constant offset of +0.2..+0.4 m (drawn per seed): the ranges fix each anchor's horizontal distance
+  and height but hardly its bearing (a weak *horizontal* direction).
+- ``far-cluster``: an outdoor ground platform (`trajectory.far_field_trajectory`, 60 s at 2.5 m/s, nearly planar)
+  driving out to ~55 m from a 5 m x 2 m cluster of 4 anchors at 0.5-2 m and back past it ~11 m away, with
+  RTK-like poses (bounded error 3 cm / 0.3 deg, 10 s correlation) and the ranges stamped 0.16-0.22 s late
+  (``range_latency_s``, drawn per seed).
+- ``clock-offset``: the 3-D figure-8 with 6 anchors around it, the ranges stamped 0.1-0.2 s late (drawn per seed).
+- ``antenna-pattern``: a handheld rig carried around a room (`trajectory.handheld_trajectory`: a walk at up to
+  1 m/s, the rig at 0.9-1.7 m, turning, panning and tilting) with 8 anchors outside its volume (4 corners and 4
+  walls of a 9 m x 7 m room, at 0.3-2.7 m), every range biased by its anchor's antenna pattern
+  b0 + b1 cos(az - phi) + b2 sin(el) (``antenna_pattern``: b0, b1 from U(0.05, 0.15) m, |b2| from U(0.05, 0.15) m
+  with a random sign, phi uniform; drawn per seed).
 """
 
 from __future__ import annotations
@@ -67,6 +85,21 @@ CAMPUS_ANCHORS = [
 CAMPUS_BRIEF = {9: [(100.0, 112.0)]}
 PER_LINK_TAGS = [[0.05, 0.0, 0.1], [0.05, 0.3, -0.1], [0.05, -0.3, -0.1]]
 NLOS_ANCHORS = (1, 4)
+# a quadrotor's constellation: the corners of a 2 m x 2 m square, 0.6-1.1 m high, the drone near its centre
+DRONE_ANCHORS = [[-1.0, -1.0, 0.6], [1.0, -1.0, 0.9], [1.0, 1.0, 1.1], [-1.0, 1.0, 0.75]]
+# a clustered outdoor constellation: 5 m x 2 m, 0.5-2 m high, the platform starting 4 m from its edge
+CLUSTER_ANCHORS = [[-2.5, -1.0, 0.5], [2.5, -1.0, 1.5], [2.5, 1.0, 2.0], [-2.5, 1.0, 1.0]]
+# a motion-capture room around the handheld rig's ~6 m x 4.5 m loop: 4 corners and 4 walls
+ROOM_ANCHORS = [
+    [-4.5, -3.5, 0.3],
+    [4.5, -3.5, 2.6],
+    [4.5, 3.5, 0.5],
+    [-4.5, 3.5, 2.7],
+    [0.2, -3.6, 1.8],
+    [4.6, 0.1, 1.2],
+    [-0.1, 3.6, 2.2],
+    [-4.6, -0.2, 0.9],
+]
 
 
 @dataclass(frozen=True)
@@ -116,6 +149,47 @@ def _nlos(seed: int) -> dict:
     return dict(n_anchors=6, beta=1.0, gamma=0.1, link_nlos_rate=rate.tolist(), nlos_bias_mean=1.5)
 
 
+def _climbing_drone(seed: int) -> dict:
+    rng = stream(seed, "scenario/climbing-drone")
+    return dict(
+        trajectory="climb",
+        anchors=DRONE_ANCHORS,
+        beta=1.0,
+        gamma=rng.uniform(0.2, 0.4, len(DRONE_ANCHORS)).tolist(),
+    )
+
+
+def _far_cluster(seed: int) -> dict:
+    rng = stream(seed, "scenario/far-cluster")
+    return dict(
+        trajectory="far-field",
+        anchors=CLUSTER_ANCHORS,
+        beta=1.0,
+        gamma=rng.uniform(0.0, 0.3, len(CLUSTER_ANCHORS)).tolist(),
+        range_latency_s=float(rng.uniform(0.16, 0.22)),
+        odometry_sigma_p=0.03,
+        odometry_sigma_theta_deg=0.3,
+        odometry_correlation_s=10.0,
+    )
+
+
+def _clock_offset(seed: int) -> dict:
+    rng = stream(seed, "scenario/clock-offset")
+    return dict(n_anchors=6, beta=1.0, gamma=0.1, range_latency_s=float(rng.uniform(0.1, 0.2)))
+
+
+def _antenna_pattern(seed: int) -> dict:
+    rng = stream(seed, "scenario/antenna-pattern")
+    n = len(ROOM_ANCHORS)
+    b2 = rng.uniform(0.05, 0.15, n) * rng.choice([-1.0, 1.0], n)
+    pattern = np.column_stack(
+        [rng.uniform(0.05, 0.15, n), rng.uniform(0.05, 0.15, n), rng.uniform(0, 360, n), b2]
+    )
+    return dict(
+        trajectory="handheld", anchors=ROOM_ANCHORS, beta=1.0, gamma=0.0, antenna_pattern=pattern.tolist()
+    )
+
+
 SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in (
@@ -125,6 +199,24 @@ SCENARIOS: dict[str, Scenario] = {
         ),
         Scenario("per-link", "3 tags x 6 anchors, an offset of 0.1-0.5 m per link", _per_link),
         Scenario("nlos", "6 anchors, the links of two carry 30 % positive NLOS junk", _nlos),
+        Scenario(
+            "climbing-drone",
+            "a drone climbing on the spot amid 4 anchors of a 2 m square, offsets +0.2..+0.4 m",
+            _climbing_drone,
+        ),
+        Scenario(
+            "far-cluster",
+            "outdoor drive out to ~55 m from a 5 m x 2 m cluster of 4 anchors, RTK-like poses, ranges ~0.2 s late",
+            _far_cluster,
+        ),
+        Scenario(
+            "clock-offset", "the 3-D figure-8 with 6 anchors, ranges stamped 0.1-0.2 s late", _clock_offset
+        ),
+        Scenario(
+            "antenna-pattern",
+            "a handheld rig in a room with 8 anchors, each with a direction-dependent range bias",
+            _antenna_pattern,
+        ),
     )
 }
 

@@ -12,7 +12,11 @@ Models (world z up, gravity (0, 0, -g), R = world_from_IMU):
 - UWB: d = beta (|p + R p_T - p_a| + n) + gamma + o_{a,t}, n ~ N(0, sigma^2), one link per (anchor a, tag t)
   (``tags``: several tags with their lever arms; ``link_gamma_offset``: per-link offsets o_{a,t}, default 0);
   optional NLOS (+Exp(mean) bias, at ``nlos_rate`` or per link ``link_nlos_rate``), dropouts, maximum range and
-  per-anchor visibility windows. Stamps staggered across links.
+  per-anchor visibility windows. Stamps staggered across links. Two real-hardware effects, off by default:
+  ``antenna_pattern``, a direction-dependent bias b = b0 + b1 cos(az - phi) + b2 sin(el) per anchor added to its
+  ranges (az, el: the direction from the anchor to the tag in the world frame), and ``range_latency_s``, ranges
+  stamped that long after they were measured (the poses stay on time; ranges stamped outside the recording are
+  dropped).
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ from uwbcal.pipeline.core.progress import progress
 NS = 1_000_000_000
 PROBE_DENSITY = 4.0  # landmarks / m^2 for probing how many are visible
 MAX_DENSITY = 40.0
+MAX_LATENCY_S = 5.0  # a range stamp's latency beyond this is a broken clock, not a latency
 
 
 def _bad(name: str, value, what: str) -> InputError:
@@ -93,6 +98,13 @@ class SimConfig:
     link_nlos_rate: Sequence[Sequence[float]] | None = None  # [n_anchors, n_tags]; replaces nlos_rate
     # anchor index -> [(start_s, end_s), ...] from the start: the only times it can be ranged (absent: always)
     visibility: dict[int, Sequence[Sequence[float]]] | None = None
+    # per anchor [b0, b1, phi_deg, b2] ([m], [m], [deg], [m]): the direction-dependent antenna bias
+    # b0 + b1 cos(az - phi) + b2 sin(el) added to each range, az / el the azimuth / elevation of the tag seen from
+    # the anchor (world frame). None: no pattern
+    antenna_pattern: Sequence[Sequence[float]] | None = None
+    # [s] the ranges' stamps lag their measurement by this (a driver's filter, a radio link): a range measured at
+    # t is stamped t + range_latency_s, the poses are not (negative: stamped early). 0: stamped when measured
+    range_latency_s: float = 0.0
     scenario: str | None = None  # the `convert.scenarios` name this config came from (recorded in the truth)
     knot_dt: float = 0.1  # B-spline knot spacing when fitting a ground-truth file
     # external odometry (/odometry) drifting exactly as the odometry filter's drift model says (its default
@@ -158,6 +170,12 @@ class SimConfig:
             raise _bad("max_features", self.max_features, "must be at least 1 (or None for no cap)")
         if self.max_range is not None and not self.max_range > 0:
             raise _bad("max_range", self.max_range, "must be positive (or None for no limit)")
+        if not (np.isfinite(self.range_latency_s) and abs(self.range_latency_s) <= MAX_LATENCY_S):
+            raise _bad(
+                "range_latency_s",
+                self.range_latency_s,
+                f"must be a number of seconds within +-{MAX_LATENCY_S:g}",
+            )
 
     def _check_anchors_and_tags(self) -> None:
         """Anchors (their count from ``anchors`` when given), their beta/gamma, the tags and the per-link settings
@@ -192,6 +210,14 @@ class SimConfig:
                     raise _bad(
                         name, v, f"must be {shape[0]} x {shape[1]} (anchors x tags) values in [{lo}, {hi}]"
                     )
+        if self.antenna_pattern is not None:
+            a = np.asarray(self.antenna_pattern, float)
+            if a.shape != (self.n_anchors, 4) or not np.all(np.isfinite(a)):
+                raise _bad(
+                    "antenna_pattern",
+                    self.antenna_pattern,
+                    f"must be {self.n_anchors} x 4 (per anchor [b0, b1, phi_deg, b2]) finite values",
+                )
         for a, wins in (self.visibility or {}).items():
             w = np.asarray(wins, float).reshape(-1, 2) if len(wins) else np.zeros((0, 2))
             if not 0 <= int(a) < self.n_anchors or not np.all(np.isfinite(w)) or np.any(w[:, 1] < w[:, 0]):
@@ -237,10 +263,10 @@ class FeatureSim:
 
 @dataclass
 class RangeSim:
-    t_ns: np.ndarray  # [N] int64, time ordered
+    t_ns: np.ndarray  # [N] int64, time ordered: the stamps (measured at t_ns - range_latency_s)
     anchor: np.ndarray  # [N] int64
     distance: np.ndarray  # [N] measured
-    true_distance: np.ndarray  # [N] |p + R p_T - p_a|
+    true_distance: np.ndarray  # [N] |p + R p_T - p_a| when measured
     nlos: np.ndarray  # [N] bool: an NLOS bias was added
     candidates: int = 0  # stamps before dropouts / range limit
     tag: np.ndarray | None = None  # [N] int64 tag id (None: all cfg.tag_id)
@@ -561,6 +587,8 @@ def simulate_ranges(
         np.asarray(cfg.link_gamma_offset, float)[anchor, tag_i] if cfg.link_gamma_offset is not None else 0.0
     )
     d = beta[anchor] * (true + noise) + gamma[anchor] + offset + np.where(nlos, nlos_bias, 0.0)
+    if cfg.antenna_pattern is not None:
+        d = d + antenna_bias(np.asarray(cfg.antenna_pattern, float)[anchor], tag - anchors[anchor])
     keep = drop_u >= cfg.dropout_rate
     if cfg.max_range is not None:
         keep &= true <= cfg.max_range
@@ -572,6 +600,9 @@ def simulate_ranges(
             for lo, hi in np.asarray(wins, float).reshape(-1, 2):
                 seen |= (rel >= lo) & (rel <= hi)
             keep &= ~sel | seen
+    if cfg.range_latency_s:  # stamped late (or early); the recording holds only stamps inside its span
+        t_ns = t_ns + round(cfg.range_latency_s * NS)
+        keep &= (t_ns >= t0_ns) & (t_ns <= t0_ns + round(duration * NS))
     return RangeSim(
         t_ns=t_ns[keep],
         anchor=anchor[keep],
@@ -581,6 +612,15 @@ def simulate_ranges(
         candidates=n,
         tag=(cfg.tag_id + tag_i[keep]).astype(np.int64),
     )
+
+
+def antenna_bias(pattern: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """b0 + b1 cos(az - phi) + b2 sin(el) per row of ``pattern`` (N, 4: b0, b1, phi_deg, b2) for the directions
+    ``u`` (N, 3, anchor to tag, any length; world frame)."""
+    az = np.arctan2(u[:, 1], u[:, 0])
+    sin_el = u[:, 2] / np.maximum(np.linalg.norm(u, axis=1), 1e-9)
+    b0, b1, phi, b2 = pattern.T
+    return b0 + b1 * np.cos(az - np.radians(phi)) + b2 * sin_el
 
 
 @dataclass
@@ -741,6 +781,12 @@ def world_truth(data: SimData, duration: float) -> dict:
         "tag": {"id": cfg.tag_id, "antenna": 0, "lever_arm": cfg.lever_arms()[0].tolist()},
         "links": _links_truth(data),
         **({"scenario": cfg.scenario} if cfg.scenario else {}),
+        **({"range_latency_s": float(cfg.range_latency_s)} if cfg.range_latency_s else {}),
+        **(
+            {"antenna_pattern": np.asarray(cfg.antenna_pattern, float).tolist()}
+            if cfg.antenna_pattern is not None
+            else {}
+        ),
         **(
             {"visibility": {str(a): np.asarray(w, float).tolist() for a, w in cfg.visibility.items()}}
             if cfg.visibility

@@ -13,8 +13,10 @@ are continuous.
 
 Sources: EuRoC ground truth (TUM ``.txt`` or EuRoC ``.csv``), by path or by sequence name, and built-in
 trajectories that need no data (`BUILTIN`): the figure-8 with vertical motion (`default_trajectory`, the demo),
-a planar ground trolley (`planar_trajectory`, "planar") and a campus drive over ~400 m (`campus_trajectory`,
-"campus").
+a planar ground trolley (`planar_trajectory`, "planar"), a campus drive over ~400 m (`campus_trajectory`,
+"campus"), a drone climbing and descending on the spot (`climb_trajectory`, "climb"), an outdoor drive out to
+~50 m and back (`far_field_trajectory`, "far-field") and a handheld rig carried around a room
+(`handheld_trajectory`, "handheld").
 """
 
 from __future__ import annotations
@@ -387,4 +389,92 @@ def campus_trajectory(duration: float = 260.0, knot_dt: float = DEFAULT_KNOT_DT)
     )
 
 
-BUILTIN = {DEFAULT_NAME: default_trajectory, "planar": planar_trajectory, "campus": campus_trajectory}
+def _euler(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    """world_from_body = Rz(yaw) Ry(pitch) Rx(roll) @ `_R_BASE`."""
+    z = np.zeros_like(yaw)
+    return (
+        exp_so3(np.stack([z, z, yaw], 1))
+        @ exp_so3(np.stack([z, pitch, z], 1))
+        @ exp_so3(np.stack([roll, z, z], 1))
+        @ _R_BASE
+    )
+
+
+def climb_trajectory(duration: float = 100.0, knot_dt: float = DEFAULT_KNOT_DT) -> SplineTrajectory:
+    """A quadrotor climbing and descending on the spot: height 0.1 -> 1.9 m and back every 25 s (it takes off
+    after 1 s), the horizontal position wandering within ~0.2 m about (0.2, -0.1), the tilt a few degrees with
+    the horizontal acceleration, the heading swinging slowly by +-20 deg."""
+    t = np.arange(0.0, duration + 1e-9, 0.02)
+    phase = _eased_phase(t, 1.0, 3.0)
+    a = 2 * np.pi * phase
+    p = np.stack(
+        [
+            0.2 + 0.1 * np.sin(a / 13.0) + 0.02 * np.sin(a / 3.1),
+            -0.1 + 0.1 * np.sin(a / 17.0 + 0.7) + 0.02 * np.sin(a / 2.3),
+            1.0 - 0.9 * np.cos(a / 25.0),
+        ],
+        axis=1,
+    )
+    yaw = 0.35 * np.sin(a / 40.0)
+    tilt = 0.04
+    pitch = tilt * np.sin(a / 13.0 + 0.5 * np.pi)  # leans into the horizontal acceleration
+    roll = tilt * np.sin(a / 17.0 + 0.7)
+    return SplineTrajectory.fit(
+        t, p, rot_to_quat(_euler(yaw, pitch, roll)), knot_dt=knot_dt, t0_ns=DEFAULT_T0_NS, name="climb"
+    )
+
+
+def far_field_trajectory(duration: float = 60.0, knot_dt: float = DEFAULT_KNOT_DT) -> SplineTrajectory:
+    """An outdoor ground platform at 2.5 m/s from (4, -4): east along a gentle curve out to ~50 m, a wide U-turn
+    to the left (16-32 s) and back west ~13 m further north, past the start and beyond; the ground undulates by
+    +-0.2 m (motion nearly planar), the body at 0.5 m (the EuRoC axes, yaw only)."""
+    dt = 0.02
+    t = np.arange(0.0, duration + 1e-9, dt)
+    x = np.clip((t - 1.0) / 3.0, 0.0, 1.0)
+    speed = 2.5 * (x**3 * (10 - 15 * x + 6 * x**2))
+    yaw = 0.15 * np.sin(2 * np.pi * t / 30.0)
+    for t_turn, span, angle in ((16.0, 16.0, np.pi),):
+        u = np.clip((t - t_turn) / span, 0.0, 1.0)
+        yaw += angle * u**3 * (10 - 15 * u + 6 * u**2)
+    v = speed[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], 1)
+    xy = np.array([4.0, -4.0]) + np.concatenate(
+        [[[0.0, 0.0]], np.cumsum(0.5 * (v[1:] + v[:-1]) * dt, axis=0)]
+    )
+    p = np.column_stack([xy, 0.5 + 0.2 * np.sin(2 * np.pi * t / 35.0)])
+    return SplineTrajectory.fit(
+        t, p, rot_to_quat(_yaw_only(yaw)), knot_dt=knot_dt, t0_ns=DEFAULT_T0_NS, name="far-field"
+    )
+
+
+def handheld_trajectory(duration: float = 120.0, knot_dt: float = DEFAULT_KNOT_DT) -> SplineTrajectory:
+    """A handheld sensor rig carried around a ~6 m x 5 m room at up to ~1 m/s: a wandering clockwise loop (30 s
+    per lap), the rig raised and lowered between ~0.9 and ~1.7 m, heading round the loop with +-35 deg pans,
+    pitch and roll swinging by ~12 deg, and the walk's bounce."""
+    t = np.arange(0.0, duration + 1e-9, 0.02)
+    phase = _eased_phase(t, 1.0, 3.0)
+    a = 2 * np.pi * phase
+
+    p = np.stack(
+        [
+            2.6 * np.sin(a / 30.0) + 0.5 * np.sin(a / 11.0),
+            2.0 * np.cos(a / 30.0) * np.cos(a / 47.0) + 0.3 * np.sin(a / 7.0),
+            1.3 - 0.35 * np.cos(a / 9.0) + 0.03 * np.sin(a / 0.55),
+        ],
+        axis=1,
+    )
+    yaw = -a / 30.0 + 0.6 * np.sin(a / 5.0)  # along the (clockwise) loop, panning
+    pitch = 0.1 + 0.2 * np.sin(a / 6.3)
+    roll = 0.2 * np.sin(a / 4.1 + 1.0)
+    return SplineTrajectory.fit(
+        t, p, rot_to_quat(_euler(yaw, pitch, roll)), knot_dt=knot_dt, t0_ns=DEFAULT_T0_NS, name="handheld"
+    )
+
+
+BUILTIN = {
+    DEFAULT_NAME: default_trajectory,
+    "planar": planar_trajectory,
+    "campus": campus_trajectory,
+    "climb": climb_trajectory,
+    "far-field": far_field_trajectory,
+    "handheld": handheld_trajectory,
+}

@@ -52,7 +52,6 @@ def test_offset_enters_only_when_the_ranges_have_one(seed):
         assert _nees(r, p) < CHI2_3_999
 
 
-
 def test_stated_offset_holds_in_the_base_family():
     """A stated offset prior (mean 0.75 m, sigma 0.01 m, as NTU-VIRAL's converter states it) holds the base
     family's offset at its mean: far from a small loop the offset trades against the radial distance, and a base
@@ -64,6 +63,7 @@ def test_stated_offset_holds_in_the_base_family():
     assert r.ok and r.costs["evidence"]["model"] == "position"
     assert np.hypot(*(r.p - p)[:2]) < 0.1 and r.sigma_horizontal < 0.5
     assert _nees(r, p) < CHI2_3_999
+
 
 def test_deflation_measures_correlated_errors():
     """White range errors at the nominal sigma tell what they say (deflation 1); errors that drift slowly along

@@ -10,13 +10,14 @@ from typer.testing import CliRunner
 from uwbcal.cli import app
 from uwbcal.convert.recording import RecordingReader
 from uwbcal.convert.scenarios import CAMPUS_BRIEF, NLOS_ANCHORS, SCENARIOS, scenario_config, simulate_scenario
-from uwbcal.convert.simulator import rel_seconds
+from uwbcal.convert.simulator import NS, antenna_bias, rel_seconds
 from uwbcal.pipeline.core.errors import InputError
 
 
 def _tag_positions(data) -> np.ndarray:
+    """The tags when each range was measured (its stamp minus the latency)."""
     r, cfg = data.ranges, data.config
-    s = data.trajectory.evaluate(rel_seconds(data.trajectory, r.t_ns))
+    s = data.trajectory.evaluate(rel_seconds(data.trajectory, r.t_ns - round(cfg.range_latency_s * NS)))
     arms = cfg.lever_arms()[r.tag - cfg.tag_id]
     return s.p + np.einsum("nij,nj->ni", s.R, arms)
 
@@ -130,8 +131,67 @@ def test_cli_scenario_recording(tmp_path):
 
 
 def test_scenario_errors():
-    with pytest.raises(InputError, match="unknown; choose one of planar, large-area, per-link, nlos"):
+    with pytest.raises(
+        InputError, match="unknown; choose one of planar, large-area, per-link, nlos, climbing-drone"
+    ):
         scenario_config("hilly")
     with pytest.raises(InputError, match="unknown setting"):
         scenario_config("nlos", colour="red")
-    assert set(SCENARIOS) == {"planar", "large-area", "per-link", "nlos"}
+    assert set(SCENARIOS) == {
+        "planar",
+        "large-area",
+        "per-link",
+        "nlos",
+        "climbing-drone",
+        "far-cluster",
+        "clock-offset",
+        "antenna-pattern",
+    }
+
+
+def test_climbing_drone_climbs_on_the_spot():
+    data = simulate_scenario("climbing-drone", duration=60.0, seed=2)
+    tags, p = _tag_positions(data), data.groundtruth.p
+    assert np.ptp(p[:, 0]) < 0.3 and np.ptp(p[:, 1]) < 0.3 and p[:, 2].min() < 0.2 and p[:, 2].max() > 1.8
+    a = data.anchors
+    assert np.allclose(np.abs(a[:, :2]), 1.0) and 0.6 <= a[:, 2].min() and a[:, 2].max() <= 1.1
+    g = data.gamma
+    assert np.all((g >= 0.2) & (g <= 0.4)) and len(np.unique(g)) == 4 and np.all(data.beta == 1.0)
+    res = _check_model(data)
+    assert abs(res.std() - data.config.sigma_range) < 0.01 and abs(res.mean()) < 0.01
+    assert np.all(np.abs(tags[:, :2]) < 0.5)  # well inside the square
+
+
+def test_far_cluster_latency_on_the_range_stamps_only():
+    data = simulate_scenario("far-cluster", duration=60.0, seed=1)
+    cfg, r = data.config, data.ranges
+    assert 0.16 <= cfg.range_latency_s <= 0.22
+    assert data.metadata["uwbcal.truth"]["range_latency_s"] == cfg.range_latency_s
+    res = _check_model(data)  # the model holds at the measurement times (stamp - latency) ...
+    assert abs(res.std() - cfg.sigma_range) < 0.01
+    late = np.linalg.norm(
+        data.trajectory.evaluate(rel_seconds(data.trajectory, r.t_ns)).p - data.anchors[r.anchor], axis=1
+    )
+    assert np.std(r.distance - late - data.gamma[r.anchor]) > 2 * cfg.sigma_range  # ... not at the stamps
+    assert r.t_ns.max() <= data.groundtruth.t_ns[-1] and r.true_distance.max() > 50.0
+    np.testing.assert_array_equal(data.odometry.t_ns, data.groundtruth.t_ns[::10])  # poses on time
+    assert np.ptp(data.anchors[:, 0]) == 5.0 and np.ptp(data.anchors[:, 1]) == 2.0
+
+
+def test_clock_offset_and_antenna_pattern():
+    clock = simulate_scenario("clock-offset", duration=30.0, seed=3)
+    assert 0.1 <= clock.config.range_latency_s <= 0.2 and abs(_check_model(clock).std() - 0.1) < 0.01
+    data = simulate_scenario("antenna-pattern", duration=60.0, seed=1)
+    pat = np.asarray(data.config.antenna_pattern)
+    assert pat.shape == (8, 4) and np.all((pat[:, :2] >= 0.05) & (pat[:, :2] <= 0.15))
+    assert np.all((np.abs(pat[:, 3]) >= 0.05) & (np.abs(pat[:, 3]) <= 0.15))
+    assert data.metadata["uwbcal.truth"]["antenna_pattern"] == pat.tolist()
+    r, tags = data.ranges, _tag_positions(data)
+    res = _check_model(data)
+    bias = antenna_bias(pat[r.anchor], tags - data.anchors[r.anchor])
+    assert abs((res - bias).std() - data.config.sigma_range) < 0.01  # the pattern is all that is added
+    for a in range(8):  # and it varies with the direction of arrival
+        assert np.ptp(bias[r.anchor == a]) > 0.02
+    lo, hi = tags.min(axis=0), tags.max(axis=0)
+    outside = (data.anchors[:, :2] < lo[:2]) | (data.anchors[:, :2] > hi[:2])
+    assert np.all(outside.any(axis=1))

@@ -342,6 +342,10 @@ def test_csv_time_going_backwards(tmp_path):
         dict(max_range=0.0),
         dict(odometry_rate=0.0),
         dict(odometry_noise_scale=-1.0),
+        dict(range_latency_s=float("nan")),
+        dict(range_latency_s=10.0),
+        dict(antenna_pattern=[[0.1, 0.1, 0.0, 0.1]]),  # 4 anchors
+        dict(n_anchors=1, antenna_pattern=[[0.1, 0.1, 0.0]]),
     ],
 )
 def test_bad_config_raises_input_error(kwargs):

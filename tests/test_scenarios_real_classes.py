@@ -1,0 +1,200 @@
+"""Issue #28 item 7: the evidence range model (``uwb.range_model = "evidence"``, the real-data path) on the simulated
+classes of real setups it is built for (`convert.scenarios`: climbing-drone, far-cluster, clock-offset,
+antenna-pattern). Plain pipeline runs, 60 s of data, seeds 1-3: every anchor right or "not determined" with its
+reason, the range clock offset found (within 3 sigma) and used where the ranges are late and left out where they
+are not, and the 3-dof anchor position NEES inside the two-sided 95 % chi2 bounds over the seeds.
+
+Where the evidence path misses a bound the test is ``xfail(strict=True)`` with what was measured and why; the
+figures quoted for seeds 1-6 come from the same runs over six seeds (not run here)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_scenarios_calibration import _inside
+
+from uwbcal.convert.scenarios import scenario_to_file
+from uwbcal.evaluate.evaluation import evaluate_stage
+from uwbcal.pipeline.run.config import load_config
+from uwbcal.pipeline.run.stages.pipeline import Pipeline
+
+SEEDS = (1, 2, 3)
+DURATION = 60.0
+
+
+def _runs(tmp_path_factory, name: str) -> list[dict]:
+    """Plain runs of scenario ``name`` on the evidence path over `SEEDS`: per run the metrics, the range clock
+    (init.json ``range_clock``) and the recording's truth."""
+    out = []
+    for seed in SEEDS:
+        d = tmp_path_factory.mktemp(f"{name}{seed}")
+        rec = d / "r.mcap"
+        scenario_to_file(name, rec, seed=seed, duration=DURATION)
+        over = {"run": {"recording": str(rec), "log": False}, "uwb": {"range_model": "evidence"}}
+        pipe = Pipeline(load_config(None, over), d / "run", evaluate_stage)
+        pipe.run(progress=lambda *_: None)
+        init = json.loads(pipe.dir.file("init.json").read_text())
+        out.append(
+            {
+                "metrics": json.loads(pipe.dir.file("metrics.json").read_text()),
+                "clock": init.get("range_clock") or {},
+                "truth": pipe.ctx.reader.truth,
+            }
+        )
+    return out
+
+
+@pytest.fixture(scope="module")
+def drone(tmp_path_factory):
+    return _runs(tmp_path_factory, "climbing-drone")
+
+
+@pytest.fixture(scope="module")
+def far(tmp_path_factory):
+    return _runs(tmp_path_factory, "far-cluster")
+
+
+@pytest.fixture(scope="module")
+def clock(tmp_path_factory):
+    return _runs(tmp_path_factory, "clock-offset")
+
+
+@pytest.fixture(scope="module")
+def pattern(tmp_path_factory):
+    return _runs(tmp_path_factory, "antenna-pattern")
+
+
+def _right_or_not_determined(runs: list[dict], max_horizontal_m: float) -> int:
+    """Every anchor within ``max_horizontal_m`` horizontally or not determined with its reason; returns how many
+    were determined."""
+    n = 0
+    for run in runs:
+        for a, v in run["metrics"]["anchors"].items():
+            if not v["determined"]:
+                assert v["reason"], a
+                continue
+            assert v["error_horizontal_m"] < max_horizontal_m, (a, v["error_horizontal_m"])
+            n += 1
+    return n
+
+
+def _nees(runs: list[dict]) -> np.ndarray:
+    """The 3-dof anchor position NEES (metrics.json, at the end of the run) of every determined anchor."""
+    return np.array(
+        [v["nees_position"] for r in runs for v in r["metrics"]["anchors"].values() if v["determined"]]
+    )
+
+
+def _clock_found(runs: list[dict]) -> None:
+    """The offset used and within 3 sigma of the truth (ranges stamped ``range_latency_s`` late: the poses' time
+    is the range stamp minus the latency, ``offset_s`` = -latency)."""
+    for r in runs:
+        c, late = r["clock"], r["truth"]["range_latency_s"]
+        assert c["used"], c
+        assert abs(c["offset_s"] + late) < 3.0 * c["sigma_s"], (c, late)
+
+
+def _clock_not_used(runs: list[dict]) -> None:
+    for r in runs:
+        assert "range_latency_s" not in r["truth"]
+        assert not r["clock"].get("used", False), r["clock"]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# climbing drone: the ranges fix each anchor's horizontal distance and height, hardly its bearing
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.mark.xdist_group("real-classes-drone")
+def test_climbing_drone_anchors_right_or_not_determined(drone):
+    """The weak direction is horizontal (the bearing about the climb's axis): an anchor is right within the
+    not-determined gate (1 m) or not determined. Measured: all 12 determined, horizontal errors 0.23-0.86 m with
+    the largest horizontal sigma 0.2-0.87 m (the unmodelled +0.2..+0.4 m offset trades against the radial
+    distance); no clock (below)."""
+    assert _right_or_not_determined(drone, 1.0) >= 1
+    _clock_not_used(drone)
+
+
+@pytest.mark.xdist_group("real-classes-drone")
+def test_climbing_drone_nees_within_chi2_bounds(drone):
+    """Measured: ANEES 1.94 in [1.78, 4.54] over 12 anchors (seeds 1-3); over seeds 1-6 1.63, below the lower
+    bound 2.10 over 24: the covariance is conservative on this class (the richer families' shift and the
+    profile widening together exceed the spread of the errors)."""
+    assert _inside(_nees(drone))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# far-field cluster, ranges ~0.2 s late
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.mark.xdist_group("real-classes-far")
+def test_far_cluster_anchors_right_and_clock_found(far):
+    """Horizontal errors 0.11-0.28 m (seeds 1-3), the clock within 1 sigma: -0.201 +- 0.039 s (latency 0.215),
+    -0.166 +- 0.033 (0.186), -0.161 +- 0.037 (0.182). Over seeds 1-6 the estimate lags the latency by 4-34 ms
+    every time: the anchors' offsets (U(0, 0.3) m) leak into the scan (with no latency it finds +11..+20 ms
+    at sigma 1.5 ms and uses it; with every offset 0, -2..-4 ms, not used)."""
+    _right_or_not_determined(far, 0.5)
+    _clock_found(far)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="far-cluster: 3-dof ANEES 7.67 outside [1.78, 4.54] over 12 (seeds 1-6: 25.5 over 24, bounds [2.10, "
+    "4.06]); heights from a near-planar drive overconfident (seed 2 anchor 0: z 1.39 m off, sigma_z 0.70; seed 6 "
+    "anchor 1 the mirror basin, z 2.30 m off at sigma_z 0.13, NEES 470, deflation 1.0), and the horizontal 2-dof "
+    "ANEES 5.36 outside [1.03, 3.28] with errors of 0.11-0.28 m at sigmas of 0.03-0.2 m",
+)
+@pytest.mark.xdist_group("real-classes-far")
+def test_far_cluster_nees_within_chi2_bounds(far):
+    assert _inside(_nees(far))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# clock offset on a good 3-D geometry
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.mark.xdist_group("real-classes-clock")
+def test_clock_offset_found_and_anchors_right(clock):
+    """Measured (seeds 1-3): offsets -0.168 +- 0.011 s (latency 0.171), -0.110 +- 0.008 (0.108), -0.107 +-
+    0.007 (0.119), log Bayes factors ~100; horizontal errors 0.06-0.16 m."""
+    _clock_found(clock)
+    assert _right_or_not_determined(clock, 0.3) == 6 * len(SEEDS)
+
+
+@pytest.mark.xdist_group("real-classes-clock")
+def test_clock_offset_nees_within_chi2_bounds(clock):
+    """Measured: ANEES 2.77 in [1.98, 4.23] over 18 (seeds 1-3); over seeds 1-6 1.82, below the lower bound
+    2.25 over 36 (deflations of 5-25 on these anchors: conservative)."""
+    assert _inside(_nees(clock))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# direction-dependent antenna bias, handheld rig in a room
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.mark.xdist_group("real-classes-pattern")
+def test_antenna_pattern_anchors_right_or_not_determined(pattern):
+    """Measured: 24 of 24 determined (seeds 1-3), horizontal errors 0.03-0.27 m (seed 6 leaves two anchors not
+    determined: a weak horizontal direction at sigma 1.06 m)."""
+    assert _right_or_not_determined(pattern, 0.5) >= 1
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="antenna-pattern: the clock is used where the ranges are on time: offsets -0.020 +- 0.007 s, -0.030 +- "
+    "0.008, +0.032 +- 0.010 (log Bayes factors 1.11, 3.94, 2.05 > log 3); the same without the pattern (seeds 1, "
+    "2) and not with near-perfect poses (sigma_p 1 mm: +0.005, -0.001 s, not used): the poses' error (5 cm, 5 s "
+    "correlation), shared by every anchor, is counted once per anchor in the scan's summed cost",
+)
+@pytest.mark.xdist_group("real-classes-pattern")
+def test_antenna_pattern_clock_not_used(pattern):
+    _clock_not_used(pattern)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="antenna-pattern: 3-dof ANEES 8.28 outside [2.10, 4.06] over 24 (seeds 1-6: 6.36 over 46, bounds [2.33, "
+    "3.75]; horizontal 2-dof 6.92 outside [1.28, 2.88]); single anchors at NEES 15-34 with horizontal sigmas of "
+    "0.1-0.2 m: the pattern's shift of the fit is not in the covariance. The same scenario without the pattern: "
+    "1.62 over 30 (conservative)",
+)
+@pytest.mark.xdist_group("real-classes-pattern")
+def test_antenna_pattern_nees_within_chi2_bounds(pattern):
+    assert _inside(_nees(pattern))
