@@ -229,6 +229,11 @@ class UwbCalibration(BaseModel):
     sigma_range: Positive | None = Field(None, description="the range noise sigma > 0 [m] (default 0.1)")
     gamma_prior: Prior | None = Field(None, description="the ranging offset prior {mean [m], sigma > 0 [m]}")
     beta_prior: Prior | None = Field(None, description="the distance scale prior {mean, sigma > 0}")
+    antenna_pattern_sigma: Annotated[float, Field(ge=0)] | None = Field(
+        None,
+        description="the size >= 0 [m] of the antennas' direction-dependent range bias, per component of a bias "
+        "linear in the direction of arrival (default 0.05)",
+    )
     ranging_bias_per_tag: dict[str, float] | None = Field(
         None, description="a mapping tag id -> ranging bias [m] (true = measured + bias)"
     )

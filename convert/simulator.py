@@ -752,7 +752,17 @@ def uwb_calibration(cfg: SimConfig) -> dict:
         "sigma_range": cfg.sigma_range,
         "gamma_prior": {"mean": 0.0, "sigma": 1.0},
         "beta_prior": {"mean": 1.0, "sigma": 0.2},
+        "antenna_pattern_sigma": pattern_sigma(cfg.antenna_pattern),
     }
+
+
+def pattern_sigma(pattern: Sequence[Sequence[float]] | None) -> float:
+    """The per-component size of the simulated antennas' direction-dependent bias (rows b0, b1, phi, b2: the
+    direction-dependent part b1 cos(az - phi) + b2 sin(el)), 0 without one."""
+    if pattern is None:
+        return 0.0
+    a = np.asarray(pattern, float)
+    return float(np.sqrt(np.mean(a[:, 1] ** 2 + a[:, 3] ** 2) / 3.0))
 
 
 def world_truth(data: SimData, duration: float) -> dict:

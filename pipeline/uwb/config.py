@@ -9,6 +9,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from uwbcal.pipeline.core.names import INIT_METHODS, REFINE_METHODS
 
+ANTENNA_PATTERN_SIGMA = 0.05  # [m] a UWB antenna's direction-dependent range bias (per component)
+
 
 class UwbConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -75,6 +77,22 @@ class UwbConfig(BaseModel):
         description="prior sigma of a range offset [m] when the calibration states no gamma prior (what UWB "
         "hardware has: decimetres); an offset enters an anchor's model only when held-out ranges demand it",
     )
+    antenna_pattern_sigma_m: float | None = Field(
+        None,
+        ge=0,
+        description="evidence range model: size [m] of a UWB antenna's direction-dependent range bias (per "
+        "component of a bias linear in the direction of arrival); it mimics a displaced anchor, so the anchor's "
+        "covariance carries its effect; default the calibration's uwb.antenna_pattern_sigma, else 0.05 (0: left "
+        "out)",
+    )
+
+    def pattern_sigma(self, calibration: Mapping | None = None) -> float:
+        """The antenna pattern's size: config, else calibration uwb.antenna_pattern_sigma, else 0.05 m."""
+        if self.antenna_pattern_sigma_m is not None:
+            return float(self.antenna_pattern_sigma_m)
+        stated = ((calibration or {}).get("uwb") or {}).get("antenna_pattern_sigma")
+        return float(ANTENNA_PATTERN_SIGMA if stated is None else stated)
+
     gamma_prior_sigma: float | None = Field(None, gt=0, description="override uwb.gamma_prior.sigma")
     pose_sigma_floor_m: float = Field(0.0, ge=0, description="added to the pose position sigma at init")
     residual_factor: float = Field(

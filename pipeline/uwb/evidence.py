@@ -62,6 +62,7 @@ class FitSpec:
     block_s: float = 10.0  # time blocks of the deflation's batch means [s]
     robust: bool = True  # soft-L1 loss (False: least squares)
     deflate: float = 1.0  # set by `fit_anchor` from the base fit (`deflation`)
+    pattern_sigma: float = 0.05  # [m] size of an antenna pattern's direction-dependent bias (`pattern_cov`)
 
 
 @dataclass
@@ -248,8 +249,27 @@ def deflation(m: Model, xyz: np.ndarray, s2: np.ndarray, t_ns: np.ndarray | None
     ec = np.clip(e / max(spread, 1e-6), -3.0, 3.0)
     u = xyz - m.p
     u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
-    kt = noise_inflation(t_ns, ec, block_s=spec.block_s) if t_ns is not None else 1.0
+    kt = 1.0
+    if t_ns is not None:
+        order = np.argsort(t_ns, kind="stable")
+        kt = max(noise_inflation(t_ns, ec, block_s=spec.block_s), autocorrelation_time(ec[order]))
     return max(spread, 1.0) ** 2 * max(kt, _group_inflation(ec, direction_cells(u)))
+
+
+def autocorrelation_time(e: np.ndarray) -> float:
+    """The integrated autocorrelation time of a series (Geyer's initial positive sequence: 1 + 2 sum of the
+    autocorrelations, summed in pairs while a pair is positive), >= 1: how many of its samples carry the
+    information of one independent sample. Sharper than batch means where few blocks fit in the series."""
+    e = np.asarray(e, float) - np.mean(e)
+    n = len(e)
+    if n < 8 or not np.any(e):
+        return 1.0
+    f = np.fft.rfft(e, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f))[:n] / (np.dot(e, e))
+    pairs = acf[: n - n % 2].reshape(-1, 2).sum(axis=1)
+    stop = np.flatnonzero(pairs <= 0)
+    m = int(stop[0]) if len(stop) else len(pairs)
+    return max(2.0 * float(np.sum(pairs[:m])) - 1.0, 1.0)
 
 
 def _linear_start(xyz: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -412,6 +432,29 @@ def likelihood_widening(m: Model, data: tuple, spec: FitSpec, cov: np.ndarray, r
     return out
 
 
+def pattern_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> np.ndarray:
+    """What an antenna pattern of the hardware's size does to the position: a bias varying smoothly with the
+    direction of arrival u, b(u) = c . u with c ~ N(0, pattern_sigma^2 I), mimics a displaced anchor, so no fit
+    and no regrouping of the ranges can see it; its effect is the estimator's map of it, G U Sigma U^T G^T with
+    G the fit's linear map from ranges to parameters (priors included)."""
+    if spec.pattern_sigma <= 0:
+        return np.zeros((3, 3))
+    xyz, d, li, s2 = data
+    diff = m.p - xyz
+    rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
+    u = -diff / rho[:, None]  # anchor to tag
+    J = [m.beta * diff / rho[:, None]] + ([rho[:, None]] if m.name == "gamma+beta" else [])
+    if m.n_offsets:
+        J.append(np.eye(m.n_offsets)[li if m.name == "link" else np.zeros(len(d), np.int64)])
+    sd = np.sqrt(s2)
+    Jw = np.hstack(J) / sd[:, None]
+    A = m.info.copy()
+    A[:3, :3] += np.eye(3) / reach**2
+    G = np.linalg.solve(A, (Jw * (m.w / spec.deflate)[:, None]).T)[:3]  # (3, N): whitened ranges -> position
+    M = G @ (u / sd[:, None])
+    return spec.pattern_sigma**2 * M @ M.T
+
+
 def _open_height(cov: np.ndarray, max_sigma: float, reach: float) -> np.ndarray:
     """A height the ranges leave open (the weakest direction near vertical, its sigma over ``max_sigma``) gets
     the prior's sigma, the reach of the ranges: far beyond its curvature, the likelihood of a height seen from a
@@ -426,32 +469,43 @@ def _open_height(cov: np.ndarray, max_sigma: float, reach: float) -> np.ndarray:
 
 
 def jackknife_cov(m: Model, data: tuple, spec: FitSpec, blocks: int = JACKKNIFE_BLOCKS) -> np.ndarray:
-    """Block-jackknife covariance of the position: the chosen family refitted without each of ``blocks``
-    contiguous stretches of time, (K - 1) / K times the scatter of those fits. What errors shared by neighbouring
-    ranges do to the estimate (a pose error, multipath, an antenna pattern met along one part of the path), and
-    how much it leans on one stretch (the one pass near the anchor that sets its height); zero without stamps."""
+    """Grouped-jackknife covariance of the position, the wider of two groupings: contiguous stretches of time
+    (``blocks`` of them: a pose error, multipath met along one part of the path, the one pass near the anchor that
+    sets its height) and clusters of the direction of arrival (an antenna pattern): the chosen family refitted
+    without each group, (K - 1) / K times the scatter of those fits. Zero without stamps."""
     xyz, d, li, s2, t = data
     if t is None or len(d) < 3 * blocks:
         return np.zeros((3, 3))
-    fold = np.minimum(np.argsort(np.argsort(t, kind="stable")) * blocks // len(d), blocks - 1)
-    pos = np.array(
-        [
-            fit_family(
-                xyz[fold != k],
-                d[fold != k],
-                li[fold != k],
-                len(m.g),
-                s2[fold != k],
-                m.name,
-                m.p,
-                spec,
-                warm=m,
-            ).p
-            for k in range(blocks)
-        ]
+    u = xyz - m.p
+    u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
+    groupings = (
+        np.minimum(np.argsort(np.argsort(t, kind="stable")) * blocks // len(d), blocks - 1),
+        direction_cells(u),
     )
-    dp = pos - pos.mean(axis=0)
-    return (blocks - 1) / blocks * dp.T @ dp
+    out = np.zeros((3, 3))
+    for group in groupings:
+        ids = np.unique(group)
+        if len(ids) < 3:
+            continue
+        pos = np.array(
+            [
+                fit_family(
+                    xyz[group != k],
+                    d[group != k],
+                    li[group != k],
+                    len(m.g),
+                    s2[group != k],
+                    m.name,
+                    m.p,
+                    spec,
+                    warm=m,
+                ).p
+                for k in ids
+            ]
+        )
+        dp = pos - pos.mean(axis=0)
+        out += _psd((len(ids) - 1) / len(ids) * dp.T @ dp - out)
+    return out
 
 
 def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> SearchResult:
@@ -461,6 +515,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> Sea
     cov, excess = mixture_cov(models, best, reach)
     wide = likelihood_widening(best, data[:4], spec, cov, reach)
     wide[:3, :3] += _psd(jackknife_cov(best, data, spec) - wide[:3, :3])
+    wide[:3, :3] += pattern_cov(best, data[:4], spec, reach)
     wide = _open_height(wide, spec.max_sigma, reach)
     excess = excess + (wide - cov)[:3, :3]
     cov = wide

@@ -232,6 +232,7 @@ def evidence_spec(config: UwbConfig, sigma: float, calibration: Mapping | None, 
         min_ranges=max(config.min_ranges, 30),
         max_ranges=config.max_init_ranges,
         robust=method == "ri-robust",
+        pattern_sigma=config.pattern_sigma(calibration),
     )
 
 
