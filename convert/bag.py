@@ -48,6 +48,7 @@ from uwbcal.convert.recording import (
     RecordingWriter,
     written_by_uwbcal,
 )
+from uwbcal.convert.sample_times import sample_times
 from uwbcal.convert.sources import (
     MAX_RANGE_M,
     Drop,
@@ -82,6 +83,8 @@ GT_POSE_TYPES = (
 GT_POSITION_TYPES = ("geometry_msgs/msg/PointStamped",)
 GT_NAME_HINTS = ("groundtruth", "ground_truth", "gt", "vicon", "leica", "mocap", "optitrack", "qualisys")
 ROLES = ("imu", "cam0", "cam1", "uwb", "odometry", "groundtruth")
+# roles whose sensor samples at a fixed rate: their arrival stamps are put back to sample times (`sample_times`)
+FIXED_RATE_ROLES = {"imu": TOPIC_IMU, "cam0": TOPIC_CAM0, "cam1": TOPIC_CAM1}
 
 
 def norm_type(msgtype: str) -> str:
@@ -437,6 +440,16 @@ class Converter:
         self.zero_cov = 0
         self.image_sizes: dict[str, tuple[int, int]] = {}  # camera role -> (width, height) of its first image
         self.imu_span: list[int] = []  # count, first and last stamp of the IMU samples written
+        # fixed-rate role -> (its sorted bag stamps, their sample times): `bag_sample_times`
+        self.sample_times: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def _sample_time(self, role: str, t: int) -> int:
+        """The sample time of a fixed-rate role's stamp ``t`` (``t`` itself when not re-stamped)."""
+        raw, fixed = self.sample_times.get(role, (None, None))
+        if raw is None:
+            return t
+        i = int(np.searchsorted(raw, t))
+        return int(fixed[i]) if i < len(raw) and raw[i] == t else t
 
     def imu_rate_hz(self) -> float | None:
         n, t0, t1 = (self.imu_span + [0, 0, 0])[:3]
@@ -454,7 +467,7 @@ class Converter:
             self.stamp_sources.setdefault(bag_topic, Counter())[src] += 1
             self.ranges.add(r, bag_t)
             return
-        t = _stamp(m, bag_t)
+        t = self._sample_time(role, _stamp(m, bag_t))
         if role == "imu":
             self._once(TOPIC_IMU, t)
             gyro, acc = _vec(m.angular_velocity), _vec(m.linear_acceleration)
@@ -630,6 +643,7 @@ def convert_bag(
             conv = Converter(
                 w, lambda role, size, topic: check_image_size(given_cal, role, size, topic, cal_source)
             )
+            conv.sample_times = bag_sample_times(bag, use, run, lo, hi)
             _convert_messages(bag, use, conv, run, lo, hi)
             _account_unread(run.accounts, drops, start_s, end_s, bag.recovery is not None)
             raw_ranges, ranges = _write_bag_ranges(w, conv, run, max_range, time_offset)
@@ -679,6 +693,35 @@ def _accounts(topics: dict[str, tuple[str, int]], roles: dict[str, str], drops: 
             drops.add(t, f"topic not mapped (type {ty})", n)
             accounts[t]["dropped"] = n
     return accounts
+
+
+def bag_sample_times(
+    bag: BagReader, use: list, run: _BagRun, start: int | None = None, stop: int | None = None
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """A first pass over the fixed-rate topics (IMU, cameras): their stamps, and the sample times the one-way
+    delay model gives them (`sample_times`); samples delivered late are noted in the summary. Per role: (sorted
+    unique stamps, sample times). Messages that do not decode are left to the conversion pass to drop."""
+    fixed = [c for c in use if run.roles[c.topic] in FIXED_RATE_ROLES]
+    stamps: dict[str, list[int]] = {}
+    for conn, bag_t, raw in bag.messages(fixed, start, stop):
+        dec = bag.decoder_for(conn, raw)
+        if isinstance(dec, str):
+            continue
+        try:
+            t = _stamp(dec(raw), bag_t)
+        except Exception:  # noqa: BLE001 (the conversion pass drops and counts it)
+            continue
+        stamps.setdefault(run.roles[conn.topic], []).append(t)
+    out = {}
+    origin = min((min(v) for v in stamps.values() if v), default=0)
+    for role, ts in sorted(stamps.items()):
+        raw = np.unique(np.asarray(ts, np.int64))
+        res = sample_times(raw)
+        note = res.note(FIXED_RATE_ROLES[role], origin)
+        if note is not None:
+            run.drops.note(note)
+        out[role] = (raw, res.t_ns)
+    return out
 
 
 def _convert_messages(
