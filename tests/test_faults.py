@@ -867,6 +867,65 @@ for conv, topic in (("euroc", "/imu0"), ("ntu-viral", "/imu/imu")):
             names=named("b.bag"),
         )
 
+
+# -- convert bag: ids beyond the recording's fields, clock jumps in a sensor's stamps --------------------------------
+def edited_bag(fmt: str, conv: str = "bag", **edits):
+    def build(c: Ctx) -> list[str]:
+        topic = {"bag": "/imu", "euroc": "/imu0", "ntu-viral": "/imu/imu"}[conv]
+        bag = fi.small_bag(fmt, c.p("b.bag" if fmt == "ros1" else "b"), imu_topic=topic, **edits)
+        extra = ["--uwb", "/uwb/range"] if conv == "bag" else []
+        return ["convert", conv, str(bag), "-o", str(c.p("out.mcap")), *extra]
+
+    return build
+
+
+def imu_sorted_and_noted(c: Ctx, res) -> None:
+    t = RecordingReader(c.p("out.mcap")).read_imu(TOPIC_IMU).t_ns
+    assert len(t) == fi.BAG_N and (np.diff(t) > 0).all() and "/imu: 1 out-of-order stamps" in res.stdout, (
+        res.stdout
+    )
+
+
+for fmt, name in (("ros1", "b.bag"), ("mcap", "b")):
+    for cid, frame in (
+        ("2^63", lambda i: f"anchor_{2**63}"),
+        ("2^64+5", lambda i: f"anchor_{2**64 + 5}"),
+        ("30-digits", lambda i: "anchor_" + "9" * 30),
+        ("one-of-60-at-2^32", lambda i: "anchor_4294967296" if i == 30 else f"anchor_{i % 3}"),
+    ):
+        case(f"bag-{fmt}-anchor-id-{cid}", [1], "id ranges", edited_bag(fmt, frame=frame), names=named(name))
+    case(
+        f"bag-{fmt}-imu-clock-jump-back-10s",
+        [0],
+        "out-of-order stamps",
+        edited_bag(fmt, imu_stamp=lambda i, t: t - 10**10 if i >= 30 else t),
+        names=lambda c, n=name: f"{c.p(n)}: /imu: out-of-order stamps",
+    )
+    case(
+        f"bag-{fmt}-imu-clock-jump-back-2.05s-overlapping",
+        [0],
+        "out-of-order stamps",
+        edited_bag(fmt, imu_stamp=lambda i, t: t - 2_050_000_000 if i >= 30 else t),
+        names=lambda c, n=name: f"{c.p(n)}: /imu: out-of-order stamps",
+    )
+    case(
+        f"bag-{fmt}-imu-one-late-sample",
+        [0],
+        "out-of-order stamps",
+        edited_bag(fmt, imu_stamp=lambda i, t: t + 250_000_000 if i == 20 else t),
+        "ok",
+        check=imu_sorted_and_noted,
+    )
+for conv in ("euroc", "ntu-viral"):
+    case(
+        f"{conv}-bag-imu-clock-jump-back-5s",
+        [0],
+        "out-of-order stamps",
+        edited_bag("ros1", conv, imu_stamp=lambda i, t: t - 5 * 10**9 if i >= 25 else t),
+        names=lambda c: f"{c.p('b.bag')}: /imu: out-of-order stamps",
+    )
+
+
 # -- convert bag --calibration: one validated calibration model (the YAML, the key and the fix named) ------------
 R_IMU_CAM = [
     [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
@@ -1000,6 +1059,190 @@ case(
     "ok",
     check=calibrated,
 )
+
+
+# hidden-variant pass: more malformed transforms, bounds, integer tag ids, merge keys
+def _mirror_column(k: int):
+    return rot(
+        lambda M: [[-v if j == k else v for j, v in enumerate(r)] if i < 3 else r for i, r in enumerate(M)]
+    )
+
+
+def _entry(i: int, j: int, value: float):
+    return rot(
+        lambda M: [[value if (a, b) == (i, j) else v for b, v in enumerate(r)] for a, r in enumerate(M)]
+    )
+
+
+CAL_BAD_2 = {
+    "rotation-scaled-2": scaled(2.0),
+    "rotation-negated": scaled(-1.0),
+    "rotation-column-mirrored": _mirror_column(2),
+    "rotation-off-2e-3": _entry(1, 1, R_IMU_CAM[1][1] + 0.002),
+    "rotation-nan": _entry(1, 1, float("nan")),
+    "rotation-minus-inf": _entry(2, 0, float("-inf")),
+    "transform-3x3": rot(lambda M: [r[:3] for r in M[:3]]),
+    "transform-4x3": rot(lambda M: [r[:3] for r in M]),
+    "transform-nested-deeper": rot(lambda M: [[[v] for v in r] for r in M]),
+    "transform-ragged": rot(lambda M: [M[0], M[1][:3], M[2], M[3]]),
+    "transform-empty": rot(lambda M: []),
+    "transform-opencv-3x4": rot(lambda M: {"rows": 3, "cols": 4, "data": sum(M, [])[:12]}),
+    "intrinsics-missing": cal_set("cameras", "cam0", "intrinsics"),
+    "intrinsics-nan-focal": cal_set(
+        "cameras", "cam0", "intrinsics", value=[float("nan"), 457.3, 367.2, 248.4]
+    ),
+    "intrinsics-nested": cal_set("cameras", "cam0", "intrinsics", value=[[458.6, 457.3], [367.2, 248.4]]),
+    "uwb-tags-text": cal_set("uwb", "tags", value="5"),
+    "uwb-tags-list": cal_set("uwb", "tags", value=[{"antennas": [[0.0, 0.0, 0.0]]}]),
+    "uwb-antennas-flat": cal_set("uwb", "tags", value={"0": {"antennas": [0.1, 0.0, 0.05]}}),
+    "uwb-sigma-zero": cal_set("uwb", "sigma_range", value=0.0),
+    "uwb-sigma-nan": cal_set("uwb", "sigma_range", value=float("nan")),
+    "uwb-sigma-1e300": cal_set("uwb", "sigma_range", value=1e300),
+    "uwb-sigma-50m": cal_set("uwb", "sigma_range", value=50.0),
+    "uwb-beta-mean-zero": cal_set("uwb", "beta_prior", value={"mean": 0.0, "sigma": 0.01}),
+    "uwb-beta-mean-negative": cal_set("uwb", "beta_prior", value={"mean": -1.0, "sigma": 0.01}),
+    "uwb-gamma-sigma-zero": cal_set("uwb", "gamma_prior", value={"mean": 0.0, "sigma": 0.0}),
+    "imu-noise-negative": cal_set("imu", "gyroscope_noise_density", value=-1.7e-4),
+    "imu-noise-1e300": cal_set("imu", "accelerometer_noise_density", value=1e300),
+    "imu-rate-zero": cal_set("imu", "rate_hz", value=0),
+    "odometry-noise-negative": cal_set("odometry", value={"noise": {"initial_sigma_p": -1.0}}),
+}
+for cid, edit in CAL_BAD_2.items():
+    case(f"calibration-{cid}", [0], "calibration YAML", with_calibration(edit), names=named("cal.yaml"))
+case(
+    "calibration-int-tag-keys",
+    [0],
+    "calibration YAML",
+    with_calibration(raw=yaml.safe_dump(CALIBRATION).replace("'0':", "0:")),
+    "ok",
+    check=calibrated,
+)
+case(
+    "calibration-merge-key",
+    [0],
+    "calibration YAML",
+    with_calibration(
+        raw=yaml.safe_dump(CALIBRATION).replace("  sigma_range: 0.1\n", "  <<: {sigma_range: 0.1}\n")
+    ),
+    "ok",
+    check=calibrated,
+)
+for cid, raw, line in (
+    ("tab-indent-line", "uwb:\n  sigma_range: 0.1\n\ttags: {}\n", "line 3"),
+    ("bad-flow-line", "imu: {}\nuwb: {sigma_range: [}\n", "line 2"),
+):
+    case(
+        f"calibration-raw-{cid}",
+        [0],
+        "calibration YAML",
+        with_calibration(raw=raw),
+        names=lambda c, n=line: f"{c.p('cal.yaml')}: invalid YAML (calibration yaml): {n}",
+    )
+
+
+def images_bag(size, cal: bool = True):
+    def build(c: Ctx) -> list[str]:
+        bag = fi.small_bag("ros1", c.p("b.bag"), image_size=size)
+        args = ["convert", "bag", str(bag), "-o", str(c.p("out.mcap")), "--uwb", "/uwb/range"]
+        if cal:
+            c.write("cal.yaml", yaml.safe_dump(CALIBRATION))
+            args += ["--calibration", str(c.p("cal.yaml"))]
+        return args
+
+    return build
+
+
+def images_kept(n: int, dropped: str):
+    def check(c: Ctx, res) -> None:
+        r = RecordingReader(c.p("out.mcap"))
+        assert r.topics()["/cam0/image_raw"].count == n and dropped in res.stdout, res.stdout
+
+    return check
+
+
+case(
+    "bag-images-smaller-than-calibration",
+    [0],
+    "calibration YAML",
+    images_bag(lambda i: (320, 240)),
+    names=named("cal.yaml"),
+)
+case(
+    "bag-images-rotated-vs-calibration",
+    [0],
+    "calibration YAML",
+    images_bag(lambda i: (480, 752)),
+    names=named("cal.yaml"),
+)
+for cid, cal in (("calibrated", True), ("uncalibrated", False)):
+    case(
+        f"bag-images-change-size-{cid}",
+        [0],
+        "calibration YAML",
+        images_bag(lambda i: (752, 480) if i < 20 else (320, 240), cal),
+        "ok",
+        check=images_kept(10, "image of 320x240, not the 752x480 of the camera's first image"),
+    )
+
+
+# EuRoC's sensor.yaml files through the same calibration model (the sensor.yaml and its key named)
+def euroc_yaml(imu=None, cam=None, size=(752, 480)):
+    def build(c: Ctx) -> list[str]:
+        root = fi.euroc_folder(
+            c.p("seq"), imu(fi.EUROC_IMU_YAML) if imu else fi.EUROC_IMU_YAML,
+            cam(fi.EUROC_CAM_YAML) if cam else fi.EUROC_CAM_YAML, size,
+        )  # fmt: skip
+        return ["convert", "euroc", str(root), "-o", str(c.p("out.mcap"))]
+
+    return build
+
+
+def sub(a: str, b: str):
+    return lambda text: text.replace(a, b, 1)
+
+
+IMU_YAML = "seq/mav0/imu0/sensor.yaml"
+CAM_YAML = "seq/mav0/cam0/sensor.yaml"
+for cid, edit in (
+    ("noise-negative", sub("gyroscope_noise_density: 1.7e-4", "gyroscope_noise_density: -1.7e-4")),
+    ("noise-zero", sub("accelerometer_noise_density: 2.0e-3", "accelerometer_noise_density: 0")),
+    ("noise-text", sub("gyroscope_noise_density: 1.7e-4", "gyroscope_noise_density: abc")),
+    ("noise-nan", sub("gyroscope_noise_density: 1.7e-4", "gyroscope_noise_density: .nan")),
+    ("noise-list", sub("gyroscope_noise_density: 1.7e-4", "gyroscope_noise_density: [1, 2]")),
+    ("rate-zero", sub("rate_hz: 200", "rate_hz: 0")),
+    ("T_BS-scaled-2", sub("data: [1.0,", "data: [2.0,")),
+    ("T_BS-12-numbers", sub(", 0.0, 0.0, 0.0, 1.0]", "]")),
+    ("T_BS-missing", lambda t: t.split("T_BS")[0] + "gyroscope" + t.split("gyroscope", 1)[1]),
+):
+    case(f"euroc-imu-yaml-{cid}", [0], "calibration YAML", euroc_yaml(imu=edit), names=named(IMU_YAML))
+for cid, edit in (
+    ("T_BS-mirrored", sub("0.999660727178", "-0.999660727178")),
+    ("T_BS-scaled", sub("data: [0.0148655429818", "data: [0.0297310859636")),
+    ("T_BS-nan", sub("-0.0216401454975", ".nan")),
+    ("T_BS-3x4", lambda t: t.replace("rows: 4", "rows: 3").replace(", 0.0, 0.0, 0.0, 1.0]", "]")),
+    ("intrinsics-nan", sub("[458.654,", "[.nan,")),
+    ("intrinsics-negative", sub("[458.654,", "[-458.654,")),
+    ("intrinsics-number", sub("[458.654, 457.296, 367.215, 248.375]", "5")),
+    ("intrinsics-3", sub("[458.654, 457.296, 367.215, 248.375]", "[458.654, 457.296, 367.215]")),
+    ("distortion-text", sub("[-0.28340811,", "[x,")),
+    ("distortion-equidistant", sub("radial-tangential", "equidistant")),
+    ("resolution-640", sub("[752, 480]", "[640, 480]")),
+    ("resolution-text", sub("[752, 480]", "big")),
+    ("rate-negative", sub("rate_hz: 20", "rate_hz: -20")),
+):
+    case(f"euroc-cam-yaml-{cid}", [0], "calibration YAML", euroc_yaml(cam=edit), names=named(CAM_YAML))
+case("euroc-images-half-size", [0], "calibration YAML", euroc_yaml(size=(376, 240)), names=named(CAM_YAML))
+
+
+def euroc_calibrated(c: Ctx, res) -> None:
+    cal = RecordingReader(c.p("out.mcap")).calibration
+    cam = cal["cameras"]["cam0"]
+    assert cam["resolution"] == [752, 480] and cam["distortion_model"] == "radtan", cam
+    assert cal["imu"]["gyroscope_noise_density"] == 1.7e-4 and cal["imu"]["noise_origin"] == "allan", cal
+
+
+case("euroc-sensor-yaml-ok", [0], "calibration YAML", euroc_yaml(), "ok", check=euroc_calibrated)
+
 
 IMU_HEADER = "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n"
 SENSOR_YAML = (
