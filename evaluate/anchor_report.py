@@ -149,19 +149,52 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
             u["reason"] = (
                 "; ".join(p for p in [head, *extra] if p) or "not determined (no reason given by the run)"
             )
-    states_path = run_dir / "anchor_states.json"
-    states = (
-        artefacts.read_json(states_path, artefacts.ANCHOR_STATES) if artefacts.present(states_path) else {}
-    )
-    for aid in out.estimates:
-        s = states.get(aid) if refine else None
-        if s is None and not refine and aid in chosen and chosen[aid].get("cov") is not None:
-            s = {"x": chosen[aid].get("x", chosen[aid].get("estimate")), "P": chosen[aid]["cov"]}
-        if s is not None and s.get("x") is not None and s.get("P") is not None:
-            x, P = np.asarray(s["x"], float), np.asarray(s["P"], float)
+    if refine:
+        out.states = _refine_states(run_dir, out, refine)
+    for aid in out.estimates if not refine else ():
+        info = chosen.get(aid) or {}
+        if info.get("cov") is not None:
+            x, P = np.asarray(info.get("x", info.get("estimate")), float), np.asarray(info["cov"], float)
             if P.ndim == 2 and P.shape[0] >= 3 and P.shape[0] == P.shape[1] and np.isfinite(P[:3, :3]).all():
                 out.states[aid] = (x, P)
     return out
+
+
+STATE_TOL = 1e-5  # anchors.csv keeps 6 decimals of the state anchor_states.json holds
+
+
+def _refine_states(
+    run_dir: Path, out: RunAnchors, refine: list[dict]
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The refined anchors' states from anchor_states.json, which the refinement writes with anchors.csv's refine
+    rows: an anchor estimated there without its state, a state of an anchor not estimated there, or a state
+    that is not the row's estimate is damage (σ and NEES would be dropped, or taken from another run)."""
+    path = run_dir / "anchor_states.json"
+    fix = f"anchors.csv and anchor_states.json are not of one refinement — re-run it (uwbcal run REC -o {run_dir} --stages refine,localize,evaluate)"
+    if not artefacts.present(path):
+        raise artefacts.corrupt(path, "missing, but anchors.csv holds refine rows", fix)
+    states = artefacts.read_json(path, artefacts.ANCHOR_STATES)
+    lines = {str(r["anchor"]): r["_line"] for r in refine}
+    extra = sorted(set(states) - set(lines), key=_key)
+    if extra:
+        raise artefacts.corrupt(path, f"anchor {extra[0]}: a state, but no refine row in anchors.csv", fix)
+    got: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for aid, e in out.estimates.items():
+        if aid not in lines:  # estimated by the initialiser alone: no refined state
+            continue
+        if aid not in states:
+            raise artefacts.corrupt(
+                path, f"anchor {aid}: missing (anchors.csv line {lines[aid]} has its estimate)", fix
+            )
+        x, P = np.asarray(states[aid]["x"], float), np.asarray(states[aid]["P"], float)
+        row = np.r_[e["position"], e["beta"], e["gamma"]]
+        if np.abs(x[:5] - row).max() > STATE_TOL * max(1.0, float(np.abs(row).max())):
+            raise artefacts.corrupt(
+                path, f"anchor {aid}: x {np.round(x[:3], 6).tolist()} is not anchors.csv line {lines[aid]}'s "
+                f"{np.round(row[:3], 6).tolist()}", fix,
+            )  # fmt: skip
+        got[aid] = (x, P)
+    return got
 
 
 def aligned_anchors(run: RunAnchors, al) -> RunAnchors:

@@ -1613,6 +1613,9 @@ def moved_anchor(fmt: str, earlier: str | None = None):
                 f[3] = str(float(f[3]) + 1.0)
             out.append(",".join(f))
         (run / "anchors.csv").write_text("\n".join(out) + "\n")
+        states = json.loads((run / "anchor_states.json").read_text())  # the refined state moves with its row
+        states["0"]["x"][0] += 1.0
+        (run / "anchor_states.json").write_text(json.dumps(states))
         if earlier:
             (run / f"results.{earlier}").write_text("an earlier evaluation's table")
         return ["evaluate", str(run), "--format", fmt]
@@ -2235,6 +2238,8 @@ def foreign_stage(stage: str, cmd: str, recording: dict | None):
         else:
             st[stage]["recording"] = recording
         (run / "stages.json").write_text(json.dumps(st))
+        if cmd == "export-anchors":
+            return ["export", str(run), "-o", str(c.p("tum")), "--format", "anchors-json"]
         return ["evaluate", str(run)] if cmd == "evaluate" else ["export", str(run), "-o", str(c.p("tum"))]
 
     return build
@@ -2364,6 +2369,85 @@ case(
     ONE_REC,
     config_names_other,
     names=lambda c: str(c.p("run") / "stages.json"),
+    new_ok=RUN_FILES,
+)
+
+
+# hidden-variant pass: artefacts that validate alone but not together, or whose missing keys dropped results
+for stage in ("vio", "refine"):
+    for what, rec in (("other", OTHER), ("none", None)):
+        case(
+            f"export-anchors-stage-{stage}-recording-{what}",
+            [0],
+            ONE_REC,
+            foreign_stage(stage, "export-anchors", rec),
+            names=lambda c: str(c.p("run") / "stages.json"),
+            new_ok=RUN_FILES,
+        )
+
+
+def _drop_first_anchor(d: dict) -> dict:
+    return {a: s for i, (a, s) in enumerate(d.items()) if i}
+
+
+def _move_first_anchor(d: dict) -> dict:
+    a = next(iter(d))
+    return dict(d, **{a: dict(d[a], x=[d[a]["x"][0] + 1.0, *d[a]["x"][1:]])})
+
+
+def _two_recordings(d: dict) -> dict:
+    return dict(d, refine=dict(d["refine"], recording=OTHER))
+
+
+TOGETHER = {
+    "anchor_states.json": {
+        "empty-object": (b"{}", ("evaluate", "report")),
+        "one-anchor-missing": (json_edit(_drop_first_anchor), ("evaluate", "report")),
+        "state-not-the-csv-estimate": (json_edit(_move_first_anchor), ("evaluate", "report")),
+        "extra-anchor": (json_edit(lambda d: dict(d, **{"99": _first(d)})), ("evaluate",)),
+    },
+    "init.json": {
+        "empty-object": (b"{}", ("evaluate", "report")),
+        "chosen-null": (json_edit(lambda d: dict(d, chosen=None)), ("evaluate", "report")),
+        "chosen-not-run": (json_edit(lambda d: dict(d, chosen="magic")), ("evaluate",)),
+        "methods-missing": (
+            json_edit(lambda d: {k: v for k, v in d.items() if k != "methods"}),
+            ("evaluate",),
+        ),
+    },
+    "health.json": {
+        "values-5": (json_edit(lambda d: dict.fromkeys(d, 5)), ("evaluate", "report")),
+        "failed-missing": (json_edit(lambda d: dict.fromkeys(d, {})), ("evaluate",)),
+        "failed-text": (json_edit(lambda d: {k: {"failed": "no"} for k in d}), ("evaluate",)),
+        "array": (b"[]", ("evaluate",)),
+    },
+    "stages.json": {
+        "empty-object": (b"{}", ("evaluate", "export", "export-anchors")),
+        "two-recordings": (json_edit(_two_recordings), ("evaluate", "export-anchors")),
+    },
+    "metrics.json": {
+        "anchors-5": (json_edit(lambda d: dict(d, anchors=5)), ("diff",)),
+        "estimate-2d": (json_edit(lambda d: dict(d, anchors={"0": {"estimate": [1.0, 2.0]}})), ("diff",)),
+        "warnings-5": (json_edit(lambda d: dict(d, warnings=5)), ("diff",)),
+    },
+}
+for name, variants in TOGETHER.items():
+    for variant, (data, cmds) in variants.items():
+        for cmd in cmds:
+            case(
+                f"artefact-{name}-{variant}-{cmd}",
+                [0],
+                "artefact shapes",
+                corrupt(name, data, cmd),
+                names=lambda c, n=name: str(c.p("run") / n),
+                new_ok=RUN_FILES,
+            )
+case(
+    "artefact-anchor_states.json-deleted-evaluate",
+    [0],
+    "artefact shapes",
+    without("anchor_states.json", "evaluate"),
+    names=lambda c: str(c.p("run") / "anchor_states.json"),
     new_ok=RUN_FILES,
 )
 

@@ -308,8 +308,25 @@ class InitAnchor(_Open):
 
 
 class InitInfo(_Open):
-    chosen: str | None = None
-    methods: dict[str, dict[str, InitAnchor]] = {}
+    """init.json: the initialiser the later stages took and every initialiser's result per anchor."""
+
+    chosen: str
+    methods: dict[str, dict[str, InitAnchor]]
+
+    @model_validator(mode="after")
+    def _chosen_ran(self) -> InitInfo:
+        if self.chosen not in self.methods:
+            ran = ", ".join(self.methods) or "none"
+            raise ValueError(f"chosen {self.chosen!r} is not among the methods ({ran})")
+        return self
+
+
+class HealthEntry(_Open):
+    """One stage in health.json: whether the pose source's health checks failed (and, if so, which and when)."""
+
+    model_config = ConfigDict(extra="allow", strict=True)
+    failed: bool
+    reinits: list[dict] = []
 
 
 class StageEntry(_Open):
@@ -357,6 +374,7 @@ AnchorId = Annotated[str, AfterValidator(_anchor_id)]
 ANCHOR_STATES = Shape(TypeAdapter(dict[AnchorId, AnchorState]), "anchor")
 INIT = Shape(TypeAdapter(InitInfo))
 STAGES = Shape(TypeAdapter(dict[str, StageEntry]), "stage")
+HEALTH = Shape(TypeAdapter(dict[str, HealthEntry]), "stage")
 # trajectory.npz and the stages' histories (vio.npz, refine.npz, localize.npz): a pose per stamp, its covariance
 TRAJECTORY_ARRAYS = {
     "t_ns": (None,),
