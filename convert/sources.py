@@ -171,9 +171,11 @@ def read_csv_strings(path: str | Path, columns: Sequence[str] | int, *, what: st
         return df.select(df.columns[:columns])
     missing = [c for c in columns if c not in found]
     if missing:
+        sep = next((n for c, n in (("\t", "tabs"), (";", "';'")) if len(found) == 1 and c in found[0]), None)
+        hint = f"; the fields are separated by {sep}: save it with ',' between fields" if sep else ""
         raise InputError(
             f"{path}: header: expected columns {','.join(columns)}; found {','.join(found)} "
-            f"(missing {','.join(missing)})"
+            f"(missing {','.join(missing)}){hint}"
         )
     return df.select(list(columns))
 
@@ -189,27 +191,47 @@ def _ragged_line(path: Path) -> str | None:
     for i, row in enumerate(rows, start=2):
         if row and len(row) != len(header):
             fix = "quote or remove the extra fields"
-            if len(header) == 1 and ";" in header[0]:
+            if len(header) == 1 and "\t" in header[0]:
+                fix = "the fields are separated by tabs: save it with ',' between fields and '.' as the decimal point"
+            elif len(header) == 1 and ";" in header[0]:
                 fix = "the fields are separated by ';' (a decimal-comma export): save it with ',' between fields and '.' as the decimal point"
-            elif len(row) > len(header) and any(f.strip().isdigit() for f in row[len(header) - 1 :]):
+            elif len(row) > len(header) and _split_decimal(row):
                 fix = "a decimal comma? write numbers with '.' as the decimal point (4.05, not 4,05)"
             return f"line {i}: {len(row)} fields, the header has {len(header)}; {fix}"
     return None
+
+
+def _split_decimal(row: list[str]) -> bool:
+    """Two neighbouring fields that read as one number with a decimal comma ('-3', '5' of -3,5)."""
+    f = [x.strip() for x in row]
+    return any(
+        re.fullmatch(r"[-+]?\d+", a) and re.fullmatch(r"\d+", b) for a, b in zip(f, f[1:], strict=False)
+    )
 
 
 def _fmt_cols(columns: Sequence[str] | int) -> str:
     return f"{columns} numeric columns" if isinstance(columns, int) else ",".join(columns)
 
 
-def _bad_row(path: Path, name: str, raw: pl.Series, parsed: pl.Series, what: str) -> InputError:
+LINE = "_line"  # a table's column of file line numbers, where rows are not lines 2, 3, ... (TUM: no header, comments)
+
+
+def _bad_row(
+    path: Path, name: str, raw: pl.Series, parsed: pl.Series, what: str, df: pl.DataFrame
+) -> InputError:
     bad = (parsed.is_null() & raw.is_not_null()) | raw.is_null()
     i = int(np.flatnonzero(bad.to_numpy())[0])
+    line = int(df[LINE][i]) if LINE in df.columns else i + 2
     text = raw[i]
-    if isinstance(text, str) and re.fullmatch(r"[-+]?\d+,\d+", text):
+    if text is None:
+        return InputError(
+            f"{path}: line {line}: column '{name}': empty (a blank line?); remove the line or fill in the value"
+        )
+    if re.fullmatch(r"[-+]?\d+,\d+", text):
         fix = f"a decimal comma: write {text.replace(',', '.')!r}"
     else:
         fix = "fix or remove the row"
-    return InputError(f"{path}: line {i + 2}: column '{name}': {text!r} is not {what}; {fix}")
+    return InputError(f"{path}: line {line}: column '{name}': {text!r} is not {what}; {fix}")
 
 
 def to_float(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
@@ -218,7 +240,7 @@ def to_float(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
     raw = df[name].str.strip_chars()
     parsed = raw.cast(pl.Float64, strict=False)
     if parsed.null_count():
-        raise _bad_row(path, name, raw, parsed, "a number")
+        raise _bad_row(path, name, raw, parsed, "a number", df)
     return parsed.to_numpy()
 
 
@@ -228,7 +250,7 @@ def to_int(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
     raw = df[name].str.strip_chars()
     parsed = raw.cast(pl.Int64, strict=False)
     if parsed.null_count():
-        raise _bad_row(path, name, raw, parsed, "an integer")
+        raise _bad_row(path, name, raw, parsed, "an integer", df)
     return parsed.to_numpy()
 
 
@@ -273,9 +295,8 @@ def parse_stamps(path: Path, df: pl.DataFrame, name: str) -> RawStamps:
     frac = frac.cast(pl.Int64, strict=False)
     ok = whole.is_not_null() & frac.is_not_null() & frac_ok.fill_null(False) & (whole >= 0).fill_null(False)
     if not ok.all():
-        raise _bad_row(
-            path, name, raw, whole.zip_with(ok, pl.Series([None] * len(raw), dtype=pl.Int64)), "a time stamp"
-        )
+        nulls = pl.Series([None] * len(raw), dtype=pl.Int64)
+        raise _bad_row(path, name, raw, whole.zip_with(ok, nulls), "a time stamp", df)
     sign = np.where(raw.str.starts_with("-").to_numpy(), -1, 1)
     return RawStamps(whole.to_numpy(), frac.to_numpy(), sign, bool(raw.str.contains(".", literal=True).any()))
 
@@ -310,20 +331,23 @@ def read_tum(path: str | Path) -> PoseTable:
     import polars as pl
 
     path = Path(path)
-    rows = [
-        ln.split()
-        for ln in read_text(path, "TUM trajectory").splitlines()
+    numbered = [
+        (n, ln.split())
+        for n, ln in enumerate(read_text(path, "TUM trajectory").splitlines(), start=1)
         if ln.strip() and not ln.lstrip().startswith("#")
     ]
-    if not rows:
+    if not numbered:
         raise InputError(f"{path}: no poses; expected TUM lines 't x y z qx qy qz qw'")
-    bad = next((i for i, r in enumerate(rows) if len(r) != 8), None)
+    bad = next(((n, r) for n, r in numbered if len(r) != 8), None)
     if bad is not None:
+        fix = "a decimal comma? write '.' as the decimal point" if any("," in f for f in bad[1]) else ""
         raise InputError(
-            f"{path}: record {bad + 1}: {len(rows[bad])} fields, expected 8 (t x y z qx qy qz qw)"
+            f"{path}: line {bad[0]}: {len(bad[1])} fields, expected 8 (t x y z qx qy qz qw)"
+            + (f"; {fix}" if fix else "")
         )
     names = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"]
-    df = pl.DataFrame(rows, schema=names, orient="row")
+    df = pl.DataFrame([r for _, r in numbered], schema=names, orient="row")
+    df = df.with_columns(pl.Series(LINE, [n for n, _ in numbered]))
     t, _ = to_stamps_ns(path, df, "t")
     vals = np.column_stack([to_float(path, df, n) for n in names[1:]])
     return PoseTable(t, vals[:, :3], vals[:, 3:])

@@ -1568,6 +1568,17 @@ case(
 )
 
 
+def _nan_refine_row(data: bytes) -> bytes:
+    """anchors.csv with anchor 0's refine row at x = nan (the other rows as the run wrote them)."""
+    lines = data.decode().splitlines()
+    out = [
+        ",".join([*f[:3], "nan", *f[4:]]) if f[0] == "0" and f[2] == "refine" else ln
+        for ln in lines
+        for f in [ln.split(",")]
+    ]
+    return ("\n".join(out) + "\n").encode()
+
+
 def nan_anchor_is_undetermined(c: Ctx, res) -> None:
     m = json.loads((c.p("run") / "metrics.json").read_text())
     assert m["anchors"]["0"]["determined"] is False and "estimate" not in m["anchors"]["0"], m["anchors"]
@@ -1578,7 +1589,7 @@ case(
     "eval-anchors-csv-nan-is-undetermined",
     [12],
     "corrupt run directory",
-    corrupt("anchors.csv", b"anchor,method,stage,x,y,z,beta,gamma\n0,ri,refine,nan,0,0,1,0\n"),
+    corrupt("anchors.csv", _nan_refine_row),
     "ok",
     check=nan_anchor_is_undetermined,
 )
@@ -1895,6 +1906,79 @@ for kind, line in (("quoted", 7), ("unquoted", 7), ("semicolon", 2)):
         lambda c, k=kind: tab(csv_bytes=decimal_comma(k)(fi.ranges_rows()).encode())(c),
         names=lambda c, n=line: f"{c.p('ranges.csv')}: line {n}",
     )
+
+
+# hidden-variant pass: the line of the fault in files without a header (TUM) or with comments, split decimals
+def _tum_edit(at: int, field_: int, comment: bool = False):
+    def f(text: str) -> str:
+        lines = text.strip().splitlines()
+        parts = lines[at].split()
+        parts[field_] = parts[field_].replace(".", ",")
+        lines[at] = " ".join(parts)
+        return ("# t x y z qx qy qz qw\n# exported\n" if comment else "") + "\n".join(lines) + "\n"
+
+    return f
+
+
+for cid, at, field_, comment, line in (
+    ("x-no-header", 9, 1, False, 10),
+    ("qw-after-comments", 4, 7, True, 7),
+    ("stamp-after-comments", 30, 0, True, 33),
+):
+    case(
+        f"tum-decimal-comma-{cid}",
+        [0],
+        "TUM",
+        tab(tum=_tum_edit(at, field_, comment)),
+        names=lambda c, n=line: f"{c.p('poses.tum')}: line {n}",
+    )
+
+
+def _truth_csv(text: str):
+    def build(c: Ctx) -> list[str]:
+        args = tab()(c)
+        c.write("truth.csv", text)
+        return [*args, "--anchors-truth", str(c.p("truth.csv"))]
+
+    return build
+
+
+for cid, text, line in (
+    ("split-negative", "anchor,x,y,z\n0,4.0,3.0,1.0\n1,-3,5,1.0,2.5\n", 3),
+    ("split-last", "anchor,x,y,z\n0,4.0,3.0,1.0\n1,1.0,2.0,2,5\n", 3),
+    ("quoted", 'anchor,x,y,z\n0,4.0,3.0,1.0\n1,1.0,"2,5",2.0\n', 3),
+):
+    case(
+        f"truth-csv-decimal-comma-{cid}",
+        [0],
+        "CSV",
+        _truth_csv(text),
+        names=lambda c, n=line: f"{c.p('truth.csv')}: line {n}",
+    )
+case(
+    "tab-csv-tab-separated",
+    [0],
+    "CSV",
+    tab(csv_bytes=fi.csv_text(fi.ranges_rows()).replace(",", "\t").encode()),
+    names=lambda c: f"{c.p('ranges.csv')}: header",
+)
+case(
+    "tab-csv-blank-line",
+    [0],
+    "CSV",
+    tab(csv_bytes=fi.csv_text(fi.ranges_rows()).replace("\n", "\n\n", 1).encode()),
+    names=lambda c: f"{c.p('ranges.csv')}: line 2: column 'stamp': empty",
+)
+for cid, text in (
+    ("key-twice", "[uwb]\nsigma_range = 0.1\nsigma_range = 0.2\n"),
+    ("section-twice", "[uwb]\nsigma_range = 0.1\n[uwb]\nsigma_scale = 1.0\n"),
+    ("value-missing", "[uwb]\nsigma_range =\n"),
+    ("array-of-tables", "[[uwb]]\nsigma_range = 0.1\n"),
+    ("section-is-a-number", "uwb = 5\n"),
+):
+    case(f"config-{cid}", [7], "TOML", with_config(text), names=named("cfg.toml"))
+
+
 for cid, text in (
     ("key-typo", "[uwb]\nsigma_rang = 0.1\n"),
     ("section-typo", "[uwbb]\nsigma_range = 0.1\n"),
@@ -1917,6 +2001,11 @@ for cid, text in (
         ('[uwb]\nrefine_method = "skff"\n', "did you mean 'skf'?"),
         ("[uwb]\nsigma_range = -1.0\n", "uwb.sigma_range = -1.0: must be greater than 0"),
         ("[uwb]\nchi2_quantile = 1.5\n", "uwb.chi2_quantile = 1.5: must be less than 1"),
+        (
+            "[uwb]\nsigma_range = 0.1\nsigma_range = 0.2\n",
+            "(at line 3, column 18)); fix the TOML at that line",
+        ),
+        ("[[uwb]]\nsigma_range = 0.1\n", "uwb: must be a valid dictionary; fix the value"),
     ],
 )
 def test_config_error_names_the_fix(tmp_path: Path, text: str, fix: str) -> None:

@@ -128,12 +128,14 @@ def _json_kind(v: Any) -> str:
     return {dict: "object", list: "array", str: "string"}.get(type(v), type(v).__name__)
 
 
-def read_toml(path: Path, fix: str | None = None) -> dict:
+def read_toml(path: Path, fix: str | None = None, syntax_fix: str | None = None) -> dict:
+    """A TOML file; ``fix``: what to do about an unreadable or non-UTF-8 one, ``syntax_fix``: about invalid
+    TOML (default ``fix``)."""
     text = read_text(path, fix)
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise corrupt(path, f"invalid TOML ({exc})", fix) from None
+        raise corrupt(path, f"invalid TOML ({exc})", syntax_fix or fix) from None
 
 
 def read_npz(
