@@ -10,6 +10,7 @@ bag's ``calibration.yaml`` are used when present (the summary says so). OUT gets
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -172,8 +173,15 @@ def summary_lines(out: Path, metrics: dict, check_text: str, files: list[Path]) 
 def calibrate(inp: CalibrateInput, out: str | Path, progress: Callable[[str], None] = print) -> str:
     """Convert, check, run with the defaults, evaluate, export and report; returns the five-line summary."""
     out = Path(out)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    conv = convert_input(inp, out)
+    try:
+        conv = convert_input(inp, out)
+    except InputError:
+        if created:  # a refused input leaves no empty output directory behind
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
     for n in conv.notes:
         progress(f"note: {n}")
     progress(f"[convert] {conv.kind} -> {conv.recording}")

@@ -982,6 +982,10 @@ def with_calibration(edit=None, raw: str | bytes | None = None):
     return build
 
 
+def scaled_rotation(s: float) -> list[list[float]]:
+    return [[v * s if i < 3 and j < 3 else v for j, v in enumerate(r)] for i, r in enumerate(R_IMU_CAM)]
+
+
 def scaled(s: float):
     return rot(
         lambda M: [[v * s if i < 3 and j < 3 else v for j, v in enumerate(r)] for i, r in enumerate(M)]
@@ -2539,6 +2543,61 @@ case(
     names=lambda c: str(c.p("run") / "anchor_states.json"),
     new_ok=RUN_FILES,
 )
+
+
+# hidden-variant pass: a recording's own calibration refused by check as by run; calibrate leaves no empty output
+def _bad_meta(edit: Callable[[dict], None]):
+    def make(c: Ctx) -> Path:
+        def f(m: dict) -> dict:
+            m = copy.deepcopy(m)
+            edit(m)
+            return m
+
+        return fi.rewrite(c.shared.rec, c.p("rec.mcap"), calibration=f)
+
+    return make
+
+
+for cid, edit in (
+    ("uwb-tags-5", lambda m: m["uwb"].__setitem__("tags", 5)),
+    ("uwb-sigma-negative", lambda m: m["uwb"].__setitem__("sigma_range", -0.1)),
+    ("uwb-beta-mean-0", lambda m: m["uwb"].__setitem__("beta_prior", {"mean": 0.0, "sigma": 0.1})),
+):
+    for cmd in ("check", "run"):
+        case(
+            f"{cmd}-recording-calibration-{cid}",
+            [0],
+            "calibration YAML",
+            run_on(_bad_meta(edit)) if cmd == "run" else lambda c, e=edit: ["check", str(_bad_meta(e)(c))],
+            names=lambda c: f"{c.p('rec.mcap')}: uwbcal.calibration: uwb.",
+            new_ok=("rec.mcap",),
+        )
+
+
+def calibrate_with_yaml_beside(edit: Callable[[dict], None]):
+    def build(c: Ctx) -> list[str]:
+        c.p("data").mkdir()
+        bag = fi.small_bag("ros1", c.p("data") / "b.bag")
+        cal = copy.deepcopy(CALIBRATION)
+        edit(cal)
+        c.write("data/calibration.yaml", yaml.safe_dump(cal))
+        return ["calibrate", str(bag), "-o", str(c.p("out"))]
+
+    return build
+
+
+for cid, edit in (
+    ("rotation-scaled-2", lambda d: d["cameras"]["cam0"].__setitem__("T_imu_cam", scaled_rotation(2.0))),
+    ("uwb-tags-5", lambda d: d["uwb"].__setitem__("tags", 5)),
+):
+    case(
+        f"calibrate-calibration-beside-{cid}",
+        [0],
+        "calibration YAML",
+        calibrate_with_yaml_beside(edit),
+        names=named("data/calibration.yaml"),
+        new_ok=("data",),
+    )
 
 
 # -- absurd values inside a recording (not from a converter) ---------------------------------------------------------
