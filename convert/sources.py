@@ -386,6 +386,12 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
+# YAML 1.1 (PyYAML) reads 1e-4 (no decimal point) as text; YAML 1.2, and every user, read it as a number
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"), list("-+0123456789")
+)
+
+
 def _yaml_problem(exc: yaml.YAMLError) -> str:
     """A YAML error as ``line N: problem; fix``."""
     text = str(exc)

@@ -1121,6 +1121,25 @@ case(
     "ok",
     check=calibrated,
 )
+
+
+def exponent_numbers(c: Ctx, res) -> None:
+    cal = RecordingReader(c.p("out.mcap")).calibration
+    assert cal["uwb"]["sigma_range"] == 0.1 and cal["imu"]["gyroscope_noise_density"] == 2e-4, cal
+
+
+case(
+    "calibration-exponent-without-point",
+    [0],
+    "calibration YAML",
+    with_calibration(
+        raw=yaml.safe_dump(CALIBRATION)
+        .replace("sigma_range: 0.1", "sigma_range: 1e-1")
+        .replace("gyroscope_noise_density: 0.00017", "gyroscope_noise_density: 2e-4")
+    ),
+    "ok",
+    check=exponent_numbers,
+)
 case(
     "calibration-merge-key",
     [0],
