@@ -186,14 +186,17 @@ class CameraCalibration(BaseModel):
 
     @model_validator(mode="after")
     def _centre_in_image(self) -> CameraCalibration:
-        if self.resolution is not None and (
-            self.intrinsics[2] > self.resolution[0] or self.intrinsics[3] > self.resolution[1]
-        ):
-            raise ValueError(
-                f"principal point ({self.intrinsics[2]}, {self.intrinsics[3]}) outside the {self.resolution[0]}x"
-                f"{self.resolution[1]} image; check intrinsics [fu, fv, cu, cv] and resolution [width, height]"
-            )
+        problem = self.centre_problem(self.resolution)
+        if problem:
+            raise ValueError(f"{problem}; check intrinsics [fu, fv, cu, cv] and resolution [width, height]")
         return self
+
+    def centre_problem(self, size: list[int] | tuple[int, int] | None) -> str | None:
+        """What is wrong with the principal point for images of ``size`` (width, height), or None."""
+        cu, cv = self.intrinsics[2], self.intrinsics[3]
+        if size is None or (cu <= size[0] and cv <= size[1]):
+            return None
+        return f"principal point ({cu}, {cv}) outside the {size[0]}x{size[1]} image"
 
     @field_validator("resolution")
     @classmethod
@@ -209,7 +212,15 @@ class CameraCalibration(BaseModel):
     def check_image_size(self, size: tuple[int, int], images: str, source: str, key: str) -> None:
         """The images' (width, height) against ``resolution`` (intrinsics are per image size); InputError
         ``<source>: <key>: ...`` naming where the images are (``images``)."""
-        if self.resolution is None or tuple(self.resolution) == tuple(size):
+        if self.resolution is None:
+            problem = self.centre_problem(size)
+            if problem:  # no resolution to compare: the intrinsics must at least fit these images
+                raise InputError(
+                    f"{source}: {key.rsplit('.', 1)[0]}.intrinsics: {problem} {images}; give the calibration of "
+                    "this camera at its image size (intrinsics scale with it), with its resolution"
+                )
+            return
+        if tuple(self.resolution) == tuple(size):
             return
         raise InputError(
             f"{source}: {key}: {self.resolution[0]}x{self.resolution[1]}, but the images {images} are "

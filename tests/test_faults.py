@@ -1163,12 +1163,12 @@ for cid, raw, line in (
     )
 
 
-def images_bag(size, cal: bool = True):
+def images_bag(size, cal: bool = True, edit: Callable[[dict], dict] | None = None):
     def build(c: Ctx) -> list[str]:
         bag = fi.small_bag("ros1", c.p("b.bag"), image_size=size)
         args = ["convert", "bag", str(bag), "-o", str(c.p("out.mcap")), "--uwb", "/uwb/range"]
         if cal:
-            c.write("cal.yaml", yaml.safe_dump(CALIBRATION))
+            c.write("cal.yaml", yaml.safe_dump((edit or (lambda d: d))(copy.deepcopy(CALIBRATION))))
             args += ["--calibration", str(c.p("cal.yaml"))]
         return args
 
@@ -1196,6 +1196,34 @@ case(
     "calibration YAML",
     images_bag(lambda i: (480, 752)),
     names=named("cal.yaml"),
+)
+NO_RESOLUTION = cal_set("cameras", "cam0", "resolution")
+case(
+    "bag-images-smaller-than-the-intrinsics-no-resolution",
+    [0],
+    "calibration YAML",
+    images_bag(lambda i: (320, 240), edit=NO_RESOLUTION),
+    names=lambda c: f"{c.p('cal.yaml')}: cameras.cam0.intrinsics: principal point",
+)
+
+
+def resolution_from_images(c: Ctx, res) -> None:
+    cam = RecordingReader(c.p("out.mcap")).calibration["cameras"]["cam0"]
+    assert cam["resolution"] == [320, 240] and "resolution not given: 320x240" in res.stdout, cam
+
+
+case(
+    "bag-images-fit-the-intrinsics-no-resolution",
+    [0],
+    "calibration YAML",
+    images_bag(
+        lambda i: (320, 240),
+        edit=lambda d: cal_set("cameras", "cam0", "intrinsics", value=[200.0, 200.0, 160.0, 120.0])(
+            NO_RESOLUTION(d)
+        ),
+    ),
+    "ok",
+    check=resolution_from_images,
 )
 for cid, cal in (("calibrated", True), ("uncalibrated", False)):
     case(
