@@ -2647,6 +2647,58 @@ for cid, edit in (
     )
 
 
+# `uwbcal calibrate` into an output directory that holds the calibration of another input
+def _tabular_input(c: Ctx, name: str, seed: int) -> Path:
+    c.write(f"{name}/ranges.csv", fi.csv_text(fi.ranges_rows(seed=seed)))
+    c.write(f"{name}/poses.tum", fi.tum_for_ranges())
+    return c.p(name)
+
+
+def calibrate_again(second_seed: int, *extra: str):
+    """OUT calibrated from input A; then a calibration of input B (``second_seed``; 0: A itself) into it."""
+
+    def build(c: Ctx) -> list[str]:
+        a = _tabular_input(c, "a", 0)
+        res = runner.invoke(app, ["calibrate", str(a), "-o", str(c.p("out"))])
+        assert res.exit_code == 0, res.output
+        c.before_rec = c.p("out/recording.mcap").read_bytes()  # type: ignore[attr-defined]
+        b = _tabular_input(c, "b", second_seed) if second_seed else a
+        return ["calibrate", str(b), "-o", str(c.p("out")), *extra]
+
+    return build
+
+
+def calibration_of(seed: int):
+    def check(c: Ctx, res) -> None:
+        rec = c.p("out/recording.mcap")
+        want = provenance.recording_id(rec)
+        stages = json.loads((c.p("out/run/stages.json")).read_text())
+        assert {s["recording"]["id"] for s in stages.values()} == {want}, stages
+        assert (rec.read_bytes() == c.before_rec) == (seed == 0)  # type: ignore[attr-defined]
+        assert not list(c.p("out").glob(".*.mcap")), list(c.p("out").iterdir())
+
+    return check
+
+
+case(
+    "calibrate-into-another-inputs-output-refused",
+    [0],
+    ONE_REC,
+    calibrate_again(7),
+    names=named("out"),
+    new_ok=("a", "b", "out"),
+)
+case(
+    "calibrate-into-another-inputs-output-overwrite",
+    [0],
+    ONE_REC,
+    calibrate_again(7, "--overwrite"),
+    "ok",
+    check=calibration_of(7),
+)
+case("calibrate-same-input-again", [0], ONE_REC, calibrate_again(0), "ok", check=calibration_of(0))
+
+
 # -- absurd values inside a recording (not from a converter) ---------------------------------------------------------
 def odometry_edit(row: int, value: float):
     def make(c: Ctx) -> Path:
