@@ -132,8 +132,10 @@ def summary(output: str | Path, counts: dict[str, int], drops: Drops, header: st
 # CSV / TUM / yaml
 # ---------------------------------------------------------------------------------------------------------------
 def _require_file(path: Path, what: str) -> None:
+    if path.is_dir():
+        raise InputError(f"{path}: a folder, not the {what}; give the file")
     if not path.is_file():
-        raise InputError(f"{path}: missing {what}; check the dataset layout")
+        raise InputError(f"{path}: missing {what}; check the path (or the dataset's layout)")
 
 
 def read_text(path: str | Path, what: str) -> str:

@@ -1163,6 +1163,27 @@ for cid, raw, line in (
     )
 
 
+def calibration_path(kind: str):
+    def build(c: Ctx) -> list[str]:
+        bag = fi.small_bag("ros1", c.p("b.bag"))
+        if kind == "folder":
+            c.p("cal.yaml").mkdir()
+        return ["convert", "bag", str(bag), "-o", str(c.p("out.mcap")), "--calibration", str(c.p("cal.yaml"))]
+
+    return build
+
+
+for kind, says in (("folder", "a folder, not the calibration yaml"), ("missing", "missing calibration yaml")):
+    case(
+        f"calibration-path-{kind}",
+        [0],
+        "calibration YAML",
+        calibration_path(kind),
+        names=lambda c, w=says: f"{c.p('cal.yaml')}: {w}",
+        new_ok=("cal.yaml",),
+    )
+
+
 def images_bag(size, cal: bool = True, edit: Callable[[dict], dict] | None = None):
     def build(c: Ctx) -> list[str]:
         bag = fi.small_bag("ros1", c.p("b.bag"), image_size=size)
