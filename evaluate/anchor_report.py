@@ -160,41 +160,25 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
     return out
 
 
-STATE_TOL = 1e-5  # anchors.csv keeps 6 decimals of the state anchor_states.json holds
-
-
 def _refine_states(
     run_dir: Path, out: RunAnchors, refine: list[dict]
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The refined anchors' states from anchor_states.json, which the refinement writes with anchors.csv's refine
-    rows: an anchor estimated there without its state, a state of an anchor not estimated there, or a state
-    that is not the row's estimate is damage (σ and NEES would be dropped, or taken from another run)."""
+    """The refined anchors' states (`artefacts.read_anchor_states`: anchor_states.json read with anchors.csv's
+    refine rows, which the refinement writes together)."""
     path = run_dir / "anchor_states.json"
-    fix = f"anchors.csv and anchor_states.json are not of one refinement — re-run it (uwbcal run REC -o {run_dir} --stages refine,localize,evaluate)"
     if not artefacts.present(path):
-        raise artefacts.corrupt(path, "missing, but anchors.csv holds refine rows", fix)
-    states = artefacts.read_json(path, artefacts.ANCHOR_STATES)
-    lines = {str(r["anchor"]): r["_line"] for r in refine}
-    extra = sorted(set(states) - set(lines), key=_key)
-    if extra:
-        raise artefacts.corrupt(path, f"anchor {extra[0]}: a state, but no refine row in anchors.csv", fix)
-    got: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for aid, e in out.estimates.items():
-        if aid not in lines:  # estimated by the initialiser alone: no refined state
-            continue
-        if aid not in states:
-            raise artefacts.corrupt(
-                path, f"anchor {aid}: missing (anchors.csv line {lines[aid]} has its estimate)", fix
-            )
-        x, P = np.asarray(states[aid]["x"], float), np.asarray(states[aid]["P"], float)
-        row = np.r_[e["position"], e["beta"], e["gamma"]]
-        if np.abs(x[:5] - row).max() > STATE_TOL * max(1.0, float(np.abs(row).max())):
-            raise artefacts.corrupt(
-                path, f"anchor {aid}: x {np.round(x[:3], 6).tolist()} is not anchors.csv line {lines[aid]}'s "
-                f"{np.round(row[:3], 6).tolist()}", fix,
-            )  # fmt: skip
-        got[aid] = (x, P)
-    return got
+        raise artefacts.corrupt(
+            path,
+            "missing, but anchors.csv holds refine rows",
+            f"re-run the refinement (uwbcal run REC -o {run_dir} --stages refine,localize,evaluate)",
+        )
+    states = artefacts.read_anchor_states(path)
+    lines = {str(r["anchor"]) for r in refine}
+    return {
+        aid: (np.asarray(states[aid]["x"], float), np.asarray(states[aid]["P"], float))
+        for aid in out.estimates
+        if aid in lines and aid in states
+    }
 
 
 def aligned_anchors(run: RunAnchors, al) -> RunAnchors:

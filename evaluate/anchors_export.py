@@ -101,7 +101,7 @@ def load_anchors(run_dir: str | Path) -> dict:
     init_m, refine_m = uwb.init_method, uwb.refine_method
     states_path = run_dir / STATES
     if artefacts.present(states_path):
-        states = artefacts.read_json(states_path, artefacts.ANCHOR_STATES)
+        states = artefacts.read_anchor_states(states_path)
         anchors = {str(a): _anchor_record(str(a), e, str(states_path)) for a, e in states.items()}
         stage, method = "refine", f"{init_m}+{refine_m}"
     elif artefacts.present(run_dir / "init.pkl"):

@@ -2563,9 +2563,12 @@ def _two_recordings(d: dict) -> dict:
 TOGETHER = {
     "anchor_states.json": {
         "empty-object": (b"{}", ("evaluate", "report")),
-        "one-anchor-missing": (json_edit(_drop_first_anchor), ("evaluate", "report")),
-        "state-not-the-csv-estimate": (json_edit(_move_first_anchor), ("evaluate", "report")),
-        "extra-anchor": (json_edit(lambda d: dict(d, **{"99": _first(d)})), ("evaluate",)),
+        "one-anchor-missing": (json_edit(_drop_first_anchor), ("evaluate", "report", "export-anchors")),
+        "state-not-the-csv-estimate": (
+            json_edit(_move_first_anchor),
+            ("evaluate", "report", "export-anchors"),
+        ),
+        "extra-anchor": (json_edit(lambda d: dict(d, **{"99": _first(d)})), ("evaluate", "export-anchors")),
     },
     "init.json": {
         "empty-object": (b"{}", ("evaluate", "report")),

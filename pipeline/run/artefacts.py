@@ -244,6 +244,58 @@ def read_anchor_rows(path: Path) -> list[dict]:
         raise corrupt(path, f"not a CSV ({exc})") from None
 
 
+STATE_TOL = 1e-5  # anchors.csv keeps 6 decimals of the states anchor_states.json holds
+
+
+def read_anchor_states(path: Path) -> dict:
+    """anchor_states.json (`ANCHOR_STATES`), read together with the refine rows of anchors.csv beside it, which
+    the refinement writes from the same states: an anchor estimated there without its state, a state without
+    its row, or a state that is not the row's estimate is damage (a consumer would drop σ and NEES, leave out
+    an anchor, or take a state of another run)."""
+    path = Path(path)
+    states = read_json(path, ANCHOR_STATES)
+    table = path.parent / "anchors.csv"
+    if not present(table):
+        return states
+    fix = (
+        "anchors.csv and anchor_states.json are not of one refinement — re-run it "
+        f"(uwbcal run REC -o {path.parent} --stages refine,localize,evaluate)"
+    )
+    rows = {r["anchor"]: r for r in read_anchor_rows(table) if r["stage"] == "refine"}
+    extra = sorted(set(states) - set(rows), key=lambda a: (len(a), a))
+    if rows and extra:
+        raise corrupt(path, f"anchor {extra[0]}: a state, but no refine row in anchors.csv", fix)
+    for aid, r in rows.items():
+        row = _row_state(table, r)
+        if row is None:
+            continue  # not determined (empty or non-finite): no state to hold
+        if aid not in states:
+            raise corrupt(
+                path, f"anchor {aid}: missing (anchors.csv line {r['_line']} has its estimate)", fix
+            )
+        x = np.asarray(states[aid]["x"][:5], float)
+        if np.abs(x - row).max() > STATE_TOL * max(1.0, float(np.abs(row).max())):
+            raise corrupt(
+                path,
+                f"anchor {aid}: x {np.round(x[:3], 6).tolist()} is not anchors.csv line {r['_line']}'s "
+                f"{np.round(row[:3], 6).tolist()}",
+                fix,
+            )
+    return states
+
+
+def _row_state(table: Path, r: dict) -> np.ndarray | None:
+    """x, y, z, beta, gamma of an anchors.csv row (None: not determined)."""
+    cells = [r.get(c) or "" for c in ANCHOR_COLUMNS[3:]]
+    if "" in cells[:3]:
+        return None
+    try:
+        v = np.asarray([float(c) if c else np.nan for c in cells])
+    except ValueError:
+        raise corrupt(table, f"line {r['_line']}: {cells} are not numbers") from None
+    return v if np.isfinite(v).all() else None
+
+
 # -- the artefacts' shapes ---------------------------------------------------------------------------------------
 class _Open(BaseModel):
     model_config = ConfigDict(extra="allow")
