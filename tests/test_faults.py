@@ -1257,6 +1257,31 @@ for cid, cal in (("calibrated", True), ("uncalibrated", False)):
     )
 
 
+def recording_with_images(resolution: list[int]):
+    """A recording converted from a bag with 752x480 images, its calibration's resolution then set to
+    ``resolution`` (what a recording converted before the size check may hold)."""
+
+    def make(c: Ctx) -> Path:
+        bag = fi.small_bag("ros1", c.p("b.bag"), image_size=lambda i: (752, 480))
+        c.write("cal.yaml", yaml.safe_dump(CALIBRATION))
+        res = runner.invoke(app, ["convert", "bag", str(bag), "-o", str(c.p("ok.mcap")), "--uwb", "/uwb/range",
+                                  "--calibration", str(c.p("cal.yaml"))])  # fmt: skip
+        assert res.exit_code == 0, res.output
+        edit = cal_set("cameras", "cam0", "resolution", value=resolution)
+        return fi.rewrite(c.p("ok.mcap"), c.p("rec.mcap"), calibration=lambda m: edit(copy.deepcopy(m)))
+
+    return make
+
+
+case(
+    "run-images-not-the-calibrations-resolution",
+    [0],
+    "calibration YAML",
+    run_on(recording_with_images([640, 480])),
+    names=lambda c: f"{c.p('rec.mcap')}: uwbcal.calibration: cameras.cam0.resolution 640x480",
+)
+
+
 # EuRoC's sensor.yaml files through the same calibration model (the sensor.yaml and its key named)
 def euroc_yaml(imu=None, cam=None, size=(752, 480)):
     def build(c: Ctx) -> list[str]:
