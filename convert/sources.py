@@ -544,15 +544,16 @@ def read_ranges_csv(
 JUMP_PERIODS = 10  # a step back of more sample periods than this in one sensor's series is a clock jump
 
 
-def clock_jump(t_ns: np.ndarray) -> tuple[int, float, int] | None:
+def clock_jump(t_ns: np.ndarray, resent_are_duplicates: bool = True) -> tuple[int, float, int] | None:
     """A clock jump in one sensor's stamps, in the order written: (step back [ns], sample period [ns], stamp
     before the step) when the largest step back exceeds `JUMP_PERIODS` sample periods and more than
-    `JUMP_PERIODS` later samples fall inside the span already covered (a single late sample is reordering)."""
+    `JUMP_PERIODS` later samples fall inside the span already covered (a single late sample is reordering).
+    ``resent_are_duplicates``: a stamp seen before is a re-sent sample (a file's repeated rows, dropped as
+    duplicates), not a step back; False for a stream, where a stretch back onto earlier stamps is a jump."""
     t_ns = np.asarray(t_ns, np.int64)
     if len(t_ns) < 2 or not (np.diff(t_ns) < 0).any():
         return None
-    # the steps back among the stamps first seen (a re-sent earlier sample is a duplicate, not a jump)
-    t1 = t_ns[np.sort(np.unique(t_ns, return_index=True)[1])]
+    t1 = t_ns[np.sort(np.unique(t_ns, return_index=True)[1])] if resent_are_duplicates else t_ns
     dt = np.diff(t1)
     if not len(dt):
         return None
@@ -690,7 +691,8 @@ class StampCheck:
         """The out-of-order stamps as notes; a clock jump in a series topic refused (InputError naming
         ``source``)."""
         for topic, (n, step, after) in self.back.items():
-            jump = clock_jump(np.frombuffer(self.stamps[topic], np.int64)) if topic in self.stamps else None
+            t = np.frombuffer(self.stamps[topic], np.int64) if topic in self.stamps else None
+            jump = clock_jump(t, resent_are_duplicates=False) if t is not None else None
             if jump is not None:
                 raise InputError(f"{source}: {clock_jump_text(topic, jump)}")
             drops.note(

@@ -909,6 +909,13 @@ for fmt, name in (("ros1", "b.bag"), ("mcap", "b")):
         names=lambda c, n=name: f"{c.p(n)}: /imu: out-of-order stamps",
     )
     case(
+        f"bag-{fmt}-imu-clock-jump-back-2s-onto-earlier-stamps",
+        [0],
+        "out-of-order stamps",
+        edited_bag(fmt, imu_stamp=lambda i, t: t - 2 * 10**9 if i >= 30 else t),
+        names=lambda c, n=name: f"{c.p(n)}: /imu: out-of-order stamps",
+    )
+    case(
         f"bag-{fmt}-imu-one-late-sample",
         [0],
         "out-of-order stamps",
