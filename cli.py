@@ -465,6 +465,9 @@ def calibrate(
     time_offset: TimeOffset = 0.0,
     config: Annotated[Path | None, typer.Option(help="TOML config (default: the defaults).")] = None,
     log: Annotated[bool, typer.Option("--log", help="Also write run.rrd (the rerun viewer's log).")] = False,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Replace OUTPUT's calibration of another input.")
+    ] = False,
 ) -> None:
     """Calibrate the anchors in one command: convert, check, run with the defaults, evaluate when truth exists,
     export anchors.json / uwb_anchors.yaml / localization.yaml (with covariance) and report.html."""
@@ -482,6 +485,7 @@ def calibrate(
         time_offset,
         config,
         log,
+        overwrite,
     )
     typer.echo(run(inp, output, progress=lambda s: typer.echo(s, err=True)))
 

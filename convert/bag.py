@@ -435,7 +435,8 @@ class Converter:
         self.w = writer
         self.check_size = check_size  # (role, (width, height), topic): raises InputError for a mismatch
         self.ranges = RangeBuffer()
-        self._once = StampCheck()  # duplicates dropped, steps back counted, per recording topic
+        # duplicates dropped, steps back counted per recording topic; a clock jump in a sensor's series refused
+        self._once = StampCheck(series=(TOPIC_IMU, TOPIC_ODOM, TOPIC_GT_POSE, TOPIC_GT_POSITION))
         self.stamp_sources: dict[str, Counter] = {}
         self.zero_cov = 0
         self.image_sizes: dict[str, tuple[int, int]] = {}  # camera role -> (width, height) of its first image
@@ -480,9 +481,13 @@ class Converter:
             topic = TOPIC_CAM0 if role == "cam0" else TOPIC_CAM1
             self._once(topic, t)
             img = image_mono8(m)
+            size = (img.shape[1], img.shape[0])
             if role not in self.image_sizes:
-                self.image_sizes[role] = (img.shape[1], img.shape[0])
-                self.check_size(role, self.image_sizes[role], bag_topic)
+                self.image_sizes[role] = size
+                self.check_size(role, size, bag_topic)
+            elif size != self.image_sizes[role]:  # the intrinsics hold for one image size
+                w, h = self.image_sizes[role]
+                raise Drop(f"image of {size[0]}x{size[1]}, not the {w}x{h} of the camera's first image")
             self.w.write_image(topic, t, img, frame_id=role)
         elif role == "odometry":
             self._once(TOPIC_ODOM, t)
@@ -506,12 +511,8 @@ class Converter:
 def check_image_size(cal: Calibration, role: str, size: tuple[int, int], topic: str, source: str) -> None:
     """The first image of camera ``role`` against the calibration's resolution (intrinsics are per image size)."""
     c = cal.cameras.get(role)
-    if c is None or c.resolution is None or tuple(c.resolution) == tuple(size):
-        return
-    raise InputError(
-        f"{source}: cameras.{role}.resolution: {c.resolution[0]}x{c.resolution[1]}, but the images on {topic} "
-        f"are {size[0]}x{size[1]}; give the calibration of this camera at its image size (intrinsics scale with it)"
-    )
+    if c is not None:
+        c.check_image_size(size, f"on {topic}", source, f"cameras.{role}.resolution")
 
 
 def _final_calibration(data: dict, source: str, conv: Converter, counts: dict, drops: Drops) -> dict:
@@ -767,13 +768,13 @@ def _write_bag_ranges(
 ) -> tuple[RangeData, RangeData]:
     """The decoded ranges (ids checked, shifted by ``time_offset``) and the cleaned ones, written."""
     drops = run.drops
-    raw_ranges = conv.ranges.data()
-    bad = id_problem({"tag": raw_ranges.tag, "antenna": raw_ranges.antenna, "anchor": raw_ranges.anchor})
+    buf = conv.ranges  # ids checked as decoded (Python ints): one beyond int64 must not overflow first
+    bad = id_problem({"tag": buf.tag, "antenna": buf.antenna, "anchor": buf.anchor})
     if bad is not None:
         name, i = bad
-        value = int(getattr(raw_ranges, name)[i])
-        raise InputError(f"{run.path}: UWB range at t={raw_ranges.t_ns[i]} ns: {id_text(name, value)}")
-    raw_ranges = shift_ranges(raw_ranges, time_offset, drops)
+        value = int(getattr(buf, name)[i])
+        raise InputError(f"{run.path}: UWB range at t={buf.t[i]} ns: {id_text(name, value)}")
+    raw_ranges = shift_ranges(buf.data(), time_offset, drops)
     ranges = clean_ranges(raw_ranges, TOPIC_RANGE, drops, max_range) if len(raw_ranges) else raw_ranges
     write_ranges(w, ranges, TOPIC_RANGE)
     if len(ranges):
@@ -796,7 +797,7 @@ def _bag_calibration(
         calib["uwb"] = _uwb_section(ranges, run.antennas, cal.get("uwb"), drops)
     if not cal and ({TOPIC_IMU, TOPIC_CAM0, TOPIC_CAM1} & set(counts)):
         drops.note("no --calibration: IMU noise, camera intrinsics and extrinsics unknown")
-    conv._once.report(drops)
+    conv._once.report(drops, run.path)
     for n in notes:
         drops.note("topic " + n)
     return _final_calibration(calib, run.cal_source, conv, counts, drops)

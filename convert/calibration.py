@@ -36,6 +36,9 @@ from uwbcal.pipeline.core.validation import validation_message
 
 ROTATION_TOL = 1e-3  # max |R^T R - I| and |det R - 1| of a rotation taken as one
 MAX_OFFSET_M = 100.0  # no sensor or antenna of one rig is farther than this from its IMU
+MAX_SIGMA_RANGE_M = 10.0  # a UWB range noise beyond this is a unit or typing error, not a sensor
+MAX_NOISE = 10.0  # IMU noise densities / random walks (SI units) beyond this are no IMU's
+MAX_VALUE = 1e6  # no other calibration number (rates, sigmas, times) is this large
 ID_MAX = 2**32 - 1  # tag ids are uint32 in the recording
 
 _STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
@@ -115,20 +118,28 @@ def rigid_transform(value: Any, source: str, key: str) -> np.ndarray:
         raise InputError(f"{source}: {key}: {exc}") from None
 
 
+def _id_keys(value: Any) -> Any:
+    """A mapping keyed by tag id with YAML integer keys (``0:`` unquoted) -> the same with text keys."""
+    if isinstance(value, dict):
+        return {str(k) if isinstance(k, int) and not isinstance(k, bool) else k: v for k, v in value.items()}
+    return value
+
+
 Transform = Annotated[list[list[float]], BeforeValidator(_transform)]
-Positive = Annotated[float, Field(gt=0)]
+Positive = Annotated[float, Field(gt=0, le=MAX_VALUE)]
+Noise = Annotated[float, Field(gt=0, le=MAX_NOISE)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
 class ImuCalibration(BaseModel):
     model_config = _STRICT
 
-    gyroscope_noise_density: Positive = Field(description="a gyroscope noise density > 0 [rad/s/sqrt(Hz)]")
-    gyroscope_random_walk: Positive = Field(description="a gyroscope bias random walk > 0 [rad/s^2/sqrt(Hz)]")
-    accelerometer_noise_density: Positive = Field(
+    gyroscope_noise_density: Noise = Field(description="a gyroscope noise density > 0 [rad/s/sqrt(Hz)]")
+    gyroscope_random_walk: Noise = Field(description="a gyroscope bias random walk > 0 [rad/s^2/sqrt(Hz)]")
+    accelerometer_noise_density: Noise = Field(
         description="an accelerometer noise density > 0 [m/s^2/sqrt(Hz)]"
     )
-    accelerometer_random_walk: Positive = Field(
+    accelerometer_random_walk: Noise = Field(
         description="an accelerometer bias random walk > 0 [m/s^3/sqrt(Hz)]"
     )
     rate_hz: Positive | None = Field(None, description="the IMU rate > 0 [Hz] (default 200)")
@@ -175,14 +186,17 @@ class CameraCalibration(BaseModel):
 
     @model_validator(mode="after")
     def _centre_in_image(self) -> CameraCalibration:
-        if self.resolution is not None and (
-            self.intrinsics[2] > self.resolution[0] or self.intrinsics[3] > self.resolution[1]
-        ):
-            raise ValueError(
-                f"principal point ({self.intrinsics[2]}, {self.intrinsics[3]}) outside the {self.resolution[0]}x"
-                f"{self.resolution[1]} image; check intrinsics [fu, fv, cu, cv] and resolution [width, height]"
-            )
+        problem = self.centre_problem(self.resolution)
+        if problem:
+            raise ValueError(f"{problem}; check intrinsics [fu, fv, cu, cv] and resolution [width, height]")
         return self
+
+    def centre_problem(self, size: list[int] | tuple[int, int] | None) -> str | None:
+        """What is wrong with the principal point for images of ``size`` (width, height), or None."""
+        cu, cv = self.intrinsics[2], self.intrinsics[3]
+        if size is None or (cu <= size[0] and cv <= size[1]):
+            return None
+        return f"principal point ({cu}, {cv}) outside the {size[0]}x{size[1]} image"
 
     @field_validator("resolution")
     @classmethod
@@ -194,6 +208,25 @@ class CameraCalibration(BaseModel):
     @property
     def T(self) -> np.ndarray:
         return np.asarray(self.T_imu_cam, float)
+
+    def check_image_size(self, size: tuple[int, int], images: str, source: str, key: str) -> None:
+        """The images' (width, height) against ``resolution`` (intrinsics are per image size); InputError
+        ``<source>: <key>: ...`` naming where the images are (``images``)."""
+        if self.resolution is None:
+            problem = self.centre_problem(size)
+            if problem:  # no resolution to compare: the intrinsics must at least fit these images
+                raise InputError(
+                    f"{source}: {key.rsplit('.', 1)[0]}.intrinsics: {problem} {images}; give the calibration of "
+                    "this camera at its image size (intrinsics scale with it), with its resolution"
+                )
+            return
+        if tuple(self.resolution) == tuple(size):
+            return
+        raise InputError(
+            f"{source}: {key}: {self.resolution[0]}x{self.resolution[1]}, but the images {images} are "
+            f"{size[0]}x{size[1]}; give the calibration of this camera at its image size (intrinsics scale "
+            "with it)"
+        )
 
 
 class TagCalibration(BaseModel):
@@ -215,26 +248,39 @@ class TagCalibration(BaseModel):
 class Prior(BaseModel):
     model_config = _STRICT
 
-    mean: float = Field(description="the prior mean")
+    mean: float = Field(ge=-MAX_OFFSET_M, le=MAX_OFFSET_M, description="the prior mean [m]")
+    sigma: Positive = Field(description="the prior sigma > 0")
+
+
+class ScalePrior(BaseModel):
+    model_config = _STRICT
+
+    mean: float = Field(
+        gt=0.5, lt=2.0, description="the prior mean of the distance scale (near 1: a clock's ppm error)"
+    )
     sigma: Positive = Field(description="the prior sigma > 0")
 
 
 class UwbCalibration(BaseModel):
     model_config = _STRICT
 
-    tags: dict[str, TagCalibration] = Field(
+    tags: Annotated[dict[str, TagCalibration], BeforeValidator(_id_keys)] = Field(
         default_factory=dict,
         description="a mapping tag id -> {antennas: [[x, y, z], ...]} (default: every tag at the IMU origin)",
     )
-    sigma_range: Positive | None = Field(None, description="the range noise sigma > 0 [m] (default 0.1)")
-    gamma_prior: Prior | None = Field(None, description="the ranging offset prior {mean [m], sigma > 0 [m]}")
-    beta_prior: Prior | None = Field(None, description="the distance scale prior {mean, sigma > 0}")
-    antenna_pattern_sigma: Annotated[float, Field(ge=0)] | None = Field(
-        None,
-        description="the size >= 0 [m] of the antennas' direction-dependent range bias, per component of a bias "
-        "linear in the direction of arrival (default 0.05)",
+    sigma_range: Annotated[float, Field(gt=0, le=MAX_SIGMA_RANGE_M)] | None = Field(
+        None, description=f"the range noise sigma > 0 [m], at most {MAX_SIGMA_RANGE_M:g} m (default 0.1)"
     )
-    ranging_bias_per_tag: dict[str, float] | None = Field(
+    gamma_prior: Prior | None = Field(None, description="the ranging offset prior {mean [m], sigma > 0 [m]}")
+    beta_prior: ScalePrior | None = Field(
+        None, description="the distance scale prior {mean between 0.5 and 2, sigma > 0}"
+    )
+    antenna_pattern_sigma: Annotated[float, Field(ge=0, le=1)] | None = Field(
+        None,
+        description="the size between 0 and 1 [m] of the antennas' direction-dependent range bias, per component "
+        "of a bias linear in the direction of arrival (default 0.05)",
+    )
+    ranging_bias_per_tag: Annotated[dict[str, float], BeforeValidator(_id_keys)] | None = Field(
         None, description="a mapping tag id -> ranging bias [m] (true = measured + bias)"
     )
 
@@ -338,6 +384,16 @@ def parse_calibration(data: Any, source: str) -> Calibration:
         raise InputError(validation_message(exc, Calibration, source)) from None
     cal._source = source
     return cal
+
+
+def parse_section(model: type[BaseModel], data: dict, source: str, keys: dict[str, str] | None = None) -> Any:
+    """One section of a calibration given in another layout (EuRoC's sensor.yaml) validated by its ``model``
+    (`ImuCalibration`, `CameraCalibration`); ``keys``: model key -> the key as the file spells it, for the
+    message (InputError ``<source>: <file key>: <problem>; <fix>``)."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise InputError(validation_message(exc, model, source, keys)) from None
 
 
 def load_calibration_yaml(path: str | Path) -> Calibration:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from uwbcal.convert import msgs, ros1_wire
+from uwbcal.convert.calibration import CameraCalibration, ImuCalibration, parse_section, rigid_transform
 from uwbcal.convert.recording import (
     META_CALIBRATION,
     META_SOURCE,
@@ -52,7 +53,7 @@ from uwbcal.pipeline.core.geometry import quat_to_rot, rot_to_quat
 from uwbcal.pipeline.core.progress import progress
 
 CAM_TOPICS = {"cam0": TOPIC_CAM0, "cam1": TOPIC_CAM1}
-DISTORTION_MODELS = {"radial-tangential": "radtan", "radtan": "radtan", "equidistant": "equidistant"}
+DISTORTION_MODELS = {"radial-tangential": "radtan", "radtan": "radtan"}
 
 # EuRoC bags carry no calibration: these are the sensor.yaml values shared by all EuRoC sequences.
 EUROC_IMU = {
@@ -124,14 +125,8 @@ def find_mav0(path: Path) -> Path:
 
 
 def sensor_T_BS(data: dict, path: Path) -> np.ndarray:
-    try:
-        T = np.asarray(data["T_BS"]["data"], float).reshape(4, 4)
-    except (KeyError, TypeError, ValueError):
-        raise InputError(
-            f"{path}: T_BS: missing or not a 4x4 matrix; expected T_BS: {{rows: 4, cols: 4, "
-            "data: [16 numbers]}"
-        ) from None
-    return T
+    """A sensor.yaml's T_BS (the sensor in the body frame), a validated rigid transform."""
+    return rigid_transform(_field(data, "T_BS", path), str(path), "T_BS")
 
 
 def _field(data: dict, key: str, path: Path):
@@ -140,36 +135,47 @@ def _field(data: dict, key: str, path: Path):
     return data[key]
 
 
+IMU_KEYS = (
+    "gyroscope_noise_density",
+    "gyroscope_random_walk",
+    "accelerometer_noise_density",
+    "accelerometer_random_walk",
+    "rate_hz",
+)
+
+
 def imu_calibration(path: Path) -> tuple[dict, np.ndarray]:
-    """imu0/sensor.yaml -> (calibration.imu, T_B_imu)."""
+    """imu0/sensor.yaml -> (calibration.imu, T_B_imu), validated by the calibration model (`ImuCalibration`)."""
     d = load_yaml(path, "IMU sensor.yaml")
-    keys = (
-        "gyroscope_noise_density",
-        "gyroscope_random_walk",
-        "accelerometer_noise_density",
-        "accelerometer_random_walk",
-        "rate_hz",
-    )
     # EuRoC's sensor.yaml: "inertial sensor noise model parameters (static)"
-    out: dict = {k: float(_field(d, k, path)) for k in keys}
-    return {**out, "noise_origin": "allan"}, sensor_T_BS(d, path)
+    values = {k: _field(d, k, path) for k in IMU_KEYS}
+    imu = parse_section(ImuCalibration, {**values, "noise_origin": "allan"}, str(path))
+    return imu.model_dump(exclude_none=True), sensor_T_BS(d, path)
 
 
-def camera_calibration(path: Path, T_B_imu: np.ndarray) -> dict:
-    """camN/sensor.yaml -> calibration.cameras[camN]; T_imu_cam = inv(T_B_imu) T_B_cam."""
+# camera sensor.yaml key -> the calibration model's
+CAMERA_KEYS = {"distortion_coefficients": "distortion", "T_BS": "T_imu_cam"}
+
+
+def camera_calibration(path: Path, T_B_imu: np.ndarray) -> CameraCalibration:
+    """camN/sensor.yaml -> calibration.cameras[camN] (T_imu_cam = inv(T_B_imu) T_B_cam), validated by the
+    calibration model (`CameraCalibration`); a problem names the sensor.yaml's key."""
     d = load_yaml(path, "camera sensor.yaml")
-    model = str(_field(d, "distortion_model", path))
+    model = _field(d, "distortion_model", path)
     if model not in DISTORTION_MODELS:
-        raise InputError(f"{path}: distortion_model '{model}' not supported; expected radial-tangential")
+        raise InputError(
+            f"{path}: distortion_model: {model!r} not supported; uwbcal's camera model is radial-tangential"
+        )
     T_imu_cam = np.linalg.solve(T_B_imu, sensor_T_BS(d, path))
-    return {
-        "intrinsics": [float(x) for x in _field(d, "intrinsics", path)],
+    values = {
+        "intrinsics": _field(d, "intrinsics", path),
         "distortion_model": DISTORTION_MODELS[model],
-        "distortion": [float(x) for x in _field(d, "distortion_coefficients", path)],
-        "resolution": [int(x) for x in _field(d, "resolution", path)],
+        "distortion": _field(d, "distortion_coefficients", path),
+        "resolution": _field(d, "resolution", path),
         "T_imu_cam": T_imu_cam.tolist(),
-        "rate_hz": float(_field(d, "rate_hz", path)),
+        "rate_hz": _field(d, "rate_hz", path),
     }
+    return parse_section(CameraCalibration, values, str(path), {v: k for k, v in CAMERA_KEYS.items()})
 
 
 @dataclass
@@ -300,11 +306,18 @@ def _euroc_cameras(
             if cam == "cam0":
                 raise InputError(f"{d}: missing camera folder; a EuRoC ASL folder needs mav0/cam0")
             continue
-        cameras[cam] = camera_calibration(d / "sensor.yaml", T_B_imu)
+        cal = camera_calibration(d / "sensor.yaml", T_B_imu)
         files += [d / "sensor.yaml", d / "data.csv"]
         t, names = read_image_list(d / "data.csv")
         o = order_and_dedup(t, None, CAM_TOPICS[cam], drops)
         cam_lists[cam] = (t[o], [names[i] for i in o])
+        first = next((d / "data" / n for n in cam_lists[cam][1] if (d / "data" / n).is_file()), None)
+        img = read_image(first)[0] if first is not None else None
+        if img is not None:
+            cal.check_image_size(
+                (img.shape[1], img.shape[0]), f"in {d / 'data'}", str(d / "sensor.yaml"), "resolution"
+            )
+        cameras[cam] = cal.model_dump(exclude_none=True)
     return cameras, cam_lists
 
 
@@ -548,7 +561,7 @@ def _rot_to_quat(R: np.ndarray) -> np.ndarray:
 
 def convert_bag(path: Path, output: str | Path, groundtruth: Path | None = None) -> str:
     drops = Drops()
-    check = StampCheck()
+    check = StampCheck(series=(TOPIC_IMU, TOPIC_GT_POSITION, TOPIC_GT_POSE))
     vicon = ViconPoses(check)
     imu_types = ("sensor_msgs/msg/Imu",)
     img_types = ("sensor_msgs/msg/Image",)
@@ -583,7 +596,7 @@ def convert_bag(path: Path, output: str | Path, groundtruth: Path | None = None)
             w.write_pose_batch(gt.t_ns, gt.p, gt.q_xyzw, topic=TOPIC_GT_POSE)
         if gt_bias is not None:
             w.write_imu_batch(gt_bias.t_ns, gt_bias.gyro, gt_bias.acc, topic=TOPIC_GT_IMU_BIAS)
-        check.report(drops)
+        check.report(drops, path)
         counts = dict(w.counts)
         if TOPIC_GT_POSITION in counts:
             gt_meta = {"lever_arm": list(EUROC_LEICA_LEVER_ARM), "frame": "prism"}

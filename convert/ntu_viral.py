@@ -450,7 +450,7 @@ def convert_bag(
     max_range: float = MAX_RANGE_M,
 ) -> str:
     drops = Drops()
-    check = StampCheck()
+    check = StampCheck(series=(TOPIC_IMU, TOPIC_GT_POSITION))
     ranges = RangeHandler(check, max_range)
     routes = {
         BAG_IMU: BagRoute(("sensor_msgs/msg/Imu",), passthrough(TOPIC_IMU, msgs.IMU, check), TOPIC_IMU),
@@ -463,7 +463,7 @@ def convert_bag(
     hasher = Hasher([path] + ([antenna_file] if antenna_file else []))
     with RecordingWriter(output) as w:
         stream_bag(path, w, routes, drops, f"NTU-VIRAL {path.name}")
-        check.report(drops)
+        check.report(drops, path)
         counts = dict(w.counts)
         if not counts:
             raise InputError(f"{path}: none of the NTU-VIRAL topics ({', '.join(routes)}) has messages")

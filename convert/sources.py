@@ -12,6 +12,7 @@ import io
 import re
 import struct
 import threading
+from array import array
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata as _im
@@ -131,8 +132,10 @@ def summary(output: str | Path, counts: dict[str, int], drops: Drops, header: st
 # CSV / TUM / yaml
 # ---------------------------------------------------------------------------------------------------------------
 def _require_file(path: Path, what: str) -> None:
+    if path.is_dir():
+        raise InputError(f"{path}: a folder, not the {what}; give the file")
     if not path.is_file():
-        raise InputError(f"{path}: missing {what}; check the dataset layout")
+        raise InputError(f"{path}: missing {what}; check the path (or the dataset's layout)")
 
 
 def read_text(path: str | Path, what: str) -> str:
@@ -170,9 +173,11 @@ def read_csv_strings(path: str | Path, columns: Sequence[str] | int, *, what: st
         return df.select(df.columns[:columns])
     missing = [c for c in columns if c not in found]
     if missing:
+        sep = next((n for c, n in (("\t", "tabs"), (";", "';'")) if len(found) == 1 and c in found[0]), None)
+        hint = f"; the fields are separated by {sep}: save it with ',' between fields" if sep else ""
         raise InputError(
             f"{path}: header: expected columns {','.join(columns)}; found {','.join(found)} "
-            f"(missing {','.join(missing)})"
+            f"(missing {','.join(missing)}){hint}"
         )
     return df.select(list(columns))
 
@@ -188,27 +193,47 @@ def _ragged_line(path: Path) -> str | None:
     for i, row in enumerate(rows, start=2):
         if row and len(row) != len(header):
             fix = "quote or remove the extra fields"
-            if len(header) == 1 and ";" in header[0]:
+            if len(header) == 1 and "\t" in header[0]:
+                fix = "the fields are separated by tabs: save it with ',' between fields and '.' as the decimal point"
+            elif len(header) == 1 and ";" in header[0]:
                 fix = "the fields are separated by ';' (a decimal-comma export): save it with ',' between fields and '.' as the decimal point"
-            elif len(row) > len(header) and any(f.strip().isdigit() for f in row[len(header) - 1 :]):
+            elif len(row) > len(header) and _split_decimal(row):
                 fix = "a decimal comma? write numbers with '.' as the decimal point (4.05, not 4,05)"
             return f"line {i}: {len(row)} fields, the header has {len(header)}; {fix}"
     return None
+
+
+def _split_decimal(row: list[str]) -> bool:
+    """Two neighbouring fields that read as one number with a decimal comma ('-3', '5' of -3,5)."""
+    f = [x.strip() for x in row]
+    return any(
+        re.fullmatch(r"[-+]?\d+", a) and re.fullmatch(r"\d+", b) for a, b in zip(f, f[1:], strict=False)
+    )
 
 
 def _fmt_cols(columns: Sequence[str] | int) -> str:
     return f"{columns} numeric columns" if isinstance(columns, int) else ",".join(columns)
 
 
-def _bad_row(path: Path, name: str, raw: pl.Series, parsed: pl.Series, what: str) -> InputError:
+LINE = "_line"  # a table's column of file line numbers, where rows are not lines 2, 3, ... (TUM: no header, comments)
+
+
+def _bad_row(
+    path: Path, name: str, raw: pl.Series, parsed: pl.Series, what: str, df: pl.DataFrame
+) -> InputError:
     bad = (parsed.is_null() & raw.is_not_null()) | raw.is_null()
     i = int(np.flatnonzero(bad.to_numpy())[0])
+    line = int(df[LINE][i]) if LINE in df.columns else i + 2
     text = raw[i]
-    if isinstance(text, str) and re.fullmatch(r"[-+]?\d+,\d+", text):
+    if text is None:
+        return InputError(
+            f"{path}: line {line}: column '{name}': empty (a blank line?); remove the line or fill in the value"
+        )
+    if re.fullmatch(r"[-+]?\d+,\d+", text):
         fix = f"a decimal comma: write {text.replace(',', '.')!r}"
     else:
         fix = "fix or remove the row"
-    return InputError(f"{path}: line {i + 2}: column '{name}': {text!r} is not {what}; {fix}")
+    return InputError(f"{path}: line {line}: column '{name}': {text!r} is not {what}; {fix}")
 
 
 def to_float(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
@@ -217,7 +242,7 @@ def to_float(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
     raw = df[name].str.strip_chars()
     parsed = raw.cast(pl.Float64, strict=False)
     if parsed.null_count():
-        raise _bad_row(path, name, raw, parsed, "a number")
+        raise _bad_row(path, name, raw, parsed, "a number", df)
     return parsed.to_numpy()
 
 
@@ -227,7 +252,7 @@ def to_int(path: Path, df: pl.DataFrame, name: str) -> np.ndarray:
     raw = df[name].str.strip_chars()
     parsed = raw.cast(pl.Int64, strict=False)
     if parsed.null_count():
-        raise _bad_row(path, name, raw, parsed, "an integer")
+        raise _bad_row(path, name, raw, parsed, "an integer", df)
     return parsed.to_numpy()
 
 
@@ -272,9 +297,8 @@ def parse_stamps(path: Path, df: pl.DataFrame, name: str) -> RawStamps:
     frac = frac.cast(pl.Int64, strict=False)
     ok = whole.is_not_null() & frac.is_not_null() & frac_ok.fill_null(False) & (whole >= 0).fill_null(False)
     if not ok.all():
-        raise _bad_row(
-            path, name, raw, whole.zip_with(ok, pl.Series([None] * len(raw), dtype=pl.Int64)), "a time stamp"
-        )
+        nulls = pl.Series([None] * len(raw), dtype=pl.Int64)
+        raise _bad_row(path, name, raw, whole.zip_with(ok, nulls), "a time stamp", df)
     sign = np.where(raw.str.starts_with("-").to_numpy(), -1, 1)
     return RawStamps(whole.to_numpy(), frac.to_numpy(), sign, bool(raw.str.contains(".", literal=True).any()))
 
@@ -309,20 +333,23 @@ def read_tum(path: str | Path) -> PoseTable:
     import polars as pl
 
     path = Path(path)
-    rows = [
-        ln.split()
-        for ln in read_text(path, "TUM trajectory").splitlines()
+    numbered = [
+        (n, ln.split())
+        for n, ln in enumerate(read_text(path, "TUM trajectory").splitlines(), start=1)
         if ln.strip() and not ln.lstrip().startswith("#")
     ]
-    if not rows:
+    if not numbered:
         raise InputError(f"{path}: no poses; expected TUM lines 't x y z qx qy qz qw'")
-    bad = next((i for i, r in enumerate(rows) if len(r) != 8), None)
+    bad = next(((n, r) for n, r in numbered if len(r) != 8), None)
     if bad is not None:
+        fix = "a decimal comma? write '.' as the decimal point" if any("," in f for f in bad[1]) else ""
         raise InputError(
-            f"{path}: record {bad + 1}: {len(rows[bad])} fields, expected 8 (t x y z qx qy qz qw)"
+            f"{path}: line {bad[0]}: {len(bad[1])} fields, expected 8 (t x y z qx qy qz qw)"
+            + (f"; {fix}" if fix else "")
         )
     names = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"]
-    df = pl.DataFrame(rows, schema=names, orient="row")
+    df = pl.DataFrame([r for _, r in numbered], schema=names, orient="row")
+    df = df.with_columns(pl.Series(LINE, [n for n, _ in numbered]))
     t, _ = to_stamps_ns(path, df, "t")
     vals = np.column_stack([to_float(path, df, n) for n in names[1:]])
     return PoseTable(t, vals[:, :3], vals[:, 3:])
@@ -344,11 +371,14 @@ def normalise_quaternions(
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last silently)."""
+    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last silently); merge
+    keys (``<<: *base``) are YAML's own way to override and stay allowed."""
 
     def construct_mapping(self, node, deep=False):
         seen: set = set()
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
             key = self.construct_object(key_node, deep=True)
             if isinstance(key, str | int | float | bool) and key in seen:
                 raise yaml.constructor.ConstructorError(
@@ -358,18 +388,36 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
+# YAML 1.1 (PyYAML) reads 1e-4 (no decimal point) as text; YAML 1.2, and every user, read it as a number
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"), list("-+0123456789")
+)
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """A YAML error as ``line N: problem; fix``."""
+    text = str(exc)
+    twice = next((ln.strip() for ln in text.splitlines() if "given twice" in ln), None)
+    if twice:
+        return f"{twice}; give each key once"
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    problem = getattr(exc, "problem", None) or text.splitlines()[0]
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    fix = "indent with spaces, not tabs" if "\t" in text or "tab" in problem else "fix the YAML syntax there"
+    return f"{where}{problem}; {fix}"
+
+
 def load_yaml(path: str | Path, what: str) -> dict:
     """YAML, tolerating OpenCV's ``%YAML:1.0`` header and ``!!opencv-matrix`` tags; a key given twice in one
     mapping is refused."""
     path = Path(path)
     text = read_text(path, what)
-    lines = [ln for ln in text.splitlines() if not ln.startswith("%YAML")]
+    lines = ["" if ln.startswith("%YAML") else ln for ln in text.splitlines()]  # line numbers kept
     text = "\n".join(lines).replace("!!opencv-matrix", "")
     try:
         data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
-        first = next((ln for ln in str(exc).splitlines() if "twice" in ln), str(exc).splitlines()[0])
-        raise InputError(f"{path}: invalid YAML ({first.strip()}); give each key once") from None
+        raise InputError(f"{path}: invalid YAML ({what}): {_yaml_problem(exc)}") from None
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a YAML mapping ({what})")
     return data
@@ -452,7 +500,10 @@ ID_MAX = {"tag": 2**32 - 1, "antenna": 2**8 - 1, "anchor": 2**32 - 1}  # uwbcal_
 def id_problem(ids: dict[str, np.ndarray]) -> tuple[str, int] | None:
     """(field, index) of the first tag / antenna / anchor id outside its field in the recording, or None."""
     for name, v in ids.items():
-        bad = (np.asarray(v) < 0) | (np.asarray(v) > ID_MAX[name])
+        a = (
+            np.asarray(v) if isinstance(v, np.ndarray) else np.asarray(v, dtype=object)
+        )  # ints beyond int64 kept
+        bad = (a < 0) | (a > ID_MAX[name]) if len(a) else np.zeros(0, bool)
         if bad.any():
             return name, int(np.flatnonzero(bad)[0])
     return None
@@ -493,34 +544,52 @@ def read_ranges_csv(
 JUMP_PERIODS = 10  # a step back of more sample periods than this in one sensor's series is a clock jump
 
 
+def clock_jump(t_ns: np.ndarray, resent_are_duplicates: bool = True) -> tuple[int, float, int] | None:
+    """A clock jump in one sensor's stamps, in the order written: (step back [ns], sample period [ns], stamp
+    before the step) when the largest step back exceeds `JUMP_PERIODS` sample periods and more than
+    `JUMP_PERIODS` later samples fall inside the span already covered (a single late sample is reordering).
+    ``resent_are_duplicates``: a stamp seen before is a re-sent sample (a file's repeated rows, dropped as
+    duplicates), not a step back; False for a stream, where a stretch back onto earlier stamps is a jump."""
+    t_ns = np.asarray(t_ns, np.int64)
+    if len(t_ns) < 2 or not (np.diff(t_ns) < 0).any():
+        return None
+    t1 = t_ns[np.sort(np.unique(t_ns, return_index=True)[1])] if resent_are_duplicates else t_ns
+    dt = np.diff(t1)
+    if not len(dt):
+        return None
+    i = int(np.argmin(dt))
+    step = -int(dt[i])
+    fwd = dt[dt > 0]
+    period = float(np.median(fwd)) if len(fwd) else 0.0
+    inside = int((t1[i + 1 :] < t1[: i + 1].max()).sum())
+    if period > 0 and step > JUMP_PERIODS * period and inside > JUMP_PERIODS:
+        return step, period, int(t1[i])
+    return None
+
+
+def clock_jump_text(topic: str, jump: tuple[int, float, int]) -> str:
+    step, period, before = jump
+    return (
+        f"{topic}: out-of-order stamps: they step back by {step * 1e-9:.6g} s ({step / period:.0f} sample "
+        f"periods) after t={before} ns — a clock jump, not reordering (sorting would splice two stretches of "
+        "the clock together); cut the data at the jump or fix the stamps"
+    )
+
+
 def order_and_dedup(
     t_ns: np.ndarray, key: np.ndarray | None, topic: str, drops: Drops, series: Path | None = None
 ) -> np.ndarray:
     """Indices that sort by (time, key) without exact duplicates of (t, key). Out-of-order input is sorted and
     noted; duplicates are dropped (counted, the first kept). ``series``: the file of one sensor's samples (IMU,
-    poses), where a step back of more than `JUMP_PERIODS` sample periods followed by more than `JUMP_PERIODS`
-    samples inside the span already covered is a clock jump — refused, since sorting would interleave the two
-    stretches it overlaps (a single late sample is sorted)."""
+    poses), where a `clock_jump` is refused."""
     n = len(t_ns)
     if n == 0:
         return np.zeros(0, np.int64)
     back = int((np.diff(t_ns) < 0).sum()) if n > 1 else 0
     if back:
-        # the steps back among the stamps first seen (a re-sent earlier sample is a duplicate, not a jump)
-        t1 = t_ns[np.sort(np.unique(t_ns, return_index=True)[1])]
-        dt = np.diff(t1)
-        i = int(np.argmin(dt)) if len(dt) else 0
-        step = -int(dt[i]) if len(dt) else 0
-        fwd = dt[dt > 0]
-        period = float(np.median(fwd)) if len(fwd) else 0.0
-        # a jump moves a stretch of samples back into the span already covered; one late sample is reordering
-        inside = int((t1[i + 1 :] < t1[: i + 1].max()).sum())
-        if series is not None and period > 0 and step > JUMP_PERIODS * period and inside > JUMP_PERIODS:
-            raise InputError(
-                f"{series}: {topic}: stamps step back by {step * 1e-9:.6g} s ({step / period:.0f} sample "
-                f"periods) after t={int(t1[i])} ns: a clock jump, not reordering (sorting would interleave two "
-                "stretches); cut the data at the jump or fix the stamps"
-            )
+        jump = clock_jump(t_ns) if series is not None else None
+        if jump is not None:
+            raise InputError(f"{series}: {clock_jump_text(topic, jump)}")
         drops.note(
             f"{topic}: {back} out-of-order stamps (stepping back by up to {-int(np.diff(t_ns).min()) * 1e-9:.6g} "
             "s); sorted by stamp"
@@ -596,12 +665,13 @@ class Drop(Exception):
 
 class StampCheck:
     """Per output topic, in the order a converter writes: drops exact duplicate stamps (`Drop`), and counts the
-    steps back in time, with the largest (a clock jump makes two stretches of a topic overlap in the recording's
-    time index, which `uwbcal run` then refuses for the pose source)."""
+    steps back in time, with the largest. ``series``: the topics of one sensor's samples (IMU, poses), whose
+    stamps are kept so that `report` refuses a `clock_jump` in them, as `order_and_dedup` does for a file."""
 
-    def __init__(self) -> None:
+    def __init__(self, series: tuple[str, ...] = ()) -> None:
         self.last: dict[str, int] = {}
         self.back: dict[str, list[int]] = {}  # topic -> [count, largest step back ns, stamp after it]
+        self.stamps: dict[str, array] = {t: array("q") for t in series}
 
     def __call__(self, topic: str, t: int) -> None:
         last = self.last.get(topic)
@@ -614,13 +684,20 @@ class StampCheck:
                 if last - t > b[1]:
                     b[1], b[2] = last - t, last
         self.last[topic] = t
+        if topic in self.stamps:
+            self.stamps[topic].append(t)
 
-    def report(self, drops: Drops) -> None:
+    def report(self, drops: Drops, source: str | Path | None = None) -> None:
+        """The out-of-order stamps as notes; a clock jump in a series topic refused (InputError naming
+        ``source``)."""
         for topic, (n, step, after) in self.back.items():
+            t = np.frombuffer(self.stamps[topic], np.int64) if topic in self.stamps else None
+            jump = clock_jump(t, resent_are_duplicates=False) if t is not None else None
+            if jump is not None:
+                raise InputError(f"{source}: {clock_jump_text(topic, jump)}")
             drops.note(
                 f"{topic}: {n} out-of-order stamps (stamps step back by up to {step * 1e-9:.6g} s, after "
-                f"{after} ns): the recording orders them by stamp; a step back of more than a few sample "
-                "periods is a clock jump — check the sensor's clock"
+                f"{after} ns): the recording orders them by stamp"
             )
 
 

@@ -149,19 +149,36 @@ def read_run_anchors(run_dir: Path, init_method: str | None) -> RunAnchors:
             u["reason"] = (
                 "; ".join(p for p in [head, *extra] if p) or "not determined (no reason given by the run)"
             )
-    states_path = run_dir / "anchor_states.json"
-    states = (
-        artefacts.read_json(states_path, artefacts.ANCHOR_STATES) if artefacts.present(states_path) else {}
-    )
-    for aid in out.estimates:
-        s = states.get(aid) if refine else None
-        if s is None and not refine and aid in chosen and chosen[aid].get("cov") is not None:
-            s = {"x": chosen[aid].get("x", chosen[aid].get("estimate")), "P": chosen[aid]["cov"]}
-        if s is not None and s.get("x") is not None and s.get("P") is not None:
-            x, P = np.asarray(s["x"], float), np.asarray(s["P"], float)
+    if refine:
+        out.states = _refine_states(run_dir, out, refine)
+    for aid in out.estimates if not refine else ():
+        info = chosen.get(aid) or {}
+        if info.get("cov") is not None:
+            x, P = np.asarray(info.get("x", info.get("estimate")), float), np.asarray(info["cov"], float)
             if P.ndim == 2 and P.shape[0] >= 3 and P.shape[0] == P.shape[1] and np.isfinite(P[:3, :3]).all():
                 out.states[aid] = (x, P)
     return out
+
+
+def _refine_states(
+    run_dir: Path, out: RunAnchors, refine: list[dict]
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The refined anchors' states (`artefacts.read_anchor_states`: anchor_states.json read with anchors.csv's
+    refine rows, which the refinement writes together)."""
+    path = run_dir / "anchor_states.json"
+    if not artefacts.present(path):
+        raise artefacts.corrupt(
+            path,
+            "missing, but anchors.csv holds refine rows",
+            f"re-run the refinement (uwbcal run REC -o {run_dir} --stages refine,localize,evaluate)",
+        )
+    states = artefacts.read_anchor_states(path)
+    lines = {str(r["anchor"]) for r in refine}
+    return {
+        aid: (np.asarray(states[aid]["x"], float), np.asarray(states[aid]["P"], float))
+        for aid in out.estimates
+        if aid in lines and aid in states
+    }
 
 
 def aligned_anchors(run: RunAnchors, al) -> RunAnchors:

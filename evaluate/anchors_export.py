@@ -26,6 +26,8 @@ from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run.config import run_config
+from uwbcal.pipeline.run.provenance import check_recording
+from uwbcal.pipeline.run.rundir import RunDir
 
 STATES = "anchor_states.json"
 MODEL = "d = beta * |p_anchor - p_tag| + gamma (+ noise)"
@@ -90,11 +92,16 @@ def _anchor_record(aid: str, entry: dict, where: str) -> dict:
 def load_anchors(run_dir: str | Path) -> dict:
     """The run's anchors as exported: ``{"stage", "method", "model", "frame", "anchors": {id: record}}``."""
     run_dir = Path(run_dir)
-    uwb = run_config(run_dir).uwb
+    cfg = run_config(run_dir)
+    rec = Path(cfg.run.recording).expanduser() if cfg.run.recording else None
+    if rec is not None and not rec.is_absolute() and not rec.exists():
+        rec = run_dir / rec
+    check_recording(RunDir(run_dir), rec if rec is not None and rec.is_file() else None)
+    uwb = cfg.uwb
     init_m, refine_m = uwb.init_method, uwb.refine_method
     states_path = run_dir / STATES
     if artefacts.present(states_path):
-        states = artefacts.read_json(states_path, artefacts.ANCHOR_STATES)
+        states = artefacts.read_anchor_states(states_path)
         anchors = {str(a): _anchor_record(str(a), e, str(states_path)) for a, e in states.items()}
         stage, method = "refine", f"{init_m}+{refine_m}"
     elif artefacts.present(run_dir / "init.pkl"):

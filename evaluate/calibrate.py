@@ -10,6 +10,8 @@ bag's ``calibration.yaml`` are used when present (the summary says so). OUT gets
 
 from __future__ import annotations
 
+import contextlib
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,8 +29,11 @@ from uwbcal.evaluate.evaluation import evaluate_stage
 from uwbcal.evaluate.report import write_report
 from uwbcal.pipeline.core.atomic import write_text_atomic
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.core.names import STAGES
 from uwbcal.pipeline.run import artefacts
 from uwbcal.pipeline.run.config import load_config
+from uwbcal.pipeline.run.provenance import claim, recording_id, recording_record
+from uwbcal.pipeline.run.rundir import RunDir
 from uwbcal.pipeline.run.stages.pipeline import Pipeline
 
 ANTENNA_NAMES = ("antennas.yaml", "uwb_antennas.yaml")
@@ -48,6 +53,21 @@ class CalibrateInput:
     time_offset: float = 0.0
     config: Path | None = None
     log: bool = False
+    overwrite: bool = False  # replace OUT's calibration of another input
+
+
+RECORDING = "recording.mcap"
+STAGED = ".recording.incoming.mcap"  # a conversion waits here until OUT is known to be free for it
+# what `calibrate` writes beside its run directory (``run/``, whose artefacts `provenance.claim` clears)
+OUTPUTS = (
+    RECORDING,
+    "convert.txt",
+    "check.txt",
+    "anchors.json",
+    "uwb_anchors.yaml",
+    "localization.yaml",
+    "report.html",
+)
 
 
 @dataclass
@@ -55,6 +75,31 @@ class Conversion:
     kind: str
     recording: Path
     notes: list[str] = field(default_factory=list)
+    text: str = ""  # the converter's summary (convert.txt)
+
+
+def claim_output(out: Path, conv: Conversion, overwrite: bool) -> Conversion:
+    """Make OUT the calibration of this input before anything in it is replaced: a calibration of another
+    input there (its recording.mcap, or its run directory's stages) is refused, or with ``overwrite`` removed
+    first; then the staged conversion becomes ``out/recording.mcap``."""
+    record = recording_record(conv.recording)
+    prior = out / RECORDING
+    other = conv.kind != "recording" and prior.is_file() and recording_id(prior) != record["id"]
+    if other and not overwrite:
+        raise InputError(
+            f"{out}: holds the calibration of another input ({prior}); choose another output directory, or "
+            "pass --overwrite to replace it"
+        )
+    claim(RunDir(out / "run"), record, list(STAGES), overwrite)  # refuses, or clears, another recording's run
+    if other:
+        for name in OUTPUTS:
+            with contextlib.suppress(FileNotFoundError):
+                (out / name).unlink()
+    if conv.kind == "recording":
+        return conv
+    os.replace(conv.recording, prior)
+    write_text_atomic(out / "convert.txt", conv.text + "\n")
+    return Conversion(conv.kind, prior, conv.notes, conv.text)
 
 
 def _beside(
@@ -96,9 +141,10 @@ def _kind(inp: CalibrateInput) -> str:
 
 
 def convert_input(inp: CalibrateInput, out: Path) -> Conversion:
-    """The input converted into ``out/recording.mcap`` (a recording is used where it is)."""
+    """The input converted into ``out/STAGED`` (`claim_output` moves it to ``out/recording.mcap``; a recording is
+    used where it is)."""
     kind = _kind(inp)
-    rec = out / "recording.mcap"
+    rec = out / STAGED
     notes: list[str] = []
     if kind == "recording":
         return Conversion(kind, inp.path, notes)
@@ -127,8 +173,7 @@ def convert_input(inp: CalibrateInput, out: Path) -> Conversion:
         text = convert_euroc(inp.path, rec)
     else:
         text = convert_ntu_viral(inp.path, rec, antennas=inp.antennas, anchors_truth=truth)
-    write_text_atomic(out / "convert.txt", text + "\n")
-    return Conversion(kind, rec, notes)
+    return Conversion(kind, rec, notes, text.replace(str(rec), str(out / RECORDING)))
 
 
 def _sigma_text(a: dict) -> str:
@@ -172,8 +217,18 @@ def summary_lines(out: Path, metrics: dict, check_text: str, files: list[Path]) 
 def calibrate(inp: CalibrateInput, out: str | Path, progress: Callable[[str], None] = print) -> str:
     """Convert, check, run with the defaults, evaluate, export and report; returns the five-line summary."""
     out = Path(out)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    conv = convert_input(inp, out)
+    try:
+        conv = claim_output(out, convert_input(inp, out), inp.overwrite)
+    except InputError:
+        if created:  # a refused input leaves no empty output directory behind
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            (out / STAGED).unlink()
     for n in conv.notes:
         progress(f"note: {n}")
     progress(f"[convert] {conv.kind} -> {conv.recording}")

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from uwbcal.convert.anchor_truth import POSE_FRAMES, read_anchor_truth
+from uwbcal.convert.calibration import parse_calibration
 from uwbcal.convert.recording import (
     TOPIC_GT_POSE,
     TOPIC_GT_POSITION,
@@ -126,6 +127,7 @@ def load_check_data(recording: str | Path, anchors_truth: str | Path | None = No
     if not path.is_file():
         raise InputError(f"{path}: no such recording; convert the data first (uwbcal convert ...)")
     reader = RecordingReader(path)
+    parse_calibration(reader.calibration, f"{path}: uwbcal.calibration")  # what run refuses, check refuses
     if TOPIC_RANGE not in reader.topics():
         raise InputError(f"{path}: no UWB ranges ({TOPIC_RANGE}); nothing to check")
     truth, label, frame = _truth(reader, Path(anchors_truth) if anchors_truth is not None else None)

@@ -58,8 +58,10 @@ def _is_num(v: Any) -> bool:
 
 
 def _read_json(path: Path) -> dict:
-    """A JSON object (metrics are always one); anything else is an input error naming the file."""
-    return artefacts.read_json(path, dict, fix="pass a metrics.json or summary.json")
+    """A JSON object (metrics are always one); anything else is an input error naming the file. A run's
+    metrics.json is checked against its declared shape (`artefacts.METRICS`)."""
+    shape = artefacts.METRICS if path.name == "metrics.json" else dict
+    return artefacts.read_json(path, shape, fix="pass a metrics.json or summary.json")
 
 
 def load_metrics(path: str | Path) -> dict[str, Any]:

@@ -125,7 +125,7 @@ def _run_notes(run_dir: Path, reader: RecordingReader, traj: RunTrajectory) -> d
     if len(traj):
         notes["duration_s"] = float((traj.t_ns[-1] - traj.t_ns[0]) * 1e-9)
     if artefacts.present(run_dir / "health.json"):  # the pose source's health checks per stage (check_health)
-        notes["vio_health"] = artefacts.read_json(run_dir / "health.json")
+        notes["vio_health"] = artefacts.read_json(run_dir / "health.json", artefacts.HEALTH)
     return notes
 
 

@@ -212,7 +212,8 @@ def write_report(
     if artefacts.present(run_dir / TRAJECTORY):
         p = artefacts.read_trajectory(run_dir / TRAJECTORY)["p"]
         track = p[:: max(1, len(p) // 5000)]
-    states = _read_json(run_dir / "anchor_states.json", artefacts.ANCHOR_STATES)
+    states_path = run_dir / "anchor_states.json"
+    states = artefacts.read_anchor_states(states_path) if artefacts.present(states_path) else {}
     parts += ["<h2>Anchors</h2>", plan_view(metrics, states, truth or {}, track)]
     head = ["anchor", "method", "model", "determined", "height seen", "x y z [m]", "σ x y z [m]", "error [m]"]
     parts.append(_table(head, _model_rows(init, metrics)))

@@ -188,15 +188,27 @@ def bag_stamps(n: int = BAG_N) -> list[int]:
     return [T0 + i * 100_000_000 for i in range(n)]
 
 
-def small_bag(fmt: str, path: Path, compression: str | None = None, imu_topic: str = "/imu") -> Path:
+def small_bag(
+    fmt: str,
+    path: Path,
+    compression: str | None = None,
+    imu_topic: str = "/imu",
+    *,
+    imu_stamp=None,
+    frame=None,
+    image_size=None,
+) -> Path:
     """A ROS 1 ``.bag`` or a ROS 2 bag folder (``mcap`` / ``sqlite3``) with /imu (sensor_msgs/Imu; or
     ``imu_topic``) and /uwb/range (sensor_msgs/Range, anchor 40 + i % 3 in its frame id), ``BAG_N`` each, in
-    chunks of a few messages. Returns the .bag file or the bag folder."""
+    chunks of a few messages. Returns the .bag file or the bag folder. Edits: ``imu_stamp(i, t)`` the header
+    stamp of IMU sample i, ``frame(i)`` the frame id of range i, ``image_size(i)`` -> (width, height) adds a
+    mono8 image on /cam0/image_raw at every other message."""
     from rosbags.typesys import Stores, get_typestore
 
     ros1 = fmt == "ros1"
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-    msgs = [m for i, t in enumerate(bag_stamps()) for m in _bag_messages(store.types, i, t, ros1)]
+    edits = {"imu_stamp": imu_stamp, "frame": frame, "image_size": image_size}
+    msgs = [m for i, t in enumerate(bag_stamps()) for m in _bag_messages(store.types, i, t, ros1, **edits)]
     ser = store.serialize_ros1 if ros1 else store.serialize_cdr
     if ros1:
         from rosbags.rosbag1 import Writer
@@ -224,25 +236,74 @@ def small_bag(fmt: str, path: Path, compression: str | None = None, imu_topic: s
     return path
 
 
-def _bag_messages(T, i: int, t: int, ros1: bool) -> list[tuple]:
+def _bag_messages(T, i: int, t: int, ros1: bool, imu_stamp=None, frame=None, image_size=None) -> list[tuple]:
     seq = {"seq": i} if ros1 else {}
     stamp = T["builtin_interfaces/msg/Time"](sec=t // 10**9, nanosec=t % 10**9)
+    ti = imu_stamp(i, t) if imu_stamp else t
+    imu_stamp_msg = T["builtin_interfaces/msg/Time"](sec=ti // 10**9, nanosec=ti % 10**9)
     H = T["std_msgs/msg/Header"]
     vec = T["geometry_msgs/msg/Vector3"]
     imu = T["sensor_msgs/msg/Imu"](
-        header=H(**seq, stamp=stamp, frame_id="imu"),
+        header=H(**seq, stamp=imu_stamp_msg, frame_id="imu"),
         orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
         orientation_covariance=np.zeros(9), angular_velocity=vec(x=0.01 * i, y=0.0, z=0.0),
         angular_velocity_covariance=np.zeros(9), linear_acceleration=vec(x=0.0, y=0.0, z=9.81),
         linear_acceleration_covariance=np.zeros(9),
     )  # fmt: skip
     rng = T["sensor_msgs/msg/Range"](
-        header=H(**seq, stamp=stamp, frame_id=f"anchor_{40 + i % 3}"), radiation_type=2, field_of_view=0.0,
-        min_range=0.1, max_range=100.0, range=np.float32(2.0 + 0.01 * i),
+        header=H(**seq, stamp=stamp, frame_id=frame(i) if frame else f"anchor_{40 + i % 3}"), radiation_type=2,
+        field_of_view=0.0, min_range=0.1, max_range=100.0, range=np.float32(2.0 + 0.01 * i),
     )  # fmt: skip
-    return [("/imu", "sensor_msgs/msg/Imu", t, imu), ("/uwb/range", "sensor_msgs/msg/Range", t + 1000, rng)]
+    out = [("/imu", "sensor_msgs/msg/Imu", t, imu), ("/uwb/range", "sensor_msgs/msg/Range", t + 1000, rng)]
+    if image_size is not None and i % 2 == 0:
+        w, h = image_size(i)
+        img = T["sensor_msgs/msg/Image"](
+            header=H(**seq, stamp=stamp, frame_id="cam0"), height=h, width=w, encoding="mono8", is_bigendian=0,
+            step=w, data=np.full(w * h, 100, np.uint8),
+        )  # fmt: skip
+        out.append(("/cam0/image_raw", "sensor_msgs/msg/Image", t + 2000, img))
+    return out
 
 
 def bag_storage(bag: Path) -> Path:
     """The file of a bag that holds its messages (the .bag, or the storage file inside a ROS 2 bag folder)."""
     return bag if bag.is_file() else next(p for p in sorted(bag.iterdir()) if p.suffix in (".mcap", ".db3"))
+
+
+# -- a EuRoC ASL folder (IMU, cam0 with images of the calibration's size) -------------------------------------------
+EUROC_IMU_YAML = (
+    "sensor_type: imu\nrate_hz: 200\nT_BS:\n  cols: 4\n  rows: 4\n  data: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, "
+    "0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]\ngyroscope_noise_density: 1.7e-4\ngyroscope_random_walk: 1.9e-05\n"
+    "accelerometer_noise_density: 2.0e-3\naccelerometer_random_walk: 3.0e-3\n"
+)
+EUROC_CAM_YAML = (
+    "%YAML:1.0\nsensor_type: camera\nT_BS:\n  cols: 4\n  rows: 4\n  data: [0.0148655429818, -0.999880929698, "
+    "0.00414029679422, -0.0216401454975, 0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768, "
+    "-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949, 0.0, 0.0, 0.0, 1.0]\nrate_hz: 20\n"
+    "resolution: [752, 480]\ncamera_model: pinhole\nintrinsics: [458.654, 457.296, 367.215, 248.375]\n"
+    "distortion_model: radial-tangential\ndistortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, "
+    "1.76187114e-05]\n"
+)
+
+
+def euroc_folder(
+    root: Path, imu_yaml: str = EUROC_IMU_YAML, cam_yaml: str = EUROC_CAM_YAML, size=(752, 480)
+) -> Path:
+    """``root/mav0``: 0.5 s of a resting IMU at 200 Hz, 3 cam0 images of ``size`` (width, height)."""
+    import cv2
+
+    mav0 = root / "mav0"
+    (mav0 / "imu0").mkdir(parents=True)
+    (mav0 / "cam0" / "data").mkdir(parents=True)
+    t0 = 1_403_636_579_758_555_392
+    rows = "".join(f"{t0 + i * 5_000_000},0.0,0.0,0.0,0.0,0.0,9.81\n" for i in range(100))
+    (mav0 / "imu0" / "data.csv").write_text("#timestamp [ns],w_x,w_y,w_z,a_x,a_y,a_z\n" + rows)
+    (mav0 / "imu0" / "sensor.yaml").write_text(imu_yaml)
+    lines = ["#timestamp [ns],filename"]
+    for k in range(3):
+        t = t0 + k * 50_000_000
+        cv2.imwrite(str(mav0 / "cam0" / "data" / f"{t}.png"), np.full((size[1], size[0]), 90 + k, np.uint8))
+        lines.append(f"{t},{t}.png")
+    (mav0 / "cam0" / "data.csv").write_text("\n".join(lines) + "\n")
+    (mav0 / "cam0" / "sensor.yaml").write_text(cam_yaml)
+    return root

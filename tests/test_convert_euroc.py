@@ -102,6 +102,9 @@ def test_external_groundtruth(data_dir, tmp_path, name):
 # ---------------------------------------------------------------------------------------------------------------
 # synthetic ASL folders: bad input
 # ---------------------------------------------------------------------------------------------------------------
+EUROC_SIZE = (752, 480)  # the cameras' resolution in EuRoC's sensor.yaml: the images must have it
+
+
 def _asl(tmp_path: Path, data_dir: Path | None = None, n_img: int = 3) -> Path:
     """A tiny ASL folder: sensor.yaml copied from the real excerpt (or written), synthetic IMU/images."""
     root = tmp_path / "seq"
@@ -121,7 +124,7 @@ def _asl(tmp_path: Path, data_dir: Path | None = None, n_img: int = 3) -> Path:
         lines = ["#timestamp [ns],filename"]
         for k in range(n_img):
             t = t0 + k * 50_000_000
-            cv2.imwrite(str(mav0 / cam / "data" / f"{t}.png"), synthetic_image(k, 64, 48))
+            cv2.imwrite(str(mav0 / cam / "data" / f"{t}.png"), synthetic_image(k, *EUROC_SIZE))
             lines.append(f"{t},{t}.png")
         (mav0 / cam / "data.csv").write_text("\n".join(lines) + "\n")
     return root
@@ -142,7 +145,7 @@ def test_synthetic_folder_roundtrip_and_imu_dups(data_dir, tmp_path):
     assert len(imu.t_ns) == 20 and np.all(np.diff(imu.t_ns) > 0)
     assert "duplicate stamp" in text and "out-of-order" in text
     for k, (_, img) in enumerate(rec.iter_images("/cam1/image_raw")):
-        np.testing.assert_array_equal(img, synthetic_image(k, 64, 48))
+        np.testing.assert_array_equal(img, synthetic_image(k, *EUROC_SIZE))
 
 
 def test_missing_sensor_yaml(data_dir, tmp_path):

@@ -98,7 +98,7 @@ def test_errors(tmp_path):
         convert_tabular(tmp_path / "p.tum", tmp_path / "r.csv", tmp_path / "o.mcap")
     (tmp_path / "bad.tum").write_text("1.0 2 3\n")
     _ranges(tmp_path / "r.csv", False)
-    with pytest.raises(InputError, match=r"bad.tum: record 1: 3 fields, expected 8"):
+    with pytest.raises(InputError, match=r"bad.tum: line 1: 3 fields, expected 8"):
         convert_tabular(tmp_path / "bad.tum", tmp_path / "r.csv", tmp_path / "o.mcap")
     (tmp_path / "ms.csv").write_text("stamp,tag,antenna,anchor,distance\n1609059013000,200,0,100,5.0\n")
     text = convert_tabular(tmp_path / "p.tum", tmp_path / "ms.csv", tmp_path / "ms.mcap")

@@ -7,6 +7,7 @@ an unknown key, the known keys and the closest one ("did you mean ...").
 from __future__ import annotations
 
 import difflib
+import re
 import typing
 from typing import Any
 
@@ -55,21 +56,27 @@ def _problem(err: dict) -> str:
     for prefix in ("Value error, ", "Assertion failed, "):
         if msg.startswith(prefix):
             msg = msg[len(prefix) :]
+    msg = re.sub(r" or instance of \w+", "", msg)  # "a valid dictionary", not the model class behind it
     if err.get("type") in ("missing",):
         return "missing"
     got = err.get("input")
     if err.get("type") not in ("value_error", "assertion_error") and not isinstance(got, (dict, list)):
-        msg += f" (got {got!r})"
+        shown = repr(got)
+        msg += f" (got {shown if len(shown) <= 40 else shown[:37] + '...'})"
     first = msg.split(" ", 1)[0]
     return msg[:1].lower() + msg[1:] if first[1:].islower() else msg
 
 
-def validation_message(exc: ValidationError, model: type[BaseModel], source: str) -> str:
-    """``<source>: <key.path>: <problem>; <fix>`` for the first error of ``exc`` (the count when more)."""
+def validation_message(
+    exc: ValidationError, model: type[BaseModel], source: str, keys: dict[str, str] | None = None
+) -> str:
+    """``<source>: <key.path>: <problem>; <fix>`` for the first error of ``exc`` (the count when more);
+    ``keys``: the model's top-level key -> the key as the file spells it (a file of another layout)."""
     errors = exc.errors()
     err = errors[0]
     loc = tuple(err.get("loc", ()))
-    where = ".".join(str(p) for p in loc) or "(top level)"
+    shown = [(keys or {}).get(str(p), str(p)) if i == 0 else str(p) for i, p in enumerate(loc)]
+    where = ".".join(shown) or "(top level)"
     problem = _problem(err)
     if err.get("type") == "extra_forbidden":
         return f"{source}: {where}: {_unknown_key_fix(model, loc)}" + _more(errors)

@@ -128,12 +128,14 @@ def _json_kind(v: Any) -> str:
     return {dict: "object", list: "array", str: "string"}.get(type(v), type(v).__name__)
 
 
-def read_toml(path: Path, fix: str | None = None) -> dict:
+def read_toml(path: Path, fix: str | None = None, syntax_fix: str | None = None) -> dict:
+    """A TOML file; ``fix``: what to do about an unreadable or non-UTF-8 one, ``syntax_fix``: about invalid
+    TOML (default ``fix``)."""
     text = read_text(path, fix)
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise corrupt(path, f"invalid TOML ({exc})", fix) from None
+        raise corrupt(path, f"invalid TOML ({exc})", syntax_fix or fix) from None
 
 
 def read_npz(
@@ -242,6 +244,58 @@ def read_anchor_rows(path: Path) -> list[dict]:
         raise corrupt(path, f"not a CSV ({exc})") from None
 
 
+STATE_TOL = 1e-5  # anchors.csv keeps 6 decimals of the states anchor_states.json holds
+
+
+def read_anchor_states(path: Path) -> dict:
+    """anchor_states.json (`ANCHOR_STATES`), read together with the refine rows of anchors.csv beside it, which
+    the refinement writes from the same states: an anchor estimated there without its state, a state without
+    its row, or a state that is not the row's estimate is damage (a consumer would drop σ and NEES, leave out
+    an anchor, or take a state of another run)."""
+    path = Path(path)
+    states = read_json(path, ANCHOR_STATES)
+    table = path.parent / "anchors.csv"
+    if not present(table):
+        return states
+    fix = (
+        "anchors.csv and anchor_states.json are not of one refinement — re-run it "
+        f"(uwbcal run REC -o {path.parent} --stages refine,localize,evaluate)"
+    )
+    rows = {r["anchor"]: r for r in read_anchor_rows(table) if r["stage"] == "refine"}
+    extra = sorted(set(states) - set(rows), key=lambda a: (len(a), a))
+    if rows and extra:
+        raise corrupt(path, f"anchor {extra[0]}: a state, but no refine row in anchors.csv", fix)
+    for aid, r in rows.items():
+        row = _row_state(table, r)
+        if row is None:
+            continue  # not determined (empty or non-finite): no state to hold
+        if aid not in states:
+            raise corrupt(
+                path, f"anchor {aid}: missing (anchors.csv line {r['_line']} has its estimate)", fix
+            )
+        x = np.asarray(states[aid]["x"][:5], float)
+        if np.abs(x - row).max() > STATE_TOL * max(1.0, float(np.abs(row).max())):
+            raise corrupt(
+                path,
+                f"anchor {aid}: x {np.round(x[:3], 6).tolist()} is not anchors.csv line {r['_line']}'s "
+                f"{np.round(row[:3], 6).tolist()}",
+                fix,
+            )
+    return states
+
+
+def _row_state(table: Path, r: dict) -> np.ndarray | None:
+    """x, y, z, beta, gamma of an anchors.csv row (None: not determined)."""
+    cells = [r.get(c) or "" for c in ANCHOR_COLUMNS[3:]]
+    if "" in cells[:3]:
+        return None
+    try:
+        v = np.asarray([float(c) if c else np.nan for c in cells])
+    except ValueError:
+        raise corrupt(table, f"line {r['_line']}: {cells} are not numbers") from None
+    return v if np.isfinite(v).all() else None
+
+
 # -- the artefacts' shapes ---------------------------------------------------------------------------------------
 class _Open(BaseModel):
     model_config = ConfigDict(extra="allow")
@@ -308,9 +362,27 @@ class InitAnchor(_Open):
 
 
 class InitInfo(_Open):
-    chosen: str | None = None
-    methods: dict[str, dict[str, InitAnchor]] = {}
+    """init.json: the initialiser the later stages took and every initialiser's result per anchor (and the
+    range clock offset the evidence path estimated)."""
+
+    chosen: str
+    methods: dict[str, dict[str, InitAnchor]]
     range_clock: dict | None = None
+
+    @model_validator(mode="after")
+    def _chosen_ran(self) -> InitInfo:
+        if self.chosen not in self.methods:
+            ran = ", ".join(self.methods) or "none"
+            raise ValueError(f"chosen {self.chosen!r} is not among the methods ({ran})")
+        return self
+
+
+class HealthEntry(_Open):
+    """One stage in health.json: whether the pose source's health checks failed (and, if so, which and when)."""
+
+    model_config = ConfigDict(extra="allow", strict=True)
+    failed: bool
+    reinits: list[dict] = []
 
 
 class StageEntry(_Open):
@@ -358,6 +430,7 @@ AnchorId = Annotated[str, AfterValidator(_anchor_id)]
 ANCHOR_STATES = Shape(TypeAdapter(dict[AnchorId, AnchorState]), "anchor")
 INIT = Shape(TypeAdapter(InitInfo))
 STAGES = Shape(TypeAdapter(dict[str, StageEntry]), "stage")
+HEALTH = Shape(TypeAdapter(dict[str, HealthEntry]), "stage")
 # trajectory.npz and the stages' histories (vio.npz, refine.npz, localize.npz): a pose per stamp, its covariance
 TRAJECTORY_ARRAYS = {
     "t_ns": (None,),

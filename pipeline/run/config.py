@@ -125,7 +125,12 @@ def check_numbers(data: Any, src: str, where: str = "") -> None:
 
 def read_toml(path: Path) -> dict:
     """A TOML file as a dict; InputError naming the file on anything unreadable."""
-    return artefacts.read_toml(path, fix="give a UTF-8 TOML config (uwbcal config prints the defaults)")
+    return artefacts.read_toml(
+        path,
+        fix="save it as UTF-8 TOML (uwbcal config prints the defaults)",
+        syntax_fix="fix the TOML at that line (a key or a [section] given twice, a missing value or quote; "
+        "uwbcal config prints a valid config)",
+    )
 
 
 def load_config(path: Path | None = None, overrides: dict | None = None) -> PipelineConfig:
@@ -164,7 +169,7 @@ def config_problem(err: dict) -> str:
     """One validation error of the config as ``key = value: problem; fix`` (a near key or choice named)."""
     loc = [str(x) for x in err["loc"]]
     where = ".".join(loc)
-    msg = err["msg"].removeprefix("Value error, ")
+    msg = re.sub(r" or instance of \w+", "", err["msg"].removeprefix("Value error, "))
     msg = (msg[0].lower() + msg[1:]).replace("input should be", "must be")
     if err["type"] == "extra_forbidden":
         known = _keys_at(loc[:-1])

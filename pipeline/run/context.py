@@ -158,7 +158,11 @@ class StageContext:
             )
         fail = assess(est.history().arrays(), cfg, rejection, start_ns, end_ns, ranges, online_from)
         t0 = self.windows().start_ns
-        record = dict(self.dir.load_json("health.json")) if self.dir.exists("health.json") else {}
+        record = (
+            dict(self.dir.load_json("health.json", stage, artefacts.HEALTH))
+            if self.dir.exists("health.json")
+            else {}
+        )
         record[stage] = {"failed": False} if fail is None else fail.summary(stage, t0)
         if reinits:
             record[stage]["reinits"] = [f.record(t0) for f in reinits]

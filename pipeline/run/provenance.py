@@ -159,24 +159,37 @@ def claim(run: rd.RunDir, recording: dict, stages: list[str], overwrite: bool) -
     return present
 
 
-def check_recording(run: rd.RunDir, recording: Path) -> None:
-    """Refuse a run directory whose recorded stages ran on another recording than ``recording`` (the one its
-    config.toml names), or on several."""
+def check_recording(run: rd.RunDir, recording: Path | None) -> None:
+    """Refuse a run directory whose recorded stages ran on several recordings, or on another one than
+    ``recording`` (the one its config.toml names; None: not at hand, the stages checked among themselves), or
+    whose stages.json records no stage beside the artefacts of stages."""
     if not run.exists(rd.STAGES_JSON):
         return  # no stage recorded (a directory put together by hand): nothing to compare
     held = _held(run)
     path = run.file(rd.STAGES_JSON)
+    fix = f"re-run every stage (uwbcal run REC -o {run.path} --overwrite)"
+    if not held:
+        others = [n for n in rd.present_artefacts(run.path) if n not in (rd.STAGES_JSON, rd.CONFIG)]
+        if others:
+            raise InputError(f"{path}: records no stage, but {others[0]} is a stage's artefact; {fix}")
+        return
     missing = [k for k, r in held.items() if not r.get("id")]
     if missing:
+        raise InputError(f"{path}: stage {missing[0]} names no recording (an older uwbcal wrote it); {fix}")
+    ids = {r["id"]: k for k, r in held.items()}
+    if len(ids) > 1:
+        (a, ka), (b, kb) = list(ids.items())[:2]
         raise InputError(
-            f"{path}: stage {missing[0]} names no recording (an older uwbcal wrote it); re-run every stage "
-            f"(uwbcal run REC -o {run.path} --overwrite)"
+            f"{path}: stage {ka} ran on {held[ka].get('path')}, stage {kb} on {held[kb].get('path')}; the "
+            f"directory mixes two recordings — {fix}"
         )
+    if recording is None:
+        return
     rid = recording_id(recording)
     wrong = {k: r for k, r in held.items() if r["id"] != rid}
     if wrong:
         k, r = next(iter(wrong.items()))
         raise InputError(
             f"{path}: stage {k} ran on {r.get('path')}, not on {recording} (config.toml's recording); the "
-            f"directory mixes two recordings — re-run every stage (uwbcal run REC -o {run.path} --overwrite)"
+            f"directory mixes two recordings — {fix}"
         )

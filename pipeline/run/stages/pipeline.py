@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from uwbcal.convert.calibration import parse_calibration
-from uwbcal.convert.info import clock_jumps, nan_problems
+from uwbcal.convert.info import calibration_problems, clock_jumps, nan_problems
 from uwbcal.convert.recording import TOPIC_IMU, TOPIC_ODOM, TOPIC_RANGE, RecordingReader
 from uwbcal.pipeline.core.atomic import sweep_stale
 from uwbcal.pipeline.core.errors import InputError
@@ -129,10 +129,15 @@ def check_values(ctx: StageContext) -> None:
     elif TOPIC_IMU in topics:
         m = reader.read_imu(file_order=True)
         problems += nan_problems(TOPIC_IMU, m.t_ns, m.gyro, m.acc) + clock_jumps(TOPIC_IMU, m.t_ns)
+    if ctx.pose_source() == "msckf":  # the images against the resolution their intrinsics are for (as info)
+        problems += [p for p in calibration_problems(reader, topics) if p.topic]
     if problems:
-        raise InputError(
-            f"{ctx.recording}: {problems[0].text}; re-convert the data (uwbcal convert drops such records)"
+        fix = (
+            ""
+            if problems[0].kind == "calibration"
+            else "; re-convert the data (uwbcal convert drops such records)"
         )
+        raise InputError(f"{ctx.recording}: {problems[0].text}{fix}")
 
 
 def _resumed_config(output: Path, overrides: dict) -> Path | None:
