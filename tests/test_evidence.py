@@ -127,3 +127,40 @@ def test_deflation_of_white_residuals_is_one():
     assert deflation(m, xyz, np.full(len(t), 0.01), (t * 1e9).astype(np.int64), FitSpec()) == pytest.approx(
         1.0, abs=0.2
     )
+
+
+def test_autocorrelation_time_closed_form():
+    """White noise: 1; an AR(1) series with coefficient phi: (1 + phi) / (1 - phi)."""
+    from uwbcal.pipeline.uwb.evidence import autocorrelation_time
+
+    rng = np.random.default_rng(4)
+    assert autocorrelation_time(rng.normal(size=20000)) == pytest.approx(1.0, abs=0.1)
+    phi, e = 0.8, np.zeros(50000)
+    w = rng.normal(size=len(e))
+    for k in range(1, len(e)):
+        e[k] = phi * e[k - 1] + w[k]
+    assert autocorrelation_time(e) == pytest.approx((1 + phi) / (1 - phi), rel=0.15)
+
+
+def test_pattern_cov_matches_the_fits_of_random_patterns():
+    """`pattern_cov` is the linear map of a bias c . u (c ~ N(0, s^2 I)) into the position: the scatter of the
+    fits over random patterns agrees with it (closed form against Monte Carlo, 200 draws)."""
+    from uwbcal.pipeline.uwb.evidence import fit_family, pattern_cov
+
+    t, xyz, rng = _track(800, seed=5)
+    xyz[:, 0] += 6.0
+    p = np.array([0.0, 0.0, 1.0])
+    u = (xyz - p) / np.linalg.norm(xyz - p, axis=1)[:, None]
+    rho = np.linalg.norm(xyz - p, axis=1)
+    spec = FitSpec(sigma_range=0.05, robust=False, pattern_sigma=0.1)
+    li, s2 = np.zeros(len(t), np.int64), np.full(len(t), 0.05**2)
+    base = fit_family(xyz, rho, li, 1, s2, "position", p, spec)
+    C = pattern_cov(base, (xyz, rho, li, s2), spec, reach=50.0)
+    fits = np.array(
+        [
+            fit_family(xyz, rho + u @ rng.normal(0, 0.1, 3), li, 1, s2, "position", p, spec).p
+            for _ in range(200)
+        ]
+    )
+    emp = np.cov(fits.T)
+    assert np.allclose(np.sqrt(np.diag(emp)), np.sqrt(np.diag(C)), rtol=0.25, atol=1e-3)
