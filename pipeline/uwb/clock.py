@@ -113,7 +113,11 @@ def estimate_clock(
         keep = subsample(len(w), max_ranges)
         sub = w.subset(keep)
         sr = fit_anchor(
-            sub.tag_xyz, sub.d, sub.links(), t_ns=sub.t_ns, spec=replace(spec, max_ranges=max_ranges)
+            sub.tag_xyz,
+            sub.d,
+            sub.links(),
+            t_ns=sub.t_ns,
+            spec=replace(spec, max_ranges=max_ranges, refine_cov=False),
         )
         if not sr.ok:
             continue

@@ -63,6 +63,9 @@ class FitSpec:
     robust: bool = True  # soft-L1 loss (False: least squares)
     deflate: float = 1.0  # set by `fit_anchor` from the base fit (`deflation`)
     pattern_sigma: float = 0.05  # [m] size of an antenna pattern's direction-dependent bias (`pattern_cov`)
+    # the covariance's profile widening, jackknife and antenna pattern (False: a start or a scan's fit, its
+    # model-mixture covariance only)
+    refine_cov: bool = True
 
 
 @dataclass
@@ -513,9 +516,11 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> Sea
     (widened to the likelihood's intervals), the other basin when the evidence cannot tell them apart."""
     dd = data[1]
     cov, excess = mixture_cov(models, best, reach)
-    wide = likelihood_widening(best, data[:4], spec, cov, reach)
-    wide[:3, :3] += _psd(jackknife_cov(best, data, spec) - wide[:3, :3])
-    wide[:3, :3] += pattern_cov(best, data[:4], spec, reach)
+    wide = cov
+    if spec.refine_cov:
+        wide = likelihood_widening(best, data[:4], spec, cov, reach)
+        wide[:3, :3] += _psd(jackknife_cov(best, data, spec) - wide[:3, :3])
+        wide[:3, :3] += pattern_cov(best, data[:4], spec, reach)
     wide = _open_height(wide, spec.max_sigma, reach)
     excess = excess + (wide - cov)[:3, :3]
     cov = wide

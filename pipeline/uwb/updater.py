@@ -11,7 +11,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
@@ -237,12 +237,17 @@ def evidence_spec(config: UwbConfig, sigma: float, calibration: Mapping | None, 
 
 
 def _evidence_fit(
-    w: InitWindow, config: UwbConfig, sigma: float, calibration: Mapping | None, method: str
+    w: InitWindow,
+    config: UwbConfig,
+    sigma: float,
+    calibration: Mapping | None,
+    method: str,
+    cheap: bool = False,
 ) -> SearchResult:
     """`evidence.fit_anchor` on an init window: the robust position fit, the range model the evidence chooses,
     the anchor's weak directions (or "not determined" with the reason); RI and RI-robust weigh each range by the
     pose's uncertainty along its line of sight, LSI does not."""
-    spec = evidence_spec(config, sigma, calibration, method)
+    spec = replace(evidence_spec(config, sigma, calibration, method), refine_cov=not cheap)
     pos_cov = None
     if method != "lsi":
         pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
@@ -255,9 +260,11 @@ def search_window(
     sigma: float,
     calibration: Mapping | None = None,
     method: str = "ri-robust",
+    cheap: bool = False,
 ) -> SearchResult:
-    """`anchor_search.search_anchor` on an init window with the configured thresholds and the recording's
-    gamma prior."""
+    """The evidence fit (``range_model = "evidence"``; ``cheap``: its model-mixture covariance only, for a
+    start) or `search.search_anchor` on an init window with the configured thresholds and the recording's gamma
+    prior."""
 
     if len(w) == 0:
         return _not_determined("no ranges", 0, np.zeros(0, np.int64))
@@ -267,7 +274,7 @@ def search_window(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
     if config.range_model == "evidence":
-        return _evidence_fit(w, config, sigma, calibration, method)
+        return _evidence_fit(w, config, sigma, calibration, method, cheap)
     pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
     kw = dict(
         t_ns=w.t_ns,

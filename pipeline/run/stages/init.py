@@ -14,6 +14,7 @@ from uwbcal.pipeline.uwb.clock import NO_OFFSET, ClockOffset, estimate_clock
 from uwbcal.pipeline.uwb.initializer import InitWindow
 from uwbcal.pipeline.uwb.planar_levers import planar_windows, refit_searches
 from uwbcal.pipeline.uwb.schedule import join_time
+from uwbcal.pipeline.uwb.search import subsample
 from uwbcal.pipeline.uwb.updater import (
     evidence_spec,
     initialize_anchors,
@@ -22,6 +23,8 @@ from uwbcal.pipeline.uwb.updater import (
 )
 from uwbcal.pipeline.viz import runlog as rl
 from uwbcal.pipeline.viz.runlog import RunLog
+
+CLOCK_RANGES = 500  # ranges per anchor the clock scan refits at each offset
 
 
 def run(ctx: StageContext) -> StageResult:
@@ -45,7 +48,7 @@ def run(ctx: StageContext) -> StageResult:
         windows = windows_from_trajectory(vio, rng, cal, win.start_ns, end)
         windows = levers.apply(windows) if levers is not None else windows
     whole = levers is not None or (cfg.range_model == "evidence" and ctx.bounded_poses())
-    windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor, whole)
+    windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor, whole, levers is not None)
     if levers is not None and searches:
         searches = refit_searches(levers, windows, searches, cfg.sigma(cal) * cfg.sigma_scale)
         if cfg.range_model == "evidence":  # the lever model's link offsets correct the ranges; then the rule
@@ -97,8 +100,15 @@ def _range_clock(ctx: StageContext, vio, rng: dict, start_ns: int, end_ns: int, 
     margin = round(cfg.clock_scan_s * 1e9)
     t = np.asarray(rng["t_ns"])
     t0, t1 = int(vio["t_ns"][0]) + margin, int(vio["t_ns"][-1]) - margin
-    keep = (t >= t0) & (t <= t1)  # the same ranges at every offset
-    sub = {k: np.asarray(v)[keep] for k, v in rng.items()}
+    inside = np.flatnonzero(
+        (t >= t0) & (t <= t1)
+    )  # the same ranges at every offset, at most CLOCK_RANGES each
+    anchor = np.asarray(rng["anchor"])[inside]
+    keep = np.concatenate(
+        [inside[anchor == a][subsample(int(np.sum(anchor == a)), CLOCK_RANGES)] for a in np.unique(anchor)]
+        or [np.zeros(0, np.int64)]
+    )
+    sub = {k: np.asarray(v)[np.sort(keep)] for k, v in rng.items()}
 
     def windows_at(tau: float) -> dict:
         shifted = {**sub, "t_ns": sub["t_ns"] + round(tau * 1e9)}
@@ -107,7 +117,7 @@ def _range_clock(ctx: StageContext, vio, rng: dict, start_ns: int, end_ns: int, 
 
     sigma = cfg.sigma(cal) * cfg.sigma_scale
     spec = evidence_spec(cfg, sigma, cal, cfg.init_method)
-    clock = estimate_clock(windows_at, spec, max_s=cfg.clock_scan_s)
+    clock = estimate_clock(windows_at, spec, max_s=cfg.clock_scan_s, max_ranges=CLOCK_RANGES)
     ctx.reader.range_shift_ns = round(clock.applied_s * 1e9)
     return clock
 
@@ -180,21 +190,29 @@ def _lever_arms(ctx: StageContext, windows: dict):
         return windows, None
     sigma = cfg.sigma(ctx.reader.calibration) * cfg.sigma_scale
     windows, levers = planar_windows(
-        windows, lambda w: search_window(w, cfg, sigma, ctx.reader.calibration), sigma
+        windows, lambda w: search_window(w, cfg, sigma, ctx.reader.calibration, cfg.init_method, True), sigma
     )
     if levers is not None:
         ctx.dir.save_pickle("lever_arms.pkl", levers)
     return windows, levers
 
 
-def _schedule(ctx: StageContext, windows: dict, init_end_ns: int, per_anchor: bool, whole: bool = False):
+def _schedule(
+    ctx: StageContext,
+    windows: dict,
+    init_end_ns: int,
+    per_anchor: bool,
+    whole: bool = False,
+    starts: bool = False,
+):
     """Per anchor: the window its initialisation uses, its search result and its join time
     (`schedule.join_time`); without the search (the paper's multi-start) the first window for every anchor.
     ``whole`` (per-anchor schedule with estimated planar lever arms, or poses of bounded error on the evidence
     path): every anchor from all its ranges, at the end. The arms come from every anchor's ranges over the whole
     recording, so an anchor initialised from a prefix would already lean on the later ranges and its refinement
     would count them twice; poses that do not drift leave the filter nothing to add to one robust fit over all
-    the ranges, which relinearises where the filter's first-estimate Jacobians cannot."""
+    the ranges, which relinearises where the filter's first-estimate Jacobians cannot. ``starts``: the fits only
+    start the joint lever-arm fit (the evidence path fits again on the corrected ranges)."""
 
     cfg = ctx.config.uwb
     if not cfg.search and cfg.range_model != "evidence":
@@ -208,7 +226,7 @@ def _schedule(ctx: StageContext, windows: dict, init_end_ns: int, per_anchor: bo
         j = join_time(
             w,
             end,
-            lambda sub: search_window(sub, cfg, sigma, ctx.reader.calibration, cfg.init_method),
+            lambda sub: search_window(sub, cfg, sigma, ctx.reader.calibration, cfg.init_method, starts),
             per_anchor=per_anchor and not whole,
             min_ranges=max(cfg.min_ranges, 30),
             join_sigma=cfg.join_sigma_m if per_anchor else None,
