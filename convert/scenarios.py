@@ -25,7 +25,7 @@ the anchors, per-link offsets and NLOS rates (``links``) and the visibility wind
 - ``nlos``: the 3-D figure-8 with 6 anchors where the links of anchors 1 and 4 carry 30 % NLOS junk (positive
   Exp bias, mean 1.5 m) and the others none.
 
-The classes of real recordings the evidence range model (``uwb.range_model = "evidence"``) is built for, each with
+The classes of real recordings the evidence fit (`pipeline.uwb.evidence`) is built for, each with
 beta 1 and the offsets real hardware has:
 
 - ``climbing-drone``: a quadrotor climbing and descending on the spot (`trajectory.climb_trajectory`, 100 s,

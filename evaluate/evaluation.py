@@ -201,7 +201,6 @@ def _anchor_section(run: _Run, ref: AnchorReference | None, fit: _TrajectoryFit)
     out.update(top)
     warnings.extend(range_quality(run.reader, run.traj, own_frame))
     warnings.extend(_init_verdicts(run.run_dir, anchors))
-    _height_regains(run.run_dir, anchors)
     out["anchors"] = anchors
     vals = [a["nees"] for a in anchors.values() if "nees" in a]
     if vals:
@@ -247,19 +246,6 @@ def _init_verdicts(run_dir: Path, anchors: dict) -> list[str]:
         if aid in anchors and not anchors[aid].get("determined", True):
             warnings.append(f"anchor {aid} not determined: {anchors[aid].get('reason', '')}")
     return warnings
-
-
-def _height_regains(run_dir: Path, anchors: dict) -> None:
-    """Heights flagged at init that refinement regained (pipeline/uwb/height_regain) mark the anchor's verdict."""
-    states_path = run_dir / "anchor_states.json"
-    if not artefacts.present(states_path):
-        return
-    for aid, s in artefacts.read_json(states_path, artefacts.ANCHOR_STATES).items():
-        if aid in anchors and isinstance(s, dict) and s.get("height_regained"):
-            v = dict(anchors[aid].get("verdict") or {})
-            v.update(height_observable=True, height_regained=s["height_regained"])
-            v.pop("message", None)
-            anchors[aid]["verdict"] = v
 
 
 def metrics_tables(metrics: dict) -> tuple[pl.DataFrame, pl.DataFrame | None]:

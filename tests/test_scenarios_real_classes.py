@@ -1,4 +1,4 @@
-"""Issue #28 item 7: the evidence range model (``uwb.range_model = "evidence"``, the real-data path) on the simulated
+"""Issue #28 item 7: the evidence fit (`pipeline.uwb.evidence`, the default initialiser) on the simulated
 classes of real setups it is built for (`convert.scenarios`: climbing-drone, far-cluster, clock-offset,
 antenna-pattern). Plain pipeline runs, 60 s of data, seeds 1-3: every anchor right or "not determined" with its
 reason, the range clock offset found (within 3 sigma) and used where the ranges are late and left out where they
@@ -32,7 +32,7 @@ def _runs(tmp_path_factory, name: str) -> list[dict]:
         d = tmp_path_factory.mktemp(f"{name}{seed}")
         rec = d / "r.mcap"
         scenario_to_file(name, rec, seed=seed, duration=DURATION)
-        over = {"run": {"recording": str(rec), "log": False}, "uwb": {"range_model": "evidence"}}
+        over = {"run": {"recording": str(rec), "log": False}}
         pipe = Pipeline(load_config(None, over), d / "run", evaluate_stage)
         pipe.run(progress=lambda *_: None)
         init = json.loads(pipe.dir.file("init.json").read_text())

@@ -9,8 +9,6 @@ reason) that the run directory keeps (``resolved.json``) beside the config that 
 - ``frontend.tracker``: descriptor tracking for slow cameras or poor KLT survival (`choose_tracker`), when the
   recording has images and no tracks;
 - ``uwb.init_method``: ri-robust on real recordings (NLOS ranges are the rule), the paper's ri on simulated;
-- ``uwb.range_model``: the evidence rule on real ranges, the global search's rules on simulated ones (the paper's
-  experiments);
 - odometry pose source: ``odometry.error_model`` and the drift sigmas the recording's calibration declares;
 - MSCKF on a real IMU: `REAL_IMU_DEFAULTS` for the vio keys not set, the IMU noise inflation from the
   calibration's ``imu.noise_origin`` (`imu_noise_inflation`);
@@ -64,14 +62,6 @@ def imu_noise_inflation(calibration: dict | None) -> tuple[float, str]:
             "real IMU, calibration noise is a static Allan-variance figure (imu.noise_origin)",
         )
     return 1.0, f"real IMU, the calibration's noise values as given (imu.noise_origin {origin or 'unset'})"
-
-
-def ranges_are_real(source: dict | None) -> bool:
-    """Whether the recording's UWB ranges are a real sensor's (a hybrid recording's are simulated)."""
-    source = source or {}
-    if "real" in source:
-        return "/uwb/range" in (source.get("real") or [])
-    return str(source.get("dataset") or "simulation").lower() != "simulation"
 
 
 @dataclass(frozen=True)
@@ -134,11 +124,6 @@ def resolve(config: PipelineConfig, reader: RecordingReader) -> ResolvedConfig:
                 b.set(f"vio.{k}", v, "real-IMU default")
         if b.unset("vio.imu_noise_inflation"):
             b.set("vio.imu_noise_inflation", *imu_noise_inflation(reader.calibration))
-    if b.config.uwb.range_model == "auto":
-        real = ranges_are_real(reader.source)
-        b.set(
-            "uwb.range_model", "evidence" if real else "search", "real ranges" if real else "simulated ranges"
-        )
     if b.config.uwb.lever_arms == "auto":
         b.set("uwb.lever_arms", *_lever_arms(b.config, reader))
     if b.config.run.schedule == "auto":

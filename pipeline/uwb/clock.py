@@ -17,8 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR, FitSpec, Model, fit_anchor, fit_family, range_losses
-from uwbcal.pipeline.uwb.initializer import InitWindow
-from uwbcal.pipeline.uwb.search import subsample
+from uwbcal.pipeline.uwb.window import InitWindow, subsample
 
 PRIOR_S = 0.2  # prior sigma of a UWB message path's latency [s]
 

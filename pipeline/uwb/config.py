@@ -106,15 +106,6 @@ class UwbConfig(BaseModel):
         "X_I; 1, 2 and 5 s give the same anchor NEES); None: random-walk approximation from the poses' marginal "
         "covariances",
     )
-    range_model: Literal["auto", "search", "evidence"] = Field(
-        "auto",
-        description="how an anchor's range model and observability are decided: evidence (a robust position fit; "
-        "an offset, a scale or per-link offsets enter only when their log evidence, the ranges' likelihood "
-        "deflated for correlated errors, beats the simpler model's by a Bayes factor of 3; the covariance is the "
-        "evidence-weighted mixture of the models; not determined when the horizontal sigma exceeds "
-        "max_sigma_horizontal_m) or search (the global search's rules, for the paper's simulated experiments); "
-        "auto: evidence on real ranges, search on simulated ones",
-    )
     clock_scan_s: float = Field(
         0.5,
         ge=0,
@@ -123,22 +114,12 @@ class UwbConfig(BaseModel):
     )
     search: bool = Field(
         True,
-        description="global search (consensus over closed forms, verified by residuals; anchor_search) as the "
-        "initialiser's start and observability verdict; false: the paper's multi-start (closed form, mirror, "
-        "perturbed)",
-    )
-    regain_heights: bool = Field(
-        True,
-        description="refinement re-searches an anchor whose height init flagged unobservable as its ranges grow "
-        "(x1.5) and re-initialises it when the motion has revealed the height (height_regain); false: a flagged "
-        "height stays at its init value and sigma",
-    )
-    bias: Literal["auto", "per-anchor", "per-link"] = Field(
-        "auto",
-        description="range offset model: per-anchor (one gamma) or per-link (gamma + an offset per (tag, antenna) "
-        "link, estimated at init, refined as filter states); auto: per-link when an anchor is ranged over several links, "
-        "their offsets differ beyond their uncertainty and the differences predict held-out ranges (over time and "
-        "over the sides of the carrier facing the anchor: a delay, not an antenna pattern; link_bias)",
+        description="the evidence fit as the initialiser: a robust position fit; an offset, a scale or per-link "
+        "offsets enter only when their log evidence (the ranges' likelihood deflated for correlated errors) beats "
+        "the simpler model's by a Bayes factor of 3; the covariance carries what the model leaves out (the other "
+        "basin, a left-out offset, errors correlated along the path, an antenna pattern); not determined when the "
+        "horizontal sigma exceeds max_sigma_horizontal_m in any direction. false: the paper's multi-start (closed "
+        "form, its mirror, perturbed starts), for the paper's experiments",
     )
     lever_arms: Literal["auto", "given", "planar"] = Field(
         "auto",

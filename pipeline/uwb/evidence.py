@@ -25,14 +25,14 @@ weak vertical is an open height with its prior-limited sigma.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.cluster.vq import kmeans2
 
 from uwbcal.pipeline.core.state import chi2_ppf
-from uwbcal.pipeline.uwb.initializer import InitResult, InitWindow
-from uwbcal.pipeline.uwb.search import SearchResult, noise_inflation, plane_frame, subsample
+from uwbcal.pipeline.uwb.initializer import InitResult
+from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
 
 FAMILIES = ("position", "gamma", "gamma+beta", "link")
 BAYES_FACTOR = 3.0  # Jeffreys' "substantial" evidence: a richer model must beat a simpler one by this factor
@@ -45,6 +45,53 @@ TWR_SCALE_SIGMA = 1e-3  # range scale of two-way ranging: the clocks' error, par
 # the priors that hold an offset / the scale at its mean when the evidence leaves it out of an anchor's model
 FIXED_OFFSET_SIGMA = 1e-3  # [m]
 FIXED_BETA_SIGMA = 1e-5
+
+
+@dataclass
+class AnchorFit:
+    """One anchor's evidence fit: its position, links' offsets and covariance, or "not determined" with the
+    reason; the chosen model, its evidence and the axes in ``costs["evidence"]``."""
+
+    status: str  # "ok" | "not determined"
+    reason: str
+    p: np.ndarray  # (3,) world anchor position (at the plane when the mirror is ambiguous)
+    gamma: np.ndarray  # (L,) per-link offsets, in the order of ``links``
+    links: np.ndarray  # (L,) link ids
+    inliers: np.ndarray  # (N,) bool over the input ranges (those used and consistent with the fit)
+    scale: float  # robust residual sigma of the inliers [m]
+    cov: np.ndarray  # (3+L, 3+L) covariance of (p world, gamma_l), residual-scaled
+    planar: bool = False  # the trajectory is planar (smallest extent < 0.1 x largest)
+    normal_spread: float = float("nan")  # std of the carrier's positions along the plane normal [m]
+    height_observable: bool = True
+    mirror: bool = False  # the mirror across the motion plane fits as well
+    mirror_p: np.ndarray | None = None  # the other basin (world) when ``mirror``
+    sigma_h: float = float("nan")  # sigma along ``normal`` [m]
+    normal: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    n_used: int = 0
+    costs: dict = field(default_factory=dict)
+    beta: float = 1.0  # range scale of the fit (1 unless its model estimates it)
+    residuals: np.ndarray | None = None  # (n_used,) of the fit over the ranges it used (model tests)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def sigma_horizontal(self) -> float:
+        """sqrt of the largest in-plane variance of the position (the horizontal uncertainty)."""
+        P = self.cov[:3, :3]
+        if not np.all(np.isfinite(P)):
+            return float("inf")
+        n = self.normal / np.linalg.norm(self.normal)
+        T = np.eye(3) - np.outer(n, n)
+        return float(np.sqrt(max(np.linalg.eigvalsh(T @ P @ T)[-1], 0.0)))
+
+    def gamma_of(self, link_ids: np.ndarray) -> np.ndarray:
+        """The offset of each range's link (links the search did not see: the mean offset)."""
+        out = np.full(len(link_ids), float(np.mean(self.gamma)) if len(self.gamma) else 0.0)
+        for i, lk in enumerate(self.links):
+            out[np.asarray(link_ids) == lk] = self.gamma[i]
+        return out
 
 
 @dataclass(frozen=True)
@@ -281,10 +328,10 @@ def _linear_start(xyz: np.ndarray, d: np.ndarray) -> np.ndarray:
     return sol[:3]
 
 
-def _nd(reason: str, n: int, links: np.ndarray, **kw) -> SearchResult:
+def not_determined(reason: str, n: int, links: np.ndarray, **kw) -> AnchorFit:
     L = len(links)
     nan = np.full((3 + L, 3 + L), np.nan)
-    return SearchResult(
+    return AnchorFit(
         "not determined",
         reason,
         np.full(3, np.nan),
@@ -350,7 +397,7 @@ def fit_anchor(
     t_ns: np.ndarray | None = None,
     pos_cov: np.ndarray | None = None,
     spec: FitSpec | None = None,
-) -> SearchResult:
+) -> AnchorFit:
     """The anchor ranged by tag positions ``xyz`` (N, 3) with ranges ``d`` over links ``link``: position, offsets
     (per link, in ``links`` order) and their covariance, the family the evidence chose (``costs["evidence"]``),
     or "not determined" with the reason. ``pos_cov`` (N, 3, 3): the tag positions' covariance (RI weighting)."""
@@ -362,7 +409,7 @@ def fit_anchor(
     fin = np.isfinite(d) & np.all(np.isfinite(xyz), axis=1) & (d > 0)
     links = np.unique(link[fin])
     if fin.sum() < spec.min_ranges:
-        return _nd(f"only {int(fin.sum())} usable ranges (< {spec.min_ranges})", n_all, links)
+        return not_determined(f"only {int(fin.sum())} usable ranges (< {spec.min_ranges})", n_all, links)
     sel = np.flatnonzero(fin)
     if t_ns is not None:
         sel = sel[np.argsort(np.asarray(t_ns)[sel], kind="stable")]
@@ -372,7 +419,7 @@ def fit_anchor(
     c, Vt, ext = plane_frame(x)
     if ext[0] < spec.static_extent_m:
         reason = f"static: the tag moved {ext[0]:.2f} m (std) while ranging it (< {spec.static_extent_m} m)"
-        return _nd(reason, n_all, links)
+        return not_determined(reason, n_all, links)
     li = np.searchsorted(links, link[sel])
     L = len(links)
     s2 = np.full(len(dd), spec.sigma_range**2)
@@ -511,8 +558,8 @@ def jackknife_cov(m: Model, data: tuple, spec: FitSpec, blocks: int = JACKKNIFE_
     return out
 
 
-def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> SearchResult:
-    """The SearchResult of the chosen model: weak directions from the eigen-decomposition of its covariance
+def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> AnchorFit:
+    """The AnchorFit of the chosen model: weak directions from the eigen-decomposition of its covariance
     (widened to the likelihood's intervals), the other basin when the evidence cannot tell them apart."""
     dd = data[1]
     cov, excess = mixture_cov(models, best, reach)
@@ -562,13 +609,13 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> Sea
             f"weak horizontal direction ({v[0]:.2f}, {v[1]:.2f}): sigma {np.sqrt(lam_h[-1]):.2f} m > "
             f"{spec.max_sigma:g} m (the motion does not pin the anchor down along it)"
         )
-        return _nd(reason, n_all, links, **kw)
+        return not_determined(reason, n_all, links, **kw)
     i = int(np.argmax(sd))
     vertical = abs(V[2, i]) >= VERTICAL_COS and sd[i] > spec.max_sigma
     normal = V[:, i] if vertical else Vt[2]
     normal = normal * np.sign(normal[2] if abs(normal[2]) > 1e-9 else 1.0)
     sigma_h = float(np.sqrt(max(normal @ cov[:3, :3] @ normal, 0.0)))
-    return SearchResult(
+    return AnchorFit(
         "ok",
         "",
         best.p.copy(),
@@ -587,7 +634,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> Sea
     )
 
 
-def init_result(window: InitWindow, sr: SearchResult, method: str, anchor: str, spec: FitSpec) -> InitResult:
+def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spec: FitSpec) -> InitResult:
     """The initialiser's result from an evidence fit (`fit_anchor` on ``window``): x = (p, beta, mean offset), its
     covariance (a parameter the model left out at its prior mean with the sigma that holds it there), the links'
     offsets relative to their mean, the chosen model and its evidence in the verdict."""

@@ -24,54 +24,14 @@ import numpy as np
 from uwbcal.pipeline.core.names import INIT_METHODS
 from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.uwb.fim import FimReport, assess_observability
-from uwbcal.pipeline.uwb.model import jacobians, range_variance, tag_positions
-from uwbcal.pipeline.uwb.search import NORMAL_SNR, SearchResult, noise_inflation, plane_frame, subsample
+from uwbcal.pipeline.uwb.model import jacobians, range_variance
+from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame
 
 _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
 _ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)
 OUTLIER_SIGMAS = 3.0
 
 BASIN_REJECT_CHI2 = 13.8  # chi2(2 dof) at 99.9 %
-
-
-@dataclass
-class InitWindow:
-    """The ranges of one anchor over the initialisation window, with the pose estimates at their stamps."""
-
-    d: np.ndarray  # (N,) ranges [m]
-    p_T: np.ndarray  # (N,3) antenna lever arm in the IMU frame
-    R: np.ndarray  # (N,3,3) world_from_body estimates
-    p: np.ndarray  # (N,3)
-    P_pose: np.ndarray  # (N,6,6) pose covariance, error [dtheta, dp]
-    t_ns: np.ndarray | None = None
-    link: np.ndarray | None = None  # (N,) link id of each range (tag * 256 + antenna); None: one link
-
-    def __post_init__(self) -> None:
-        self.d = np.asarray(self.d, float).reshape(-1)
-        n = self.d.shape[0]
-        self.p_T = np.broadcast_to(np.asarray(self.p_T, float).reshape(-1, 3), (n, 3)).copy()
-        self.R = np.asarray(self.R, float).reshape(n, 3, 3)
-        self.p = np.asarray(self.p, float).reshape(n, 3)
-        self.P_pose = np.broadcast_to(np.asarray(self.P_pose, float).reshape(-1, 6, 6), (n, 6, 6)).copy()
-        if self.t_ns is not None:
-            self.t_ns = np.asarray(self.t_ns, np.int64).reshape(n)
-        if self.link is not None:
-            self.link = np.asarray(self.link, np.int64).reshape(n)
-
-    def __len__(self) -> int:
-        return self.d.shape[0]
-
-    def subset(self, mask: np.ndarray) -> InitWindow:
-        t = None if self.t_ns is None else self.t_ns[mask]
-        lk = None if self.link is None else self.link[mask]
-        return InitWindow(self.d[mask], self.p_T[mask], self.R[mask], self.p[mask], self.P_pose[mask], t, lk)
-
-    def links(self) -> np.ndarray:
-        return np.zeros(len(self), np.int64) if self.link is None else self.link
-
-    @property
-    def tag_xyz(self) -> np.ndarray:
-        return tag_positions(self.R, self.p, self.p_T)
 
 
 @dataclass
@@ -358,143 +318,47 @@ def initialize_anchor(
     seed: int = 0,
     residual_factor: float = 3.0,
     correlation_block_s: float | None = 10.0,
-    search: SearchResult | None = None,
-    per_link: bool = False,
-    max_ranges: int | None = None,
     z_prior: tuple[float, float] | None = None,
 ) -> InitResult:
-    """Estimate (p_a, gamma) (beta = 1, prior sigma ``beta_sigma``) of one anchor with ``method`` in
-    lsi | ri | ri-robust; with ``beta_prior`` (mean, sigma), (p_a, beta, gamma) under that prior.
+    """The paper's initialisation of one anchor: (p_a, gamma) (beta = 1, prior sigma ``beta_sigma``) with
+    ``method`` in lsi | ri | ri-robust from a multi-start (the closed form, its mirror, the same with gamma at its
+    prior, ``n_perturbed`` perturbed starts; the lowest cost wins); with ``beta_prior`` (mean, sigma),
+    (p_a, beta, gamma) under that prior.
 
     Returns status "skipped" (too few usable ranges), "refused" (rank-deficient Fisher information and not
     ``force``), "warning" (static/planar window, suspicious post-fit residuals, gamma far from its prior,
     many outliers) or "ok". ``correlation_block_s``: block length of the time-correlation check of the residuals
-    (`noise_inflation`; None: off), whose kappa scales the range part of the covariance.
-
-    ``search`` (`anchor_search.search_anchor` on this window): its verdict decides — "not determined" (with
-    its reason) when it could not place the anchor; otherwise it starts the solver beside the closed forms (and its mirror when the
-    two fit equally), its per-link offsets correct the ranges (``per_link``), and a height it found
-    unobservable is reported at its value with its honest sigma (the FIM verdict then covers the in-plane
-    parameters). ``max_ranges``: the window is evenly subsampled to this many ranges (dense ranging).
-    ``z_prior`` (mean, sigma): a prior on the anchor's height, fused into the estimate.
+    (`noise_inflation`; None: off), whose kappa scales the range part of the covariance. ``z_prior`` (mean,
+    sigma): a prior on the anchor's height, fused into the estimate.
     """
     if method not in INIT_METHODS:
         raise ValueError(f"unknown init method {method!r}; one of {', '.join(INIT_METHODS)}")
-    weighted = method != "lsi"
     robust = robust_loss if method == "ri-robust" else None
     w, warns = _clean(window, anchor)
-    nan5 = np.full(5, np.nan)
     if len(w) < max(min_ranges, 5):
         warns.append(f"{anchor}: only {len(w)} usable ranges (< {max(min_ranges, 5)}); anchor skipped")
-        return InitResult(anchor, method, "skipped", nan5, np.full((5, 5), np.nan), warnings=warns, window=w)
-
-    verdict: dict = {}
-    link_offsets: dict = {}
-    link_cov = None
-    if search is not None:
-        verdict = search_verdict(search)
-        if not search.ok:
-            warns.append(f"{anchor}: not determined: {search.reason}")
-            return InitResult(
-                anchor,
-                method,
-                "not determined",
-                nan5,
-                np.full((5, 5), np.nan),
-                warnings=warns,
-                window=w,
-                verdict=verdict,
-            )
-        if max_ranges is not None and len(w) > max_ranges:
-            keep = np.zeros(len(w), bool)
-            keep[subsample(len(w), max_ranges)] = True
-            w = w.subset(keep)
-        if per_link and len(search.links) > 1:
-            off = search.gamma - float(np.mean(search.gamma))
-            link_offsets = {int(lk): float(o) for lk, o in zip(search.links, off, strict=True)}
-            T = np.eye(len(off)) - 1.0 / len(off)  # offsets relative to their mean: sum-zero
-            link_cov = T @ np.asarray(search.cov, float)[3:, 3:] @ T
-            corr = np.array([link_offsets.get(int(lk), 0.0) for lk in w.links()])
-            w = InitWindow(w.d - corr, w.p_T, w.R, w.p, w.P_pose, w.t_ns, w.link)
-        n_perturbed = 0
-
+        nan = np.full(5, np.nan)
+        return InitResult(anchor, method, "skipped", nan, np.full((5, 5), np.nan), warnings=warns, window=w)
     kw = dict(
-        weighted=weighted,
+        weighted=method != "lsi",
         sigma_range=sigma_range,
         gamma_prior=gamma_prior,
         robust=robust,
         robust_scale=robust_scale,
         beta_prior=beta_prior,
     )
-    est_beta = beta_prior is not None
-    b0 = float(beta_prior[0]) if est_beta else 1.0
-
-    def full(th: np.ndarray) -> np.ndarray:
-        """(p_a, gamma) start -> the solver's theta (with beta at its prior mean when it is estimated)."""
-        return np.r_[th[:3], b0, th[3]] if est_beta else th
-
-    xyz = w.tag_xyz
-    starts: list[tuple[str, np.ndarray]] = []
-    if search is not None:
-        g0 = float(np.mean(search.gamma))
-        starts.append(("search", full(np.r_[search.p, g0])))
-        if search.mirror_p is not None:
-            starts.append(("search-mirror", full(np.r_[search.mirror_p, g0])))
-    for lbl, cands in (  # beside the search: the lowest cost wins, `_stay_in_basin` guards the basin
-        ("closed-form", multilateration(xyz, w.d)),
-        ("closed-form-gamma-prior", multilateration(xyz, w.d, gamma_prior[0]) if gamma_prior else []),
-    ):
-        for i, th in enumerate(cands):
-            if np.all(np.isfinite(th)):
-                starts.append((lbl + ("" if i == 0 else "-mirror"), full(th)))
-    if not starts:
-        starts.append(("centroid", full(np.r_[xyz.mean(axis=0) + [0, 0, 1.0], 0.0])))
-    fits = [(lbl, th0, solve_from(w, th0, **kw)) for lbl, th0 in starts]
-    rng = np.random.default_rng(seed)
-    best = min(fits, key=lambda f: f[2].cost)[2]
-    spread = float(np.max(np.ptp(xyz, axis=0)))
-    for i in range(n_perturbed):
-        th0 = best.theta.copy()
-        th0[:3] += rng.normal(0.0, 0.3 * spread + 1.0, 3)
-        fits.append((f"perturbed-{i}", th0, solve_from(w, th0, **kw)))
+    fits = _multi_start(w, kw, n_perturbed, seed)
     lbl_best, _, best = min(fits, key=lambda f: f[2].cost)
-
+    b0 = float(beta_prior[0]) if beta_prior is not None else 1.0
     x = _x_u(best.theta, b0)
-    idx = _ABG if est_beta else _AG
-    kappa = (
-        noise_inflation(w.t_ns, best.e, best.weights if robust else None, block_s=correlation_block_s)
-        if correlation_block_s
-        else 1.0
-    )
-    if robust:  # the outliers' influence the weights leave (one-sided NLOS junk): robust_noise_factor
-        kappa *= robust_noise_factor(best.e, robust, robust_scale / sigma_range)
-    prior_info = np.zeros(len(idx))
-    for i, _, sd in _priors(len(idx), gamma_prior, beta_prior):
-        prior_info[i] += 1.0 / sd**2
-    cov = np.zeros((5, 5))
-    try:  # the ranges' information shrinks by kappa, the priors' does not
-        cov_est = np.linalg.inv((best.info - np.diag(prior_info)) / kappa + np.diag(prior_info))
-    except np.linalg.LinAlgError:
-        cov_est = np.full((len(idx), len(idx)), np.inf)
-    cov[np.ix_(idx, idx)] = cov_est
-    if not est_beta:
-        cov[3, 3] = beta_sigma**2
-
-    if search is not None and not _data_reject_search_point(w, search, full, best.cost, kappa, kw):
-        x, cov, moved = _stay_in_basin(x, cov, search, b0)
-        if moved:
-            warns.append(
-                f"{anchor}: the {method} fit left the search's basin by {moved:.2f} m horizontally (a direction "
-                "the window cannot see, e.g. range scale against distance); the search's estimate is kept"
-            )
-    if search is not None and not search.height_observable:
-        x, cov = _honest_height(x, cov, search)
+    idx = _ABG if beta_prior is not None else _AG
+    kappa = _inflation(w, best, kw, correlation_block_s)
+    cov = _covariance(best, idx, kappa, gamma_prior, beta_prior, beta_sigma)
+    verdict: dict = {}
     if z_prior is not None:
         x, cov = _fuse_z_prior(x, cov, z_prior)
         verdict["z_prior"] = [float(z_prior[0]), float(z_prior[1])]
-
-    outlier = np.abs(best.e) > OUTLIER_SIGMAS
-    n_rej = int(outlier.sum())
+    n_rej = int(np.sum(np.abs(best.e) > OUTLIER_SIGMAS))
     res = InitResult(
         anchor=anchor,
         method=method,
@@ -517,48 +381,7 @@ def initialize_anchor(
         params=tuple(idx),
         noise_inflation=kappa,
         verdict=verdict,
-        link_offsets=link_offsets,
-        link_cov=link_cov,
     )
-    height_free = search is not None and not search.height_observable
-    fim = assess_observability(
-        w.R,
-        w.p,
-        w.p_T,
-        w.P_pose if weighted else np.zeros((6, 6)),
-        x,
-        sigma_range**2,
-        params=(0, 1, 4) if height_free else (0, 1, 2, 4),
-        weights=res.weights,
-        force=force,
-        label=anchor,
-    )
-    res.fim = fim
-    if height_free:  # the geometric planar warning is the search's, stated once
-        fim.warnings = [m for m in fim.warnings if "planar window" not in m]
-        fim.status = "warning" if fim.status == "ok" else fim.status
-        res.warnings.append(verdict["message"])
-    res.warnings.extend(fim.warnings)
-    if verdict:
-        verdict["fim_status"] = fim.status
-    if fim.status == "refused":
-        res.status = "refused"
-        return res
-    expected = float(np.sqrt(np.median(best.sigma2)))
-    if res.residual_robust_sigma > residual_factor * expected:
-        res.warnings.append(
-            f"{anchor}: post-fit residual spread {res.residual_robust_sigma:.2f} m >> expected {expected:.2f} m "
-            f"(NLOS or wrong model); estimate not trustworthy"
-        )
-    if n_rej > 0.5 * len(w):
-        res.warnings.append(f"{anchor}: {n_rej} of {len(w)} ranges are outliers (> {OUTLIER_SIGMAS} sigma)")
-    if gamma_prior is not None and abs(x[4] - gamma_prior[0]) > 3 * gamma_prior[1]:
-        res.warnings.append(
-            f"{anchor}: gamma {x[4]:.2f} m is {abs(x[4] - gamma_prior[0]) / gamma_prior[1]:.1f} sigma from "
-            f"its prior {gamma_prior[0]:.2f} m"
-        )
-    if res.warnings:
-        res.status = "warning"
     if lbl_best != "closed-form":
         res.starts.append(
             {
@@ -569,108 +392,112 @@ def initialize_anchor(
                 "winner": lbl_best,
             }
         )
-    return res
+    return _assess(res, best, kw, force, residual_factor)
 
 
-def search_verdict(search: SearchResult) -> dict:
-    """The observability verdict of a search, for init.json / metrics.json and the run summary."""
-    out: dict = {
-        "status": search.status,
-        "reason": search.reason,
-        "planar_motion": bool(search.planar),
-        "height_observable": bool(search.height_observable),
-        "mirror_ambiguity": bool(search.mirror),
-    }
-    if not search.ok:
-        return out
-    out["sigma_height_m"] = float(search.sigma_h)
-    out["sigma_horizontal_m"] = float(search.sigma_horizontal)
-    out["residual_sigma_m"] = float(search.scale)
-    if search.mirror_p is not None:
-        out["mirror_position"] = [float(v) for v in search.mirror_p]
-    out["normal_spread_m"] = float(search.normal_spread)
-    out["normal_sigma_m"] = float(search.normal_sigma)
-    if not search.height_observable:
-        if search.normal_spread < NORMAL_SNR * search.normal_sigma:
-            why = (
-                f"the carrier's spread along the motion plane's normal, {search.normal_spread:.3f} m, is under "
-                f"{NORMAL_SNR:g} x what corrupts it there ({search.normal_sigma:.3f} m: pose sigma, attitude x arm)"
-            )
-        elif search.mirror:
-            why = "the mirror across the motion plane fits as well"
-        else:
-            why = "planar tag motion" if search.planar else "weak out-of-plane geometry"
-        where = "the basin above the motion plane" if search.planar else "the basin the ranges prefer"
-        msg = (
-            f"height unobservable ({why}): reported at {search.p[2]:.2f} +- {search.sigma_h:.2f} m ({where}; "
-            "its sigma reaches the mirror across it); horizontal position estimated"
-        )
-        if search.mirror:
-            msg += "; the mirror across the motion plane fits equally (two basins)"
-        out["message"] = msg
-    return out
+def _multi_start(w: InitWindow, kw: dict, n_perturbed: int, seed: int) -> list[tuple[str, np.ndarray, _Fit]]:
+    """(label, start, fit) of every start: the closed form and its mirror, the same with gamma at its prior
+    mean, then ``n_perturbed`` starts around the best of those."""
+    beta_prior, gamma_prior = kw["beta_prior"], kw["gamma_prior"]
+    b0 = float(beta_prior[0]) if beta_prior is not None else 1.0
+
+    def full(th: np.ndarray) -> np.ndarray:
+        """(p_a, gamma) start -> the solver's theta (with beta at its prior mean when it is estimated)."""
+        return np.r_[th[:3], b0, th[3]] if beta_prior is not None else th
+
+    xyz = w.tag_xyz
+    starts: list[tuple[str, np.ndarray]] = []
+    for lbl, cands in (
+        ("closed-form", multilateration(xyz, w.d)),
+        ("closed-form-gamma-prior", multilateration(xyz, w.d, gamma_prior[0]) if gamma_prior else []),
+    ):
+        for i, th in enumerate(cands):
+            if np.all(np.isfinite(th)):
+                starts.append((lbl + ("" if i == 0 else "-mirror"), full(th)))
+    if not starts:
+        starts.append(("centroid", full(np.r_[xyz.mean(axis=0) + [0, 0, 1.0], 0.0])))
+    fits = [(lbl, th0, solve_from(w, th0, **kw)) for lbl, th0 in starts]
+    rng = np.random.default_rng(seed)
+    best = min(fits, key=lambda f: f[2].cost)[2]
+    spread = float(np.max(np.ptp(xyz, axis=0)))
+    for i in range(n_perturbed):
+        th0 = best.theta.copy()
+        th0[:3] += rng.normal(0.0, 0.3 * spread + 1.0, 3)
+        fits.append((f"perturbed-{i}", th0, solve_from(w, th0, **kw)))
+    return fits
 
 
-def _data_reject_search_point(
-    w, search: SearchResult, full, best_cost: float, kappa: float, kw: dict
-) -> bool:
-    """True when the window's own cost rejects the search's point against the fit (difference over a 2-dof
-    chi2 at 99.9 %, in units of the correlation-inflated noise): the fit then left the search's basin because
-    the data demand it (e.g. a range scale beta != 1, which the search's model lacks), not along a direction the
-    window cannot see, and `_stay_in_basin` must not pull it back."""
-    th = full(np.r_[search.p, float(np.mean(search.gamma))])
-    c = kw["robust_scale"] / kw["sigma_range"]
-    cost = ri_cost(
-        w, th, kw["weighted"], kw["sigma_range"] ** 2, kw["gamma_prior"], kw["robust"], c, kw["beta_prior"]
-    )[0]
-    return bool(np.isfinite(cost) and (cost - best_cost) / max(kappa, 1.0) > BASIN_REJECT_CHI2)
+def _inflation(w: InitWindow, best: _Fit, kw: dict, correlation_block_s: float | None) -> float:
+    """kappa: the ranges' variance factor, time correlation (batch means) x the robust fit's sandwich factor (the
+    outliers' influence the weights leave: one-sided NLOS junk)."""
+    robust = kw["robust"]
+    kappa = (
+        noise_inflation(w.t_ns, best.e, best.weights if robust else None, block_s=correlation_block_s)
+        if correlation_block_s
+        else 1.0
+    )
+    if robust:
+        kappa *= robust_noise_factor(best.e, robust, kw["robust_scale"] / kw["sigma_range"])
+    return kappa
 
 
-def _stay_in_basin(
-    x: np.ndarray,
-    cov: np.ndarray,
-    search: SearchResult,
-    beta0: float,
-    chi2_2dof: float = 11.8,
-    min_move_m: float = 1.0,
-) -> tuple[np.ndarray, np.ndarray, float]:
-    """The initialiser's (x, cov), unless its horizontal position left the search's basin (squared
-    Mahalanobis distance in the motion plane > ``chi2_2dof`` under the search's covariance, and more than
-    ``min_move_m``: a different basin, not a prior pulling within one): then the search's
-    estimate (beta at ``beta0``, gamma the links' mean) and covariance. Returns (x, cov, horizontal move [m]
-    when replaced, else 0)."""
-    n = search.normal / np.linalg.norm(search.normal)
-    T = np.eye(3) - np.outer(n, n)
-    dp = T @ (x[:3] - search.p)
-    P = T @ search.cov[:3, :3] @ T + 1e-12 * np.outer(n, n)
+def _covariance(best: _Fit, idx, kappa: float, gamma_prior, beta_prior, beta_sigma: float) -> np.ndarray:
+    """(5, 5) covariance of x_U: the ranges' information shrunk by kappa, the priors' not; beta fixed: its
+    prior variance."""
+    prior_info = np.zeros(len(idx))
+    for i, _, sd in _priors(len(idx), gamma_prior, beta_prior):
+        prior_info[i] += 1.0 / sd**2
+    cov = np.zeros((5, 5))
     try:
-        d2 = float(dp @ np.linalg.pinv(P, hermitian=True) @ dp)
+        cov_est = np.linalg.inv((best.info - np.diag(prior_info)) / kappa + np.diag(prior_info))
     except np.linalg.LinAlgError:
-        d2 = 0.0
-    if not np.isfinite(d2) or d2 <= chi2_2dof or float(np.linalg.norm(dp)) <= min_move_m:
-        return x, cov, 0.0
-    L = len(search.gamma)
-    xs = np.r_[search.p, beta0, float(np.mean(search.gamma))]
-    cs = np.zeros((5, 5))
-    cs[:3, :3] = search.cov[:3, :3]
-    wg = np.full(L, 1.0 / L)
-    cs[4, 4] = float(wg @ search.cov[3:, 3:] @ wg)
-    cs[:3, 4] = cs[4, :3] = search.cov[:3, 3:] @ wg
-    cs[3, 3] = cov[3, 3] if np.isfinite(cov[3, 3]) and cov[3, 3] > 0 else 0.05**2
-    return xs, cs, float(np.linalg.norm(dp))
+        cov_est = np.full((len(idx), len(idx)), np.inf)
+    cov[np.ix_(idx, idx)] = cov_est
+    if beta_prior is None:
+        cov[3, 3] = beta_sigma**2
+    return cov
 
 
-def _honest_height(x: np.ndarray, cov: np.ndarray, search: SearchResult) -> tuple[np.ndarray, np.ndarray]:
-    """The anchor moved along the motion-plane normal to the search's height, whose sigma replaces the
-    normal direction's variance (and its correlations)."""
-    n = search.normal / np.linalg.norm(search.normal)
-    x = x.copy()
-    x[:3] = x[:3] - n * float(n @ (x[:3] - search.p))
-    T = np.eye(5)
-    T[:3, :3] -= np.outer(n, n)
-    cov = T @ cov @ T.T
-    cov[:3, :3] += search.sigma_h**2 * np.outer(n, n)
-    return x, cov
+def _assess(res: InitResult, best: _Fit, kw: dict, force: bool, residual_factor: float) -> InitResult:
+    """The Fisher information's verdict (refused when rank-deficient and not ``force``) and the warnings on the
+    fit: residual spread beyond the expected, many outliers, gamma far from its prior."""
+    w, x, anchor = res.window, res.x, res.anchor
+    assert w is not None
+    fim = assess_observability(
+        w.R,
+        w.p,
+        w.p_T,
+        w.P_pose if kw["weighted"] else np.zeros((6, 6)),
+        x,
+        kw["sigma_range"] ** 2,
+        params=(0, 1, 2, 4),
+        weights=res.weights,
+        force=force,
+        label=anchor,
+    )
+    res.fim = fim
+    res.warnings.extend(fim.warnings)
+    if fim.status == "refused":
+        res.status = "refused"
+        return res
+    expected = float(np.sqrt(np.median(best.sigma2)))
+    if res.residual_robust_sigma > residual_factor * expected:
+        res.warnings.append(
+            f"{anchor}: post-fit residual spread {res.residual_robust_sigma:.2f} m >> expected {expected:.2f} m "
+            f"(NLOS or wrong model); estimate not trustworthy"
+        )
+    if res.n_rejected > 0.5 * len(w):
+        res.warnings.append(
+            f"{anchor}: {res.n_rejected} of {len(w)} ranges are outliers (> {OUTLIER_SIGMAS} sigma)"
+        )
+    gp = kw["gamma_prior"]
+    if gp is not None and abs(x[4] - gp[0]) > 3 * gp[1]:
+        res.warnings.append(
+            f"{anchor}: gamma {x[4]:.2f} m is {abs(x[4] - gp[0]) / gp[1]:.1f} sigma from its prior {gp[0]:.2f} m"
+        )
+    if res.warnings:
+        res.status = "warning"
+    return res
 
 
 def _fuse_z_prior(

@@ -30,8 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR
-from uwbcal.pipeline.uwb.initializer import InitWindow
-from uwbcal.pipeline.uwb.search import noise_inflation, plane_frame, subsample
+from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
 
 PLANAR_RATIO = 0.05  # out-of-plane extent (std) below this x the largest: the carrier moves in a plane
 MIN_TURN = 0.2  # circular variance 1 - |mean exp(i psi)| of the heading: the carrier turns enough
@@ -457,7 +456,7 @@ def planar_windows(
     windows: dict, search, sigma_range: float, max_search: int = 3000
 ) -> tuple[dict, PlanarLevers | None]:
     """The init windows with the planar carrier's estimated lever arms (`estimate_planar_levers`, started from
-    ``search`` (InitWindow -> SearchResult) on every anchor's window, evenly subsampled to ``max_search``
+    ``search`` (InitWindow -> AnchorFit) on every anchor's window, evenly subsampled to ``max_search``
     ranges), and the model; the windows unchanged and None when the carrier is not planar, does not turn or no
     anchor could be searched."""
 

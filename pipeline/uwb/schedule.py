@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uwbcal.pipeline.uwb.initializer import InitWindow
-from uwbcal.pipeline.uwb.search import SearchResult
+from uwbcal.pipeline.uwb.evidence import AnchorFit
+from uwbcal.pipeline.uwb.window import InitWindow
 
 SCHEDULES = ("windows", "per-anchor")
 
@@ -55,7 +55,7 @@ def choose_schedule(
 class Join:
     join_ns: int | None  # None: never determined
     window: InitWindow  # the ranges its initialisation uses
-    search: SearchResult
+    search: AnchorFit
 
 
 def candidate_ends(t_ns: np.ndarray, init_end_ns: int, steps: int = 8) -> list[int]:
@@ -76,7 +76,7 @@ def candidate_ends(t_ns: np.ndarray, init_end_ns: int, steps: int = 8) -> list[i
 def join_time(
     window: InitWindow,
     init_end_ns: int,
-    search: Callable[[InitWindow], SearchResult],
+    search: Callable[[InitWindow], AnchorFit],
     *,
     per_anchor: bool = True,
     steps: int = 8,

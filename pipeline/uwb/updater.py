@@ -30,11 +30,17 @@ from uwbcal.pipeline.core.state import (
     schmidt_update,
 )
 from uwbcal.pipeline.uwb.config import UwbConfig
-from uwbcal.pipeline.uwb.evidence import TWR_SCALE_SIGMA, FitSpec, fit_anchor, init_result
-from uwbcal.pipeline.uwb.initializer import InitResult, InitWindow, initialize_anchor
-from uwbcal.pipeline.uwb.link_bias import bias_evidence
+from uwbcal.pipeline.uwb.evidence import (
+    TWR_SCALE_SIGMA,
+    AnchorFit,
+    FitSpec,
+    fit_anchor,
+    init_result,
+    not_determined,
+)
+from uwbcal.pipeline.uwb.initializer import InitResult, initialize_anchor
 from uwbcal.pipeline.uwb.model import jacobians, range_model, range_variance
-from uwbcal.pipeline.uwb.search import SearchResult, _not_determined, search_anchor
+from uwbcal.pipeline.uwb.window import InitWindow
 
 if TYPE_CHECKING:
     from uwbcal.pipeline.vio.estimator import RangeMeasurement
@@ -171,11 +177,14 @@ def initialize_anchors(
     config: UwbConfig,
     calibration: Mapping | None = None,
     method: str | None = None,
-    searches: dict[Any, SearchResult] | None = None,
+    searches: dict[Any, AnchorFit] | None = None,
+    cheap: bool = False,
 ) -> dict[Any, InitResult]:
-    """Run the configured initialiser on every anchor window (``auto``: see `auto_init_method`; the pipeline
-    resolves it from the recording's source, here it means ri). ``range_model = "evidence"``: the evidence fit is
-    the initialiser (`evidence.init_result`), with the method's weighting and loss."""
+    """Every anchor window's initialisation (``auto``: see `auto_init_method`; the pipeline resolves it from the
+    recording's source, here it means ri): the evidence fit with the method's weighting and loss
+    (`evidence.init_result`; ``searches``: fits already made), or with ``uwb.search = false`` the paper's
+    multi-start (`initializer.initialize_anchor`). ``cheap``: the evidence fit's model-mixture covariance only (an
+    initialiser run for comparison)."""
     sigma = config.sigma(calibration) * config.sigma_scale
     method = _method(method or config.init_method)
     out = {}
@@ -184,15 +193,10 @@ def initialize_anchors(
         if config.pose_sigma_floor_m > 0:
             w = InitWindow(w.d, w.p_T, w.R, w.p, w.P_pose.copy(), w.t_ns, w.link)
             w.P_pose[:, 3:6, 3:6] += np.eye(3) * config.pose_sigma_floor_m**2
-        sr = searches.get(a) if config.search or config.range_model == "evidence" else None
-        if sr is None and (config.search or config.range_model == "evidence"):
-            sr = searches[a] = search_window(w, config, sigma, calibration, method)
-        if config.range_model == "evidence":
+        if config.search:
+            sr = searches.get(a) or search_window(w, config, sigma, calibration, method, cheap)
             out[a] = init_result(w, sr, method, str(a), evidence_spec(config, sigma, calibration, method))
             continue
-        evidence = None
-        if sr is not None:
-            evidence = bias_evidence(sr, w.tag_xyz, w.d, w.links(), w.t_ns, w.R)
         out[a] = initialize_anchor(
             w,
             method,
@@ -208,14 +212,8 @@ def initialize_anchors(
             force=config.force,
             residual_factor=config.residual_factor,
             correlation_block_s=config.correlation_block_s,
-            search=sr,
-            per_link=config.bias == "per-link"
-            or (config.bias == "auto" and evidence is not None and evidence["model"] == "per-link"),
-            max_ranges=config.max_init_ranges,
             z_prior=config.z_prior(a),
         )
-        if evidence is not None and out[a].ok:  # the bias model used and the evidence
-            out[a].verdict["bias"] = evidence | {"model": "per-link" if out[a].link_offsets else "per-anchor"}
     return out
 
 
@@ -243,7 +241,7 @@ def _evidence_fit(
     calibration: Mapping | None,
     method: str,
     cheap: bool = False,
-) -> SearchResult:
+) -> AnchorFit:
     """`evidence.fit_anchor` on an init window: the robust position fit, the range model the evidence chooses,
     the anchor's weak directions (or "not determined" with the reason); RI and RI-robust weigh each range by the
     pose's uncertainty along its line of sight, LSI does not."""
@@ -261,79 +259,17 @@ def search_window(
     calibration: Mapping | None = None,
     method: str = "ri-robust",
     cheap: bool = False,
-) -> SearchResult:
-    """The evidence fit (``range_model = "evidence"``; ``cheap``: its model-mixture covariance only, for a
-    start) or `search.search_anchor` on an init window with the configured thresholds and the recording's gamma
-    prior."""
-
+) -> AnchorFit:
+    """The evidence fit of an init window (`evidence.fit_anchor`; ``cheap``: its model-mixture covariance only,
+    for a start), or "not determined" when the anchor was ranged for less than ``min_duration_s``."""
     if len(w) == 0:
-        return _not_determined("no ranges", 0, np.zeros(0, np.int64))
+        return not_determined("no ranges", 0, np.zeros(0, np.int64))
     if w.t_ns is not None and (w.t_ns.max() - w.t_ns.min()) * 1e-9 < config.min_duration_s:
         span = (w.t_ns.max() - w.t_ns.min()) * 1e-9
-        return _not_determined(
+        return not_determined(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
-    if config.range_model == "evidence":
-        return _evidence_fit(w, config, sigma, calibration, method, cheap)
-    pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
-    kw = dict(
-        t_ns=w.t_ns,
-        sigma_range=sigma,
-        min_ranges=max(config.min_ranges, 30),
-        max_sigma_horizontal=config.max_sigma_horizontal_m,
-        gamma_prior=config.gamma_prior(calibration),
-        pos_cov=pos_cov,
-        arm_xyz=np.einsum("nij,nj->ni", w.R, w.p_T),
-        attitude_sigma=np.sqrt(np.maximum(np.trace(w.P_pose[:, 0:3, 0:3], axis1=1, axis2=2), 0.0) / 3.0),
-    )
-    sr = search_anchor(w.tag_xyz, w.d, w.links(), **kw)
-    bp = config.init_beta_prior(calibration)
-    if bp is None:
-        return sr
-    if not sr.ok and sr.code == "offset":
-        # a fit that needs metres of offset: on a one-sided arc the fixed scale (beta = 1) is traded against the
-        # anchor's distance; refit with beta under its prior, as the initialiser estimates it
-        sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
-        return sb if sb.ok else sr
-    if sr.ok and sr.costs.get("kappa", 1.0) > 1.0:
-        # the fixed-scale fit leaves time-correlated residuals; a scale error does (its residual grows with the
-        # range along the path, and the fit bends the anchor's position, height first, to absorb it). The scale
-        # is estimated when it removes that correlation and the ranges demand it (`beta_supported`)
-        sb = search_anchor(w.tag_xyz, w.d, w.links(), beta_prior=bp, **kw)
-        pose_var = float(np.mean(np.trace(pos_cov, axis1=1, axis2=2))) / 3.0 * _pose_error_run(w, calibration)
-        if sb.ok and sb.costs.get("kappa", 1.0) < sr.costs["kappa"] and beta_supported(sr, sb, pose_var):
-            return sb
-    return sr
-
-
-def _pose_error_run(w: InitWindow, calibration: Mapping | None) -> float:
-    """How many of the window's ranges share one pose error: for a bounded pose source (calibration
-    ``odometry.error_model = "bounded"``, a Gauss-Markov error with ``correlation_time_s``, default 10 s) the
-    ranges within two correlation times; 1 for a drifting source (VIO, dead reckoning: its error within the
-    window is its covariance's growth, already small against the ranges' noise)."""
-    odo = ((calibration or {}).get("odometry") or {}) if isinstance(calibration, Mapping) else {}
-    if str(odo.get("error_model") or "drift") != "bounded" or w.t_ns is None or len(w) < 2:
-        return 1.0
-    tau = float(odo.get("correlation_time_s") or 10.0)
-    span = max(float(w.t_ns.max() - w.t_ns.min()) * 1e-9, 1e-9)
-    return float(np.clip(len(w) * 2.0 * tau / span, 1.0, len(w)))
-
-
-def beta_supported(
-    fixed: SearchResult, fitted: SearchResult, pose_var: float = 0.0, chi2_1: float = 10.83
-) -> bool:
-    """The range scale beta (``fitted``) explains the ranges better than beta = 1 (``fixed``, the same ranges):
-    the drop of the squared residual sum, both truncated at 3 x the fitted residual sigma (NLOS junk must not
-    vote), over the noise a range carries (that variance plus the pose variance ``pose_var`` [m^2] along the
-    line of sight, times the ranges that share one pose error (`_pose_error_run`): a pose error bends the
-    ranges as a scale does) and over the fitted model's correlation inflation kappa, exceeds ``chi2_1`` (chi2 with 1 dof at 99.9 %)."""
-    rf, rb = fixed.residuals, fitted.residuals
-    if rf is None or rb is None or len(rf) != len(rb) or not np.isfinite(fitted.scale) or fitted.scale <= 0:
-        return False
-    c2 = (3.0 * fitted.scale) ** 2
-    drop = float(np.sum(np.minimum(rf**2, c2)) - np.sum(np.minimum(rb**2, c2)))
-    kappa = max(float(fitted.costs.get("kappa", 1.0)), 1.0)
-    return bool(drop / (fitted.scale**2 + max(pose_var, 0.0)) / kappa > chi2_1)
+    return _evidence_fit(w, config, sigma, calibration, method, cheap)
 
 
 # -----------------------------------------------------------------------------------------------------------------
@@ -690,8 +626,6 @@ class UwbUpdater:
         self.fixed_height: set = set()
         # a planar carrier's estimated lever arms (planar_levers.PlanarLevers): p_T from the attitude
         self.planar_arms: Any = None
-        # heights flagged at init, regained when the motion later reveals them (height_regain.HeightRegain)
-        self.regain: Any = None
 
     @classmethod
     def from_config(
@@ -852,8 +786,6 @@ class UwbUpdater:
         rec.residual.append(r)
         rec.nis.append(res.nis)
         rec.rejected.append(not res.accepted)
-        if in_state and self.regain is not None and meas.anchor in self.regain:
-            self._watch_height(state, pose_var, pose, [meas])
         return res
 
     def update_epoch(self, state: State, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
@@ -936,46 +868,7 @@ class UwbUpdater:
             rec.residual.append(float(r[i]))
             rec.nis.append(float(res.row_nis[i]))
             rec.rejected.append(not bool(ok[i]))
-        if self.regain is not None:
-            watched = [m for m, n in zip(rows, names, strict=True) if m.anchor in self.regain and n in state]
-            if watched:
-                self._watch_height(state, pose_var, pose, watched)
         return res
-
-    def _watch_height(self, state: State, pose_var: str, pose: Any, rows: Sequence[RangeMeasurement]) -> None:
-        """Hand the ranges of anchors whose height is flagged to `regain` with the pose they were taken at; an
-        anchor whose height the grown window now reveals replaces its variable by the new initialisation (all
-        its ranges so far, none counted twice) and its height is estimated from then on."""
-        P6 = state.cov(pose_var)[0:6, 0:6]
-        p_T = self._arms(pose.R, rows)
-        for i, m in enumerate(rows):
-            name = anchor_var(m.anchor)
-            if name not in state:
-                continue
-            new = self.regain.record(
-                m.anchor,
-                m.t_ns,
-                m.distance,
-                int(link_id(m.tag, m.antenna)),
-                p_T[i],
-                pose.R,
-                pose.p,
-                P6,
-                float(state.value(name).x[2]),
-            )
-            if new is None:
-                continue
-            state.remove(name)
-            if link_var(m.anchor) in state:
-                state.remove(link_var(m.anchor))
-            add_anchor_to_state(state, m.anchor, new, pose_var=self.pose_var, **self.join_kw)
-            self.fixed_height.discard(m.anchor)
-            self.inflation[m.anchor] = float(new.noise_inflation)
-            self.link_offsets.pop(m.anchor, None)
-            self.link_cols.pop(m.anchor, None)
-            if new.link_offsets:
-                self.link_offsets[m.anchor] = new.link_offsets
-                self.link_cols[m.anchor] = link_columns(list(new.link_offsets))
 
     def arrays(self) -> dict[Any, dict[str, np.ndarray]]:
         return {a: rec.arrays() for a, rec in self.records.items()}
@@ -996,36 +889,19 @@ class UwbUpdater:
         """Per anchor: its range stamps, which failed the chi2 gate at ``quantile`` (rejected by it, or, with a
         robust loss and no gate, NIS beyond it), and for every run of k consecutive ranges (k: ``window_s`` at the
         anchor's mean range rate in the records, at least ``min_ranges``; an anchor with fewer is not judged) the
-        fraction that failed; from the records, once at the stage's end. An anchor whose flagged height was
-        regained (`height_regain`) counts from the regain on: before it its height was held at an init value the
-        motion has since shown wrong (its ranges failed for that reason, which the refine stage reports)."""
+        fraction that failed; from the records, once at the stage's end."""
         gate = chi2_ppf(quantile, 1) if quantile is not None else np.inf
         out = {}
         for a, rec in self.records.items():
             t = np.asarray(rec.t_ns, np.int64)
-            i = self._judged_from(a)
-            t = t[i:]
             if len(t) < max(min_ranges, 2):
                 continue
             k = max(min_ranges, round(window_s * (len(t) - 1) / max((t[-1] - t[0]) * 1e-9, 1e-9)))
             if len(t) < k:
                 continue
-            failed = np.asarray(rec.rejected[i:], bool) | (
-                np.asarray(rec.nis[i:], float) > gate
-            )  # NaN: False
+            failed = np.asarray(rec.rejected, bool) | (np.asarray(rec.nis, float) > gate)  # NaN: False
             out[a] = (t, failed, sliding_mean(failed, k))
         return out
-
-    def _judged_from(self, anchor: Any) -> int:
-        """Index of the anchor's first record the gate warnings judge: after a regained height (`height_regain`),
-        whose ranges failed before it because the height was held at an init value the motion has since shown
-        wrong (the refine stage reports the regain)."""
-        regained = getattr(self.regain, "regained", {})
-        if anchor not in regained:
-            return 0
-        return int(
-            np.searchsorted(np.asarray(self.records[anchor].t_ns, np.int64), regained[anchor].t_ns, "left")
-        )
 
     def gate_excess_warning(self, stage: str, alpha: float = 1e-3) -> list[str]:
         """A warning when the stage's gate rejected more ranges than a consistent filter would, over all ranges
@@ -1033,7 +909,7 @@ class UwbUpdater:
         P(K >= k | n, 1 - q) below ``alpha`` (per anchor: ``alpha`` / anchors). A consistent filter rejects
         ~1 - q of its ranges; counting any rejection cried wolf on every clean run. A burst inside the stage (one
         anchor, a stretch of NLOS) is `gate_warnings`' job; this one sees an anchor whose estimate or covariance
-        is off over the whole stage. Counted from the records, as `gate_rates` (from a regained height on)."""
+        is off over the whole stage. Counted from the records, as `gate_rates`."""
         from scipy.special import bdtrc
 
         q = self.chi2_quantile
@@ -1046,7 +922,7 @@ class UwbUpdater:
         def shown(p: float) -> str:  # a tail below the smallest double prints as such, not as 0
             return f"{p:.1e}" if p > 0.0 else "< 1e-308"
 
-        judged = {a: r.rejected[self._judged_from(a) :] for a, r in self.records.items()}
+        judged = {a: r.rejected for a, r in self.records.items()}
         per = {a: (int(np.sum(rej)), len(rej)) for a, rej in judged.items() if rej}
         bad = {a: kn for a, kn in per.items() if tail(*kn) < alpha / len(per)}
         k, n = sum(kn[0] for kn in per.values()), sum(kn[1] for kn in per.values())

@@ -11,16 +11,15 @@ from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.context import StageContext, StageResult
 from uwbcal.pipeline.run.windows import Windows
 from uwbcal.pipeline.uwb.clock import NO_OFFSET, ClockOffset, estimate_clock
-from uwbcal.pipeline.uwb.initializer import InitWindow
 from uwbcal.pipeline.uwb.planar_levers import planar_windows, refit_searches
 from uwbcal.pipeline.uwb.schedule import join_time
-from uwbcal.pipeline.uwb.search import subsample
 from uwbcal.pipeline.uwb.updater import (
     evidence_spec,
     initialize_anchors,
     search_window,
     windows_from_trajectory,
 )
+from uwbcal.pipeline.uwb.window import InitWindow, subsample
 from uwbcal.pipeline.viz import runlog as rl
 from uwbcal.pipeline.viz.runlog import RunLog
 
@@ -47,15 +46,21 @@ def run(ctx: StageContext) -> StageResult:
         rng = {**rng, "t_ns": np.asarray(rng["t_ns"]) + round(clock.offset_s * 1e9)}
         windows = windows_from_trajectory(vio, rng, cal, win.start_ns, end)
         windows = levers.apply(windows) if levers is not None else windows
-    whole = levers is not None or (cfg.range_model == "evidence" and ctx.bounded_poses())
+    whole = levers is not None or (cfg.search and ctx.bounded_poses())
     windows, searches, joins = _schedule(ctx, windows, win.init_end_ns, per_anchor, whole, levers is not None)
-    if levers is not None and searches:
+    if levers is not None and searches:  # the lever model's link offsets correct the ranges; then the rule
         searches = refit_searches(levers, windows, searches, cfg.sigma(cal) * cfg.sigma_scale)
-        if cfg.range_model == "evidence":  # the lever model's link offsets correct the ranges; then the rule
-            windows, searches = _link_corrected(windows, searches), None
-    methods = (cfg.init_method,) if cfg.range_model == "evidence" else INIT_METHODS
-    results = {
-        m: initialize_anchors(windows, cfg, cal, method=m, searches=_for(searches, m, cfg)) for m in methods
+        windows, searches = _link_corrected(windows, searches), None
+    results = {  # every initialiser for comparison; the chosen one's covariance in full
+        m: initialize_anchors(
+            windows,
+            cfg,
+            cal,
+            method=m,
+            searches=searches if m == cfg.init_method else None,
+            cheap=m != cfg.init_method,
+        )
+        for m in INIT_METHODS
     }
     for res in results.values():
         for a, r in res.items():
@@ -83,18 +88,13 @@ def _link_corrected(windows: dict, searches: dict) -> dict:
     return out
 
 
-def _for(searches: dict | None, method: str, cfg) -> dict | None:
-    """The schedule's fits serve the method they were made for (the evidence fit weighs per method)."""
-    return searches if cfg.range_model != "evidence" or method == cfg.init_method else None
-
-
 def _range_clock(ctx: StageContext, vio, rng: dict, start_ns: int, end_ns: int, levers) -> ClockOffset:
     """The range-to-pose clock offset (`clock.estimate_clock`) on the evidence path, else none, on the ranges
     with the estimated lever arms (an arm error turning with the carrier would pass for a clock); the reader of
     the later stages re-stamps the ranges by it when it is used."""
     cfg = ctx.config.uwb
     ctx.reader.range_shift_ns = 0
-    if cfg.range_model != "evidence" or cfg.clock_scan_s <= 0:
+    if not cfg.search or cfg.clock_scan_s <= 0:
         return NO_OFFSET
     cal = ctx.reader.calibration
     margin = round(cfg.clock_scan_s * 1e9)
@@ -215,7 +215,7 @@ def _schedule(
     start the joint lever-arm fit (the evidence path fits again on the corrected ranges)."""
 
     cfg = ctx.config.uwb
-    if not cfg.search and cfg.range_model != "evidence":
+    if not cfg.search:
         return {a: w.subset(w.t_ns < init_end_ns) for a, w in windows.items()}, None, {}
     sigma = cfg.sigma(ctx.reader.calibration) * cfg.sigma_scale
     out_w, searches, joins = {}, {}, {}

@@ -9,8 +9,7 @@ import numpy as np
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.context import StageContext, StageResult, filter_warnings
 from uwbcal.pipeline.run.driver import run_estimator
-from uwbcal.pipeline.uwb.height_regain import HeightRegain
-from uwbcal.pipeline.uwb.updater import UwbUpdater, add_initialised_anchors, initialize_anchors, search_window
+from uwbcal.pipeline.uwb.updater import UwbUpdater, add_initialised_anchors
 from uwbcal.pipeline.vio.estimator import Estimator
 from uwbcal.pipeline.viz import observers
 from uwbcal.pipeline.viz import runlog as rl
@@ -38,7 +37,7 @@ def run(ctx: StageContext) -> StageResult:
     tau = getattr(est, "pose_correlation_s", None)  # bounded pose errors: their correlation time
     warns = add_initialised_anchors(est.state, results, cfg, cal, pose_correlation_s=tau)
     inflation = {a: float(r.noise_inflation) for a, r in results.items() if r.ok}
-    updater, regain = _updater(ctx, results, inflation, tau)
+    updater = _updater(ctx, results, inflation, tau)
     with ctx.runlog("refine") as log:
         log.stage("refine", win.init_end_ns)
         run_estimator(
@@ -53,7 +52,7 @@ def run(ctx: StageContext) -> StageResult:
     ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
     rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
     ctx.dir.save_npz(RANGE_UPDATES, **_range_updates(updater.arrays()))
-    states = _anchor_states(est, updater, results, inflation, regain, win.init_end_ns, warns)
+    states = _anchor_states(est, updater, results, inflation, warns)
     ctx.dir.save_json("anchor_states.json", states)
     label = f"{cfg.init_method}+{cfg.refine_method}"
     rd.write_anchors(
@@ -71,11 +70,8 @@ def run(ctx: StageContext) -> StageResult:
     )
 
 
-def _updater(
-    ctx: StageContext, results: dict, inflation: dict, tau: float | None
-) -> tuple[UwbUpdater, HeightRegain | None]:
-    """The range updater of refinement, its anchors scheduled from the init results; the height regain when
-    configured."""
+def _updater(ctx: StageContext, results: dict, inflation: dict, tau: float | None) -> UwbUpdater:
+    """The range updater of refinement, its anchors scheduled from the init results."""
     cal = ctx.reader.calibration
     cfg = ctx.config.uwb
     updater = UwbUpdater.from_config(cfg, cal, inflation=inflation)
@@ -90,17 +86,7 @@ def _updater(
             "pose_correlation_s": tau,
         },
     )
-    regain = None
-    if cfg.search and cfg.regain_heights and cfg.refine_method != "none":
-        sigma = cfg.sigma(cal) * cfg.sigma_scale
-        regain = updater.regain = HeightRegain(
-            results,
-            lambda w: search_window(w, cfg, sigma, cal),
-            lambda a, w, sr: initialize_anchors({a: w}, cfg, cal, method=cfg.init_method, searches={a: sr})[
-                a
-            ],
-        )
-    return updater, regain
+    return updater
 
 
 def _log_anchors(log: RunLog, est: Estimator, updater: UwbUpdater, t_end_ns: int) -> None:
@@ -121,17 +107,10 @@ def _log_anchors(log: RunLog, est: Estimator, updater: UwbUpdater, t_end_ns: int
 
 
 def _anchor_states(
-    est: Estimator,
-    updater: UwbUpdater,
-    results: dict,
-    inflation: dict,
-    regain: HeightRegain | None,
-    init_end_ns: int,
-    warns: list[str],
+    est: Estimator, updater: UwbUpdater, results: dict, inflation: dict, warns: list[str]
 ) -> dict[str, dict]:
-    """Per anchor (the refined ones and those determined only by all their ranges): state, covariance (its
-    height variance kept where unobservable), noise inflation, link offsets, a regained height; the warnings
-    appended to ``warns``."""
+    """Per anchor (the refined ones and those fitted from all their ranges): state, covariance (its height
+    variance kept where unobservable), noise inflation, link offsets; the warnings appended to ``warns``."""
     offsets, offset_cov = updater.offsets(est.state), updater.offset_covariances(est.state)
     states = {
         str(a): {
@@ -155,19 +134,10 @@ def _anchor_states(
             f"refine: anchors {sorted(updater.pending)} were determined only by all their ranges; reported at "
             "their initial estimate"
         )
-    regained = regain.summary() if regain is not None else {}
     for a, s in states.items():  # a height the data cannot see stays as uncertain as at init
         r = results.get(rd.anchor_key(a))
-        if a in regained:
-            s["height_regained"] = regained[a]
-        elif r is not None and not r.verdict.get("height_observable", True):
+        if r is not None and not r.verdict.get("height_observable", True):
             s["P"] = _keep_height_sigma(s["P"], r.cov)
-    if regained:
-        warns.append(
-            "refine: height regained for anchors "
-            + ", ".join(f"{a} at {g['t_s'] - init_end_ns * 1e-9:.0f} s" for a, g in regained.items())
-            + " into refinement (the motion left the init window's plane; re-initialised from all their ranges)"
-        )
     return states
 
 
