@@ -6,7 +6,7 @@ import pytest
 
 from uwbcal.pipeline.uwb.clock import estimate_clock
 from uwbcal.pipeline.uwb.evidence import FitSpec
-from uwbcal.pipeline.uwb.initializer import InitWindow
+from uwbcal.pipeline.uwb.window import InitWindow
 
 ANCHORS = {1: np.array([5.0, 4.0, 2.0]), 2: np.array([-4.0, 6.0, 0.5]), 3: np.array([0.0, -6.0, 2.5])}
 

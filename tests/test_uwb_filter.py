@@ -400,8 +400,9 @@ def test_link_offset_map_matches_refit():
     """Per-link bias: the anchor's initial covariance carries the offsets' error through J[links/<id>], the
     first-order map of a change of one link's offset into the fitted anchor. Independent reference: refit the
     window with that link's ranges shifted by eps (the solver, not the formula) and difference."""
-    from uwbcal.pipeline.uwb.initializer import InitWindow, solve_from
+    from uwbcal.pipeline.uwb.initializer import solve_from
     from uwbcal.pipeline.uwb.updater import anchor_init_covariance, link_var
+    from uwbcal.pipeline.uwb.window import InitWindow
 
     rng = np.random.default_rng(5)
     t = np.arange(0.0, 40.0, 0.05)
