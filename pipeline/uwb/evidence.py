@@ -31,6 +31,7 @@ import numpy as np
 from scipy.cluster.vq import kmeans2
 
 from uwbcal.pipeline.core.state import chi2_ppf
+from uwbcal.pipeline.uwb.fim import assess_observability
 from uwbcal.pipeline.uwb.initializer import InitResult
 from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
 
@@ -695,6 +696,16 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
         window=window.subset(keep),
         params=(0, 1, 2, 3, 4) if model == "gamma+beta" else (0, 1, 2, 4),
         verdict=verdict,
+    )
+    res.fim = assess_observability(  # the paper's Fisher information of the window, for the report
+        res.window.R,
+        res.window.p,
+        res.window.p_T,
+        res.window.P_pose,
+        x,
+        spec.sigma_range**2,
+        force=True,
+        label=anchor,
     )
     if model == "link":
         T = np.eye(L) - 1.0 / L
