@@ -31,6 +31,7 @@ import numpy as np
 from scipy.cluster.vq import kmeans2
 
 from uwbcal.pipeline.core.state import chi2_ppf
+from uwbcal.pipeline.uwb.fim import assess_observability
 from uwbcal.pipeline.uwb.initializer import InitResult, InitWindow
 from uwbcal.pipeline.uwb.search import SearchResult, noise_inflation, plane_frame, subsample
 
@@ -243,11 +244,23 @@ def direction_cells(u: np.ndarray, cells: int = 16) -> np.ndarray:
     return lab.astype(np.int64)
 
 
-def deflation(m: Model, xyz: np.ndarray, s2: np.ndarray, t_ns: np.ndarray | None, spec: FitSpec) -> float:
+def deflation(
+    m: Model,
+    xyz: np.ndarray,
+    s2: np.ndarray,
+    t_ns: np.ndarray | None,
+    spec: FitSpec,
+    li: np.ndarray | None = None,
+) -> float:
     """How much less the ranges tell than independent ones at their nominal noise: (robust residual spread /
     nominal sigma)^2 times the larger variance factor of block means over time and over directions of arrival
-    (multipath, a pose error and an antenna pattern make neighbouring ranges err alike), at least 1."""
+    (multipath, a pose error and an antenna pattern make neighbouring ranges err alike), at least 1. The residuals
+    are taken about each link's median (``li``: a constant per link is the offset families' to explain, not
+    noise)."""
     e = m.r / np.sqrt(s2)
+    if li is not None:
+        for k in np.unique(li):
+            e[li == k] -= np.median(e[li == k])
     spread = 1.4826 * float(np.median(np.abs(e - np.median(e))))
     ec = np.clip(e / max(spread, 1e-6), -3.0, 3.0)
     u = xyz - m.p
@@ -389,7 +402,7 @@ def fit_anchor(
     families = [f for f in FAMILIES if f != "link" or L > 1]
     best = min(base, key=lambda m: m.cost)
     for _ in range(2):  # the deflation is what the chosen model leaves unexplained: measured on its residuals
-        d_new = deflation(best, x, s2, t, spec)
+        d_new = deflation(best, x, s2, t, spec, li)
         if best.name != "position" and abs(np.log(d_new / spec.deflate)) < 0.1:
             break
         spec = replace(spec, deflate=d_new)
@@ -636,6 +649,16 @@ def init_result(window: InitWindow, sr: SearchResult, method: str, anchor: str, 
         window=window.subset(keep),
         params=(0, 1, 2, 3, 4) if model == "gamma+beta" else (0, 1, 2, 4),
         verdict=verdict,
+    )
+    res.fim = assess_observability(  # the paper's Fisher information of the window, for the report
+        res.window.R,
+        res.window.p,
+        res.window.p_T,
+        res.window.P_pose,
+        x,
+        spec.sigma_range**2,
+        force=True,
+        label=anchor,
     )
     if model == "link":
         T = np.eye(L) - 1.0 / L
