@@ -164,3 +164,22 @@ def test_pattern_cov_matches_the_fits_of_random_patterns():
     )
     emp = np.cov(fits.T)
     assert np.allclose(np.sqrt(np.diag(emp)), np.sqrt(np.diag(C)), rtol=0.25, atol=1e-3)
+
+
+def test_per_link_offsets_enter_only_when_the_links_differ():
+    """Three antennas whose ranges carry offsets of 0.1, 0.3 and 0.47 m: the per-link family enters (the
+    deflation is measured about each link's median, so the links' differences are not taken for noise); the
+    same ranges with one common offset take the one offset."""
+    n = 6000
+    t = np.linspace(0, 200, n)
+    body = np.c_[5 * np.cos(t / 15), 4 * np.sin(t / 11), 1.0 + 0.8 * np.sin(t / 5)]
+    link = np.arange(n) % 3
+    xyz = body + np.array([[0.2, 0.0, 0.0], [-0.2, 0.1, 0.0], [0.0, -0.2, 0.05]])[link]
+    anchor = np.array([-6.0, 3.0, 2.5])
+    offs = np.array([0.1, 0.3, 0.47])
+    d = np.linalg.norm(xyz - anchor, axis=1) + offs[link] + np.random.default_rng(4).normal(0, 0.02, n)
+    res = fit_anchor(xyz, d, link, t_ns=t * 1e9, spec=FitSpec(sigma_range=0.02))
+    assert res.ok and res.costs["evidence"]["model"] == "link"
+    np.testing.assert_allclose(res.gamma, offs, atol=0.02)
+    one = fit_anchor(xyz, d - offs[link] + 0.2, link, t_ns=t * 1e9, spec=FitSpec(sigma_range=0.02))
+    assert one.costs["evidence"]["model"] == "gamma"
