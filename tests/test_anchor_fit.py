@@ -114,9 +114,9 @@ def test_per_link_offsets_enter_only_when_the_links_differ():
 
 def test_range_scale_on_a_one_sided_arc():
     """A one-sided near-level arc with the anchor 2.6 m beyond its side and a range scale of 0.9 (d = 0.9 |.| -
-    0.3): under the recording's scale prior (1, 0.2) the anchor is either right (the scale entered, the anchor
-    inside its covariance) or honestly not determined along the arc's weak radial direction; ranges without a
-    scale error keep beta = 1."""
+    0.3): the recording states a scale prior (1, 0.2), so the scale is in the model; the anchor is either right
+    (the scale estimated, the anchor inside its covariance) or honestly not determined along the arc's weak radial
+    direction; ranges without a scale error give a scale near 1."""
     t = np.linspace(0, 48, 800)
     xyz = np.c_[0.9 + 1.0 * np.sin(t / 5.0), 0.5 + 2.2 * np.sin(t / 7.3 + 0.4), 1.25 + 0.3 * np.sin(t / 3.1)]
     cal = {"uwb": {"gamma_prior": {"mean": 0.0, "sigma": 1.0}, "beta_prior": {"mean": 1.0, "sigma": 0.2}}}
@@ -131,7 +131,8 @@ def test_range_scale_on_a_one_sided_arc():
         else:
             assert "weak horizontal direction" in res.reason
         d1 = np.linalg.norm(xyz - far, axis=1) - 0.3 + rng.normal(0, 0.1, len(t))
-        kept += search_window(_window(xyz, d1, t), UwbConfig(), 0.1, cal).beta == 1.0
+        one = search_window(_window(xyz, d1, t), UwbConfig(), 0.1, cal)
+        kept += not one.ok or abs(one.beta - 1.0) < 0.05
     assert kept == 3
 
 

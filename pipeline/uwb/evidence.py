@@ -35,7 +35,7 @@ from uwbcal.pipeline.uwb.fim import assess_observability
 from uwbcal.pipeline.uwb.initializer import InitResult
 from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
 
-FAMILIES = ("position", "gamma", "gamma+beta", "link")
+FAMILIES = ("position", "gamma", "gamma+beta", "link", "link+beta")
 BAYES_FACTOR = 3.0  # Jeffreys' "substantial" evidence: a richer model must beat a simpler one by this factor
 JACKKNIFE_BLOCKS = 10
 WARM_ITERATIONS = 10  # a refit from a fit of nearly the same problem (profiles, jackknife, clock scan)
@@ -114,6 +114,9 @@ class FitSpec:
     # the covariance's profile widening, jackknife and antenna pattern (False: a start or a scan's fit, its
     # model-mixture covariance only)
     refine_cov: bool = True
+    stated: tuple[
+        str, ...
+    ] = ()  # parameters the recording states a prior for ("gamma", "beta"): in every model
 
 
 @dataclass
@@ -133,7 +136,7 @@ class Model:
 
     @property
     def n_offsets(self) -> int:
-        return 0 if self.name == "position" else len(self.g) if self.name == "link" else 1
+        return 0 if self.name == "position" else len(self.g) if per_link(self.name) else 1
 
 
 def _loss(e: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
@@ -160,10 +163,20 @@ def range_losses(m: Model, s2: np.ndarray, spec: FitSpec) -> np.ndarray:
     return _loss(m.r / np.sqrt(s2), _losses(spec)[-1])[0] / spec.deflate
 
 
+def has_scale(name: str) -> bool:
+    """The family estimates the range scale beta."""
+    return name.endswith("+beta")
+
+
+def per_link(name: str) -> bool:
+    """The family estimates one offset per link."""
+    return name.startswith("link")
+
+
 def _prior(name: str, L: int, spec: FitSpec) -> tuple[np.ndarray, np.ndarray]:
     """(mean, precision) of the family's parameters (position first, flat; then beta; then the offsets)."""
-    scale = name == "gamma+beta"
-    ng = 0 if name == "position" else L if name == "link" else 1
+    scale = has_scale(name)
+    ng = 0 if name == "position" else L if per_link(name) else 1
     mu = np.r_[np.zeros(3), [1.0] * scale, np.full(ng, spec.gamma_mean)]
     prec = np.r_[np.zeros(3), [spec.beta_sigma**-2] * scale, np.full(ng, spec.gamma_sigma**-2)]
     return mu, prec
@@ -193,8 +206,8 @@ def fit_family(
         Lam[:3, :3] += PIN_PRECISION * np.outer(v, v)
         mu = mu.copy()
         mu[:3] = c * v
-    scale, per_link, ng = name == "gamma+beta", name == "link", len(mu) - 3 - (name == "gamma+beta")
-    gi = li if per_link else np.zeros(len(d), np.int64)
+    scale, links, ng = has_scale(name), per_link(name), len(mu) - 3 - has_scale(name)
+    gi = li if links else np.zeros(len(d), np.int64)
     sd, f = np.sqrt(s2), 1.0 / spec.deflate
 
     def evaluate(th, kind):
@@ -215,14 +228,14 @@ def fit_family(
     theta = np.r_[np.asarray(p0, float), mu[3:]]
     losses, iters = _losses(spec), 60
     if warm is not None:
-        g = warm.g if per_link else warm.g[:1]
+        g = warm.g if links else warm.g[:1]
         theta = np.r_[np.asarray(p0, float), [warm.beta] * scale, g if ng else []]
         losses, iters = losses[-1:], WARM_ITERATIONS
     for kind in losses:
         theta, (cost, J, r, w) = _irls(lambda th, k=kind: evaluate(th, k), theta, mu, Lam, f, sd, iters)
     info = (J * (f * w)[:, None]).T @ J + np.diag(prec)
     g = theta[3 + scale :] if ng else np.zeros(0)
-    g_links = g.copy() if per_link else np.full(L, g[0] if ng else spec.gamma_mean)
+    g_links = g.copy() if links else np.full(L, g[0] if ng else spec.gamma_mean)
     return Model(name, 0, theta[:3].copy(), float(theta[3]) if scale else 1.0, g_links, cost, info, r, w)
 
 
@@ -258,6 +271,16 @@ def log_evidence(m: Model, spec: FitSpec, reach: float) -> float:
     A[:3, :3] += np.eye(3) / reach**2
     logdet = np.linalg.slogdet(A)[1]
     return float(-0.5 * m.cost - 0.5 * logdet + 0.5 * np.sum(np.log(prec[3:])) + 1.5 * np.log(reach**-2))
+
+
+def model_families(stated: tuple[str, ...], links: int) -> list[str]:
+    """The families the evidence rule chooses among: those holding every parameter the recording states a prior
+    for (``stated``: "gamma", "beta"; a stated parameter is part of the hardware's model, the rule decides the
+    others), per-link offsets only with several links."""
+    need = {"gamma": lambda f: f != "position", "beta": has_scale}
+    return [
+        f for f in FAMILIES if (not per_link(f) or links > 1) and all(need[p](f) for p in stated if p in need)
+    ]
 
 
 def choose(models: list[Model]) -> Model:
@@ -393,8 +416,8 @@ def mixture_cov(models: list[Model], chosen: Model, reach: float) -> tuple[np.nd
     L = len(chosen.g)
     out = np.zeros((3 + L, 3 + L))
     out[:3, :3] = C[:3, :3] + excess
-    k = 3 + (chosen.name == "gamma+beta")  # the offsets' rows in C
-    if chosen.name == "link":
+    k = 3 + has_scale(chosen.name)  # the offsets' rows in C
+    if per_link(chosen.name):
         out[:3, 3:], out[3:, 3:] = C[:3, k:], C[k:, k:]
     elif chosen.name != "position":  # one offset shared by every link
         out[:3, 3:] = C[:3, k : k + 1]
@@ -446,7 +469,7 @@ def fit_anchor(
     if base[1].cost < base[0].cost:
         starts = starts[::-1]
     reach = float(np.max(dd)) + float(np.max(ext))
-    families = [f for f in FAMILIES if f != "link" or L > 1]
+    families = model_families(spec.stated, L)
     best = min(base, key=lambda m: m.cost)
     for _ in range(2):  # the deflation is what the chosen model leaves unexplained: measured on its residuals
         d_new = deflation(best, x, s2, t, spec, li)
@@ -506,9 +529,9 @@ def pattern_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> np.ndarra
     diff = m.p - xyz
     rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
     u = -diff / rho[:, None]  # anchor to tag
-    J = [m.beta * diff / rho[:, None]] + ([rho[:, None]] if m.name == "gamma+beta" else [])
+    J = [m.beta * diff / rho[:, None]] + ([rho[:, None]] if has_scale(m.name) else [])
     if m.n_offsets:
-        J.append(np.eye(m.n_offsets)[li if m.name == "link" else np.zeros(len(d), np.int64)])
+        J.append(np.eye(m.n_offsets)[li if per_link(m.name) else np.zeros(len(d), np.int64)])
     sd = np.sqrt(s2)
     Jw = np.hstack(J) / sd[:, None]
     A = m.info.copy()
@@ -680,7 +703,7 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
         cov[4, 4] = float(wts @ sr.cov[3:, 3:] @ wts)
     else:
         cov[4, 4] = FIXED_OFFSET_SIGMA**2
-    cov[3, 3] = spec.beta_sigma**2 if model == "gamma+beta" else FIXED_BETA_SIGMA**2
+    cov[3, 3] = spec.beta_sigma**2 if has_scale(model) else FIXED_BETA_SIGMA**2
     keep = np.zeros(len(window), bool)
     keep[subsample(len(window), spec.max_ranges)] = True
     res = InitResult(
@@ -694,7 +717,7 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
         residual_rms=float(np.sqrt(np.mean(sr.residuals**2))),
         residual_robust_sigma=sr.scale,
         window=window.subset(keep),
-        params=(0, 1, 2, 3, 4) if model == "gamma+beta" else (0, 1, 2, 4),
+        params=(0, 1, 2, 3, 4) if has_scale(model) else (0, 1, 2, 4),
         verdict=verdict,
     )
     res.fim = assess_observability(  # the paper's Fisher information of the window, for the report
@@ -707,14 +730,14 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
         force=True,
         label=anchor,
     )
-    if model == "link":
+    if per_link(model):
         T = np.eye(L) - 1.0 / L
         res.link_offsets = {int(k): float(g - x[4]) for k, g in zip(sr.links, sr.gamma, strict=True)}
         res.link_cov = T @ sr.cov[3:, 3:] @ T
     res.excess_cov = np.zeros((5, 5))
     res.excess_cov[:3, :3] = sr.costs["excess_cov"]
     gamma = (spec.gamma_mean, spec.gamma_sigma if offsets else FIXED_OFFSET_SIGMA)
-    res.model_priors = (gamma, (1.0, spec.beta_sigma if model == "gamma+beta" else FIXED_BETA_SIGMA))
+    res.model_priors = (gamma, (1.0, spec.beta_sigma if has_scale(model) else FIXED_BETA_SIGMA))
     if not sr.height_observable:
         why = "the mirror across the motion plane fits as well" if sr.mirror else "weak vertical direction"
         res.warnings.append(f"{anchor}: height not determined ({why}): {sr.p[2]:.2f} +- {sr.sigma_h:.2f} m")

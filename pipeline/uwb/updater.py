@@ -219,8 +219,10 @@ def initialize_anchors(
 
 def evidence_spec(config: UwbConfig, sigma: float, calibration: Mapping | None, method: str) -> FitSpec:
     """The evidence fit's priors and thresholds: the offset prior of the calibration (else the hardware's), the
-    range scale's stated prior (else a TWR clock's), the method's loss (robust for ri-robust)."""
-    stated = ((calibration or {}).get("uwb") or {}).get("beta_prior") or {}
+    range scale's stated prior (else a TWR clock's), the method's loss (robust for ri-robust); a parameter the
+    calibration states a prior for is in every model (the rule decides the rest)."""
+    uwb = (calibration or {}).get("uwb") or {}
+    stated = uwb.get("beta_prior") or {}
     return FitSpec(
         sigma_range=sigma,
         gamma_mean=config.offset_prior(calibration)[0],
@@ -231,6 +233,7 @@ def evidence_spec(config: UwbConfig, sigma: float, calibration: Mapping | None, 
         max_ranges=config.max_init_ranges,
         robust=method == "ri-robust",
         pattern_sigma=config.pattern_sigma(calibration),
+        stated=tuple(p for p, key in (("gamma", "gamma_prior"), ("beta", "beta_prior")) if uwb.get(key)),
     )
 
 
