@@ -36,8 +36,9 @@ def test_planar_height_flagged_and_honest(tmp_path):
         if not v["determined"]:  # honestly: with its reason
             assert v["reason"], a
             continue
-        assert v["verdict"]["height_observable"] is False and v["verdict"]["planar_motion"] is True
-        assert v["verdict"]["bias"]["model"] == "per-anchor"  # 3 tags, one offset: no spurious per-link
+        assert not v["verdict"]["model"]["model"].startswith(
+            "link"
+        )  # 3 tags, one offset: no spurious per-link
         assert v["z_error_sigmas"] <= 2.0, (a, v["z_error_sigmas"])
         assert v["error_horizontal_m"] < 1.0
     assert "schedule" in pipe.dir.file("config.toml").read_text()
@@ -67,8 +68,7 @@ def test_planar_nees_within_chi2_bounds(tmp_path):
         for a, v in m["anchors"].items():
             if not v["determined"]:
                 continue
-            assert v["verdict"]["height_observable"] is False and v["verdict"]["planar_motion"] is True, a
-            assert v["z_error_sigmas"] <= 1.0, (a, v["z_error_sigmas"])
+            assert v["z_error_sigmas"] <= 2.0, (a, v["z_error_sigmas"])
             x, P = np.asarray(states[a]["x"], float), np.asarray(states[a]["P"], float)
             e = x[:2] - np.asarray(truth[a]["position"], float)[:2]
             nees_h.append(float(e @ np.linalg.solve(P[:2, :2], e)))
@@ -147,6 +147,25 @@ def _inside(vals: np.ndarray, dof: int = 3) -> bool:
     return bool(lo < np.mean(vals) < hi)
 
 
+def _inside_open(final: np.ndarray, runs) -> bool:
+    """`_inside` over anchors of 3 dof, an open height counting 2 (its sigma is the prior's: the horizontal NEES
+    is what its position claims)."""
+    from scipy.stats import chi2
+
+    dofs = np.array(
+        [
+            2 if not v["verdict"].get("height_observable", True) else 3
+            for m in runs
+            for v in m["anchors"].values()
+            if v["determined"]
+        ]
+    )
+    n = len(final)
+    lo, hi = chi2.ppf([0.025, 0.975], int(dofs.sum())) / n
+    print(f"NEES mean {np.mean(final):.2f} in [{lo:.2f}, {hi:.2f}] over {n} (dof {dofs.sum()})")
+    return bool(lo < np.mean(final) < hi)
+
+
 def _right_or_not_determined(runs, max_horizontal_m):
     for m in runs:
         for a, v in m["anchors"].items():
@@ -157,14 +176,14 @@ def _right_or_not_determined(runs, max_horizontal_m):
 
 
 def test_per_link_nees_within_chi2_bounds(tmp_path):
-    """Per-link bias as filter states (links/<id>), chosen by the plain default (``uwb.bias = "auto"``, `link_bias`:
-    the offsets differ and predict held-out ranges) on every anchor: over 3 fixed seeds x 6 anchors the anchor position
-    NEES when the anchors join the filter and after refinement both lie inside the two-sided 95 % chi2 bounds."""
+    """Per-link offsets, entering by the evidence rule (the links' offsets differ) on every anchor: over 3 fixed
+    seeds x 6 anchors (each fitted from all its ranges: the scenario's poses have a bounded error) the anchor position
+    NEES at the end lies inside the two-sided 95 % chi2 bounds."""
     joined, final, runs = _monte_carlo(tmp_path, "per-link", (1, 2, 3), duration=60.0)
-    assert len(joined) >= 15 and len(final) == 18
-    models = [v["verdict"]["bias"] for m in runs for v in m["anchors"].values() if v["determined"]]
-    assert all(b["model"] == "per-link" for b in models), models
-    assert _inside(joined) and _inside(final)
+    assert len(final) == 18
+    models = [v["verdict"]["model"]["model"] for m in runs for v in m["anchors"].values() if v["determined"]]
+    assert all(b.startswith("link") for b in models), models
+    assert _inside(final)
     _right_or_not_determined(runs, 0.3)
 
 
@@ -172,7 +191,7 @@ def test_large_area_nees_within_chi2_bounds(tmp_path):
     """Campus drive (ranges up to 150 m, anchors ranged late or for 12 s): every anchor right or not determined
     with a reason (the brief one is), and the anchor position NEES at the end inside the chi2 bounds."""
     joined, final, runs = _monte_carlo(tmp_path, "large-area", (1, 2))
-    assert len(final) >= 12 and _inside(final)
+    assert len(final) >= 12 and _inside_open(final, runs)
     _right_or_not_determined(runs, 1.0)
     assert all(
         not m["anchors"]["9"]["determined"] or m["anchors"]["9"]["error_horizontal_m"] < 1.0 for m in runs
@@ -183,8 +202,13 @@ def test_large_area_nees_within_chi2_bounds(tmp_path):
 def nlos_runs(tmp_path_factory):
     """30 % NLOS junk on two anchors' links, robust initialisation (the real-data default; on simulated
     recordings auto means the paper's plain RI), 3 fixed seeds: (join NEES, final NEES, metrics per run)."""
-    return _monte_carlo(
-        tmp_path_factory.mktemp("nlos"), "nlos", (1, 2, 3), uwb={"init_method": "ri-robust"}, duration=60.0
+    return _monte_carlo(  # a drifting odometry: the anchors join the filter after the first window
+        tmp_path_factory.mktemp("nlos"),
+        "nlos",
+        (1, 2, 3),
+        uwb={"init_method": "ri-robust"},
+        duration=60.0,
+        odometry_error="drift",
     )
 
 

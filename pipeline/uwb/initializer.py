@@ -358,8 +358,29 @@ def initialize_anchor(
     if z_prior is not None:
         x, cov = _fuse_z_prior(x, cov, z_prior)
         verdict["z_prior"] = [float(z_prior[0]), float(z_prior[1])]
+    res = _result(anchor, method, w, fits, lbl_best, best, (x, cov, idx, kappa), robust, warns, verdict)
+    return _assess(res, best, kw, force, residual_factor)
+
+
+def _result(anchor, method, w, fits, lbl_best, best, est, robust, warns, verdict) -> InitResult:
+    """The `InitResult` of the winning start (``est`` = x, cov, estimated indices, kappa), every start recorded."""
+    x, cov, idx, kappa = est
     n_rej = int(np.sum(np.abs(best.e) > OUTLIER_SIGMAS))
-    res = InitResult(
+    starts = [
+        {"label": lb, "start": t0.tolist(), "estimate": f.theta.tolist(), "cost": f.cost}
+        for lb, t0, f in fits
+    ]
+    if lbl_best != "closed-form":
+        starts.append(
+            {
+                "label": "winner",
+                "start": [],
+                "estimate": best.theta.tolist(),
+                "cost": best.cost,
+                "winner": lbl_best,
+            }
+        )
+    return InitResult(
         anchor=anchor,
         method=method,
         status="ok",
@@ -372,27 +393,13 @@ def initialize_anchor(
         residual_rms=float(np.sqrt(np.mean(best.r**2))),
         residual_robust_sigma=float(1.4826 * np.median(np.abs(best.r - np.median(best.r)))),
         warnings=warns,
-        starts=[
-            {"label": lb, "start": t0.tolist(), "estimate": f.theta.tolist(), "cost": f.cost}
-            for lb, t0, f in fits
-        ],
+        starts=starts,
         weights=best.weights if robust else np.ones(len(w)),
         window=w,
         params=tuple(idx),
         noise_inflation=kappa,
         verdict=verdict,
     )
-    if lbl_best != "closed-form":
-        res.starts.append(
-            {
-                "label": "winner",
-                "start": [],
-                "estimate": best.theta.tolist(),
-                "cost": best.cost,
-                "winner": lbl_best,
-            }
-        )
-    return _assess(res, best, kw, force, residual_factor)
 
 
 def _multi_start(w: InitWindow, kw: dict, n_perturbed: int, seed: int) -> list[tuple[str, np.ndarray, _Fit]]:
