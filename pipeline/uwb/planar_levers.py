@@ -224,24 +224,14 @@ def fit_planar_levers(
 
     A, K = G0.shape
     basis = np.stack([e1, e2])
-    pres = np.zeros((A, K), bool)
-    pres[data.a, data.k] = True
-    gidx = -np.ones((A, K), np.int64)
-    gidx[pres] = 2 * A + np.arange(int(pres.sum()))
-    nb = 2 * A + int(pres.sum())
+    pres, gidx, nb = _offset_layout(data, A, K)
     P = nb + (2 * K if estimate_lever else 0)
     N = len(data.d)
     rows = np.arange(N)
     B0 = np.asarray(B0, float)
     h0 = B0 @ n
     lam0 = np.asarray(lam0, float)
-    sw = 0.0
-    lm = lam0
-    if lam_prior is not None and estimate_lever:
-        lm = np.asarray(lam_prior[0], float)
-        sw = scale / float(
-            lam_prior[1]
-        )  # a prior residual of sigma weighs as one range residual of ``scale``
+    sw, lm = _prior_weight(lam_prior if estimate_lever else None, lam0, scale)
     n_pr = 2 * K if sw else 0
 
     def unpack(x):
@@ -282,19 +272,28 @@ def fit_planar_levers(
     c2 = scale**2
     w = 1.0 / (1.0 + r**2 / c2)
     J = jac(sol.x)[:N]
-    info = (J * w[:, None]).T @ J
     cost = float(np.sum(c2 * np.log1p(r**2 / c2)))
-    return {
-        "B": B,
-        "G": G,
-        "lam": lam,
-        "cost": cost,
-        "r": r,
-        "w": w,
-        "info": info,
-        "nb": nb,
-        "nfev": sol.nfev,
-    }
+    return dict(B=B, G=G, lam=lam, cost=cost, r=r, w=w, info=(J * w[:, None]).T @ J, nb=nb, nfev=sol.nfev)
+
+
+def _offset_layout(data: LeverData, A: int, K: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Which (anchor, link) offsets the data sees, their column in the parameter vector (after the anchors'
+    in-plane positions) and the number of non-arm parameters."""
+    pres = np.zeros((A, K), bool)
+    pres[data.a, data.k] = True
+    gidx = -np.ones((A, K), np.int64)
+    gidx[pres] = 2 * A + np.arange(int(pres.sum()))
+    return pres, gidx, 2 * A + int(pres.sum())
+
+
+def _prior_weight(
+    lam_prior: tuple[np.ndarray, float] | None, lam0: np.ndarray, scale: float
+) -> tuple[float, np.ndarray]:
+    """The weight and mean of the arms' prior residuals: a prior residual of sigma weighs as one range residual of
+    ``scale`` (weight 0: no prior)."""
+    if lam_prior is None:
+        return 0.0, lam0
+    return scale / float(lam_prior[1]), np.asarray(lam_prior[0], float)
 
 
 def estimate_planar_levers(
@@ -337,58 +336,21 @@ def estimate_planar_levers(
     o_ref = given_arms[first] @ head.R_ref.T
     lam_given = np.stack([o_ref @ e1, o_ref @ e2], 1)
     height = o_ref @ n
-    # the joint data: every kept anchor's ranges, evenly subsampled
-    sel, aidx = [], []
-    for i, a in enumerate(keep_a):
-        ii = np.flatnonzero((anchor == a) & np.isfinite(d))
-        sel.append(ii[subsample(len(ii), MAX_PER_ANCHOR)])
-        aidx.append(np.full(len(sel[-1]), i, np.int64))
-    idx, aidx = np.concatenate(sel), np.concatenate(aidx)
-    data = LeverData(aidx, kk[idx], d[idx], p[idx], head.psi(R[idx]), None if t_ns is None else t_ns[idx])
-    A = len(keep_a)
-    B0 = np.stack([np.asarray(starts[a][0], float) for a in keep_a])
-    G0 = np.zeros((A, K))
-    for i, a in enumerate(keep_a):
-        offs = starts[a][1]
-        mean = float(np.mean(list(offs.values()))) if offs else 0.0
-        for j, lk in enumerate(links):
-            G0[i, j] = offs.get(int(lk), mean)
+    data = _joint_data(keep_a, anchor, d, kk, p, head, R, t_ns)
+    B0, G0 = _joint_start(starts, keep_a, links)
     fixed = fit_planar_levers(data, B0, G0, lam_given, height, 1, e1, e2, n, 0.5, estimate_lever=False)
-    s0 = _robust_sigma(fixed["r"])
-    scale = max(3.0 * s0, 0.6 * sigma_range, 0.03)
+    scale = max(3.0 * _robust_sigma(fixed["r"]), 0.6 * sigma_range, 0.03)
     fixed = fit_planar_levers(
         data, fixed["B"], fixed["G"], lam_given, height, 1, e1, e2, n, scale, estimate_lever=False
     )
+    B1, G1, prior = fixed["B"], fixed["G"], (lam_given, prior_sigma_m)
     fits = []
     for s in [head.sense] if head.sense is not None else [1, -1]:
-        f = fit_planar_levers(
-            data,
-            fixed["B"],
-            fixed["G"],
-            lam_given,
-            height,
-            s,
-            e1,
-            e2,
-            n,
-            scale,
-            lam_prior=(lam_given, prior_sigma_m),
-        )
+        f = fit_planar_levers(data, B1, G1, lam_given, height, s, e1, e2, n, scale, lam_prior=prior)
         fits.append((f["cost"], s, f))
     _, sense, best = min(fits, key=lambda t: t[0])
-    rr = best["r"]
-    sig = _robust_sigma(rr)
-
-    kappa = 1.0
-    if data.t_ns is not None:
-        order = np.argsort(data.t_ns, kind="stable")
-        kappa = noise_inflation(data.t_ns[order], (rr / max(sig, 1e-6))[order], best["w"][order])
-    nb = best["nb"]
-    try:
-        cov = np.linalg.inv(best["info"] / max(sig, 1e-6) ** 2 / kappa)
-        lam_sigma = np.sqrt(np.maximum(np.diag(cov)[nb:], 0.0)).reshape(K, 2)
-    except np.linalg.LinAlgError:
-        lam_sigma = np.full((K, 2), np.inf)
+    sig = _robust_sigma(best["r"])
+    kappa, lam_sigma = _arm_sigma(data, best, sig, K)
     whit = 1.0 / max(sig, 1e-6) ** 2
     dchi2 = float((fixed["cost"] - best["cost"]) * whit / kappa)
     info = {
@@ -409,6 +371,42 @@ def estimate_planar_levers(
         for i, a in enumerate(keep_a)
     }
     return PlanarLevers(head, sense, e1, e2, links, best["lam"], height, lam_given, lam_sigma, info, joint)
+
+
+def _joint_data(keep_a, anchor, d, kk, p, head: CarrierHeading, R, t_ns) -> LeverData:
+    """Every kept anchor's ranges (evenly subsampled to `MAX_PER_ANCHOR`) as one `LeverData`."""
+    sel, aidx = [], []
+    for i, a in enumerate(keep_a):
+        ii = np.flatnonzero((anchor == a) & np.isfinite(d))
+        sel.append(ii[subsample(len(ii), MAX_PER_ANCHOR)])
+        aidx.append(np.full(len(sel[-1]), i, np.int64))
+    idx, aidx = np.concatenate(sel), np.concatenate(aidx)
+    return LeverData(aidx, kk[idx], d[idx], p[idx], head.psi(R[idx]), None if t_ns is None else t_ns[idx])
+
+
+def _joint_start(starts: dict, keep_a: list, links: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Anchor positions (A,3) and link offsets (A,K) to start from; a link an anchor's start lacks takes the mean
+    of its other links."""
+    B0 = np.stack([np.asarray(starts[a][0], float) for a in keep_a])
+    G0 = np.zeros((len(keep_a), len(links)))
+    for i, a in enumerate(keep_a):
+        offs = starts[a][1]
+        mean = float(np.mean(list(offs.values()))) if offs else 0.0
+        G0[i] = [offs.get(int(lk), mean) for lk in links]
+    return B0, G0
+
+
+def _arm_sigma(data: LeverData, best: dict, sig: float, K: int) -> tuple[float, np.ndarray]:
+    """The noise inflation of the residuals' time correlation and the arms' (K,2) standard deviations."""
+    kappa = 1.0
+    if data.t_ns is not None:
+        order = np.argsort(data.t_ns, kind="stable")
+        kappa = noise_inflation(data.t_ns[order], (best["r"] / max(sig, 1e-6))[order], best["w"][order])
+    try:
+        cov = np.linalg.inv(best["info"] / max(sig, 1e-6) ** 2 / kappa)
+        return kappa, np.sqrt(np.maximum(np.diag(cov)[best["nb"] :], 0.0)).reshape(K, 2)
+    except np.linalg.LinAlgError:
+        return kappa, np.full((K, 2), np.inf)
 
 
 def _log_bayes(fit: dict, dchi2: float, whit: float, lam_given: np.ndarray, prior_sigma: float) -> float:

@@ -322,32 +322,11 @@ def anchor_init_covariance(
       from present errors (over-confident anchors after refinement; docs/results/measurements.md).
     """
     w = result.window
-    x = result.x
     assert w is not None
     n = len(w)
     beta_sigma = float(beta_prior[1])
-    J = jacobians(w.R, w.p, w.p_T, x)
-    ag = list(result.params)
-    est_beta = 3 in ag
-    na = len(ag)
-    HB = J.H_U[:, ag]
-    if result.method == "lsi":
-        s2 = np.full(n, sigma_range**2)
-    else:
-        s2, _ = range_variance(w.R, w.p, w.p_T, x, w.P_pose, sigma_range**2)
-    wk = (result.weights if result.weights is not None else np.ones(n)) / s2
-    G = (HB * wk[:, None]).T @ HB
-    priors = []  # (column in theta, sigma)
-    if gamma_prior is not None:
-        priors.append((na - 1, float(gamma_prior[1])))
-    if est_beta:
-        priors.append((3, beta_sigma))
-    for i, sd in priors:
-        G[i, i] += 1.0 / sd**2
-    Ginv = np.linalg.inv(G)
-    L = np.zeros((5, na))
-    L[ag, range(na)] = 1.0
-    a = (Ginv @ (HB * wk[:, None]).T).T  # (n,na) a_k = G^-1 H_Bk^T w_k
+    est_beta = 3 in result.params
+    J, L, Ginv, a, priors = _estimator_gain(result, sigma_range, gamma_prior, beta_sigma)
     La = a @ L.T  # (n,5)
     # world-frame pose Jacobians: e_k = [R_k dtheta_k, dp_k]
     HW = J.H_I.copy()
@@ -366,12 +345,7 @@ def anchor_init_covariance(
     # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
     cov += result.noise_inflation * sigma_range**2 * (La.T @ La)
     if links is not None and result.link_offsets:
-        col = link_columns(list(result.link_offsets))
-        li = np.array([col.get(int(lk), -1) for lk in w.links()])
-        S = np.zeros((5, len(col)))
-        for j in range(len(col)):
-            S[:, j] = La[li == j].sum(axis=0)
-        Jd = {**Jd, links: -S}
+        Jd = {**Jd, links: -_link_offset_map(result, La)}
     if not est_beta:
         g_beta = np.zeros(5)
         g_beta[3] = 1.0
@@ -381,6 +355,39 @@ def anchor_init_covariance(
         gp = L @ Ginv[:, i] / sd
         cov += np.outer(gp, gp)
     return Jd, _psd(cov)
+
+
+def _estimator_gain(result: InitResult, sigma_range: float, gamma_prior, beta_sigma: float):
+    """The initialiser's linearised error map over its window: the Jacobians J, the selection L (5,na) of the
+    estimated parameters, G^-1 of the weighted normal equations with the priors, the gains a_k = G^-1 H_Bk^T w_k
+    (n,na) and the priors as (column, sigma)."""
+    w, x = result.window, result.x
+    J = jacobians(w.R, w.p, w.p_T, x)
+    ag = list(result.params)
+    na = len(ag)
+    HB = J.H_U[:, ag]
+    if result.method == "lsi":
+        s2 = np.full(len(w), sigma_range**2)
+    else:
+        s2, _ = range_variance(w.R, w.p, w.p_T, x, w.P_pose, sigma_range**2)
+    wk = (result.weights if result.weights is not None else np.ones(len(w))) / s2
+    G = (HB * wk[:, None]).T @ HB
+    priors = [(na - 1, float(gamma_prior[1]))] if gamma_prior is not None else []
+    if 3 in ag:
+        priors.append((3, beta_sigma))
+    for i, sd in priors:
+        G[i, i] += 1.0 / sd**2
+    Ginv = np.linalg.inv(G)
+    L = np.zeros((5, na))
+    L[ag, range(na)] = 1.0
+    return J, L, Ginv, (Ginv @ (HB * wk[:, None]).T).T, priors
+
+
+def _link_offset_map(result: InitResult, La: np.ndarray) -> np.ndarray:
+    """(5, K): how each per-link offset's error reaches the anchor's error (summed gains of that link's ranges)."""
+    col = link_columns(list(result.link_offsets))
+    li = np.array([col.get(int(lk), -1) for lk in result.window.links()])
+    return np.stack([La[li == j].sum(axis=0) for j in range(len(col))], axis=1)
 
 
 def _probe_map(
@@ -752,44 +759,45 @@ class UwbUpdater:
             J.H_U[:, 2] = 0.0
         H_imu = np.zeros((1, state.dim(pose_var)))
         H_imu[:, 0:6] = J.H_I
-        res: UpdateResult | None = None
-        H_link = {}
-        if lvar is not None and in_state:
-            H_link = {lvar: np.zeros((1, state.dim(lvar)))}
-            H_link[lvar][0, lcol] = 1.0
-        if self.mode == "none":
-            # record only: NIS of the would-be joint update
-            Hs = {pose_var: H_imu, **({name: J.H_U, **H_link} if in_state else {})}
-            S = R
-            for a, Ha in Hs.items():
-                for b, Hb in Hs.items():
-                    S += float((Ha @ state.cov(a, b) @ Hb.T).squeeze())
+        H = {pose_var: H_imu}
+        if in_state:  # a frozen anchor outside the state has no covariance to consider
+            H[name] = J.H_U
+            if lvar is not None:
+                H[lvar] = np.zeros((1, state.dim(lvar)))
+                H[lvar][0, lcol] = 1.0
+        if self.mode == "none":  # record only: NIS of the would-be joint update
+            S = R + sum(
+                float((Ha @ state.cov(a, b) @ Hb.T).squeeze()) for a, Ha in H.items() for b, Hb in H.items()
+            )
             res = UpdateResult(True, r * r / S, 1, None)
             self.counts["recorded"] += 1
         else:
             options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
-            anchors = self._estimated(state)
-            if self.mode == "frozen":  # the anchors considered: the range corrects the pose only
-                Hf = {pose_var: H_imu, **({name: J.H_U, **H_link} if in_state else {})}
-                res = ekf_update(state, Hf, np.array([r]), R, schmidt=anchors, **options)
-            elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
-                H = {pose_var: H_imu, name: J.H_U, **H_link}
-                res = schmidt_update(state, H, np.array([r]), R, estimated=anchors, **options)
-            else:
-                res = ekf_update(state, {pose_var: H_imu, name: J.H_U, **H_link}, np.array([r]), R, **options)
+            res = self._apply(state, H, np.array([r]), R, options)
             self.counts["accepted" if res.accepted else "rejected"] += 1
+        x, P = (state.value(name).x.copy(), state.cov(name).copy()) if in_state else (x_cur, None)
+        self._record(meas, x, P, r, res.nis, not res.accepted)
+        return res
+
+    def _apply(self, state: State, H: dict, r: np.ndarray, R, options: dict) -> UpdateResult:
+        """One update in the updater's mode: ``frozen`` considers the anchors (the ranges correct the pose only),
+        ``skf`` the navigation state (only the anchors are estimated), ``ekf`` estimates everything."""
+        anchors = self._estimated(state)
+        if self.mode == "frozen":
+            return ekf_update(state, H, r, R, schmidt=anchors, **options)
+        if self.mode == "skf":
+            return schmidt_update(state, H, r, R, estimated=anchors, **options)
+        return ekf_update(state, H, r, R, **options)
+
+    def _record(self, meas: RangeMeasurement, x, P, residual: float, nis: float, rejected: bool) -> None:
+        """The anchor's record of one judged range (``P`` None: an anchor outside the state, zero covariance)."""
         rec = self.records.setdefault(meas.anchor, AnchorRecord())
         rec.t_ns.append(int(meas.t_ns))
-        if in_state:
-            rec.x.append(state.value(name).x.copy())
-            rec.cov.append(state.cov(name).copy())
-        else:
-            rec.x.append(np.asarray(x_cur, float).copy())
-            rec.cov.append(np.zeros((5, 5)))
-        rec.residual.append(r)
-        rec.nis.append(res.nis)
-        rec.rejected.append(not res.accepted)
-        return res
+        rec.x.append(np.asarray(x, float).copy())
+        rec.cov.append(np.zeros((5, 5)) if P is None else P)
+        rec.residual.append(float(residual))
+        rec.nis.append(float(nis))
+        rec.rejected.append(bool(rejected))
 
     def update_epoch(self, state: State, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
         """All ranges of one epoch (the same stamp, hence the same pose) in one stacked `ekf_update`: block
@@ -801,20 +809,7 @@ class UwbUpdater:
             for meas in batch:
                 res = self.update(state, meas)
             return res
-        rows, names, xs_cur, xs_lin = [], [], [], []
-        for meas in batch:
-            name = anchor_var(meas.anchor)
-            if self.mode == "frozen" and meas.anchor in self.frozen:
-                x_cur = x_lin = self.frozen[meas.anchor]
-            elif name in state or (bool(self.pending) and self._join(state, meas)):
-                x_cur, x_lin = state.value(name).x, state.fej(name).x
-            else:
-                self.counts["skipped"] += 1
-                continue
-            rows.append(meas)
-            names.append(name)
-            xs_cur.append(x_cur)
-            xs_lin.append(x_lin)
+        rows, names, xs_cur, xs_lin = self._epoch_rows(state, batch)
         if len(rows) <= 1:
             return self.update(state, rows[0]) if rows else None
         k = len(rows)
@@ -844,7 +839,6 @@ class UwbUpdater:
         H_imu[:, 0:6] = J.H_I
         H: dict[str, np.ndarray] = {pose_var: H_imu}
         options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0, "per_row": True}
-        anchors = self._estimated(state)
         for i, name in enumerate(names):
             if name in state:  # frozen: only the anchors of the state have a covariance to consider
                 H.setdefault(name, np.zeros((k, 5)))[i] = J.H_U[i]
@@ -852,26 +846,34 @@ class UwbUpdater:
                     H[name][i, 2] = 0.0
         for i, lvar, lcol in link_rows:
             H.setdefault(lvar, np.zeros((k, state.dim(lvar))))[i, lcol] = 1.0
-        if self.mode == "frozen":  # the anchors considered: the ranges correct the pose only
-            res = ekf_update(state, H, r, R, schmidt=anchors, **options)
-        elif self.mode == "skf":  # the navigation state considered: only the anchors are estimated
-            res = schmidt_update(state, H, r, R, estimated=anchors, **options)
-        else:
-            res = ekf_update(state, H, r, R, **options)
+        res = self._apply(state, H, r, R, options)
         ok = res.row_accepted
         self.counts["accepted"] += int(ok.sum())
         self.counts["rejected"] += int(k - ok.sum())
         after = {n: (state.value(n).x.copy(), state.cov(n).copy()) for n in set(names) if n in state}
         for i, (meas, name) in enumerate(zip(rows, names, strict=True)):
-            rec = self.records.setdefault(meas.anchor, AnchorRecord())
-            rec.t_ns.append(int(meas.t_ns))
-            x, P = after.get(name, (np.asarray(xs_cur[i], float).copy(), np.zeros((5, 5))))
-            rec.x.append(x)
-            rec.cov.append(P)
-            rec.residual.append(float(r[i]))
-            rec.nis.append(float(res.row_nis[i]))
-            rec.rejected.append(not bool(ok[i]))
+            x, P = after.get(name, (xs_cur[i], None))
+            self._record(meas, x, P, r[i], res.row_nis[i], not ok[i])
         return res
+
+    def _epoch_rows(self, state: State, batch: Sequence[RangeMeasurement]) -> tuple[list, list, list, list]:
+        """The epoch's ranges the updater judges (an anchor in the state, joining it, or frozen) with their anchor
+        variables and the anchors' current and first estimates; the others counted as skipped."""
+        rows, names, xs_cur, xs_lin = [], [], [], []
+        for meas in batch:
+            name = anchor_var(meas.anchor)
+            if self.mode == "frozen" and meas.anchor in self.frozen:
+                x_cur = x_lin = self.frozen[meas.anchor]
+            elif name in state or (bool(self.pending) and self._join(state, meas)):
+                x_cur, x_lin = state.value(name).x, state.fej(name).x
+            else:
+                self.counts["skipped"] += 1
+                continue
+            rows.append(meas)
+            names.append(name)
+            xs_cur.append(x_cur)
+            xs_lin.append(x_lin)
+        return rows, names, xs_cur, xs_lin
 
     def arrays(self) -> dict[Any, dict[str, np.ndarray]]:
         return {a: rec.arrays() for a, rec in self.records.items()}
