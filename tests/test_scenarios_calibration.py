@@ -181,9 +181,16 @@ def test_per_link_nees_within_chi2_bounds(tmp_path):
     NEES at the end lies inside the two-sided 95 % chi2 bounds."""
     joined, final, runs = _monte_carlo(tmp_path, "per-link", (1, 2, 3), duration=60.0)
     assert len(final) == 18
-    models = [v["verdict"]["model"]["model"] for m in runs for v in m["anchors"].values() if v["determined"]]
-    assert all(b.startswith("link") for b in models), models
-    assert _inside(final)
+    for seed, m in zip((1, 2, 3), runs, strict=True):
+        # per-link offsets wherever the links' true offsets spread over twice the range noise (0.1 m); where they
+        # spread less the simpler model may win, its covariance carrying what it leaves out (the NEES below)
+        spread = {}
+        for lk in RecordingReader(tmp_path / f"per-link{seed}" / "r.mcap").truth["links"]:
+            spread.setdefault(str(lk["anchor"]), []).append(lk["offset"])
+        for a, v in m["anchors"].items():
+            if v["determined"] and np.ptp(spread[a]) > 0.2:
+                assert v["verdict"]["model"]["model"].startswith("link"), (seed, a, v["verdict"]["model"])
+    assert _inside(final), final.mean()
     _right_or_not_determined(runs, 0.3)
 
 

@@ -464,8 +464,25 @@ def fit_anchor(
         u = (p0 - x) / np.maximum(np.linalg.norm(p0 - x, axis=1), 1e-9)[:, None]
         s2 = s2 + np.maximum(np.einsum("ni,nij,nj->n", u, np.asarray(pos_cov, float)[sel], u), 0.0)
     n = Vt[2]
-    starts = (p0, p0 - 2.0 * n * float(n @ (p0 - c)))
-    base = [fit_family(x, dd, li, L, s2, "position", s, spec) for s in starts]
+
+    def mirrored(q: np.ndarray) -> np.ndarray:
+        return q - 2.0 * n * float(n @ (q - c))
+
+    def basin_fit(name: str, start: np.ndarray, spec: FitSpec) -> Model:
+        """The family's best fit on the start's side of the motion plane: a fit that descends across the plane
+        (the other side has no minimum of its own) is profiled at the start's height instead, so the mirror
+        basin's evidence is measured, not assumed away."""
+        m = fit_family(x, dd, li, L, s2, name, start, spec)
+        h0, h = float(n @ (start - c)), float(n @ (m.p - c))
+        if h0 * h < 0:
+            m = fit_family(x, dd, li, L, s2, name, start, spec, pin=(n, float(n @ start)))
+        return m
+
+    first = min(
+        (fit_family(x, dd, li, L, s2, "position", q, spec) for q in (p0, mirrored(p0))), key=lambda m: m.cost
+    )
+    starts = (first.p, mirrored(first.p))  # a start near the plane descends into one basin from both sides
+    base = [first, basin_fit("position", starts[1], spec)]
     if base[1].cost < base[0].cost:
         starts = starts[::-1]
     reach = float(np.max(dd)) + float(np.max(ext))
@@ -479,7 +496,7 @@ def fit_anchor(
         models = []
         for name in families:
             for k, s in enumerate(starts):
-                m = replace(fit_family(x, dd, li, L, s2, name, s, spec), basin=k)
+                m = replace(basin_fit(name, s, spec), basin=k)
                 m.log_evidence = log_evidence(m, spec, reach)
                 models.append(m)
         best = choose(models)
