@@ -464,25 +464,8 @@ def fit_anchor(
         u = (p0 - x) / np.maximum(np.linalg.norm(p0 - x, axis=1), 1e-9)[:, None]
         s2 = s2 + np.maximum(np.einsum("ni,nij,nj->n", u, np.asarray(pos_cov, float)[sel], u), 0.0)
     n = Vt[2]
-
-    def mirrored(q: np.ndarray) -> np.ndarray:
-        return q - 2.0 * n * float(n @ (q - c))
-
-    def basin_fit(name: str, start: np.ndarray, spec: FitSpec) -> Model:
-        """The family's best fit on the start's side of the motion plane: a fit that descends across the plane
-        (the other side has no minimum of its own) is profiled at the start's height instead, so the mirror
-        basin's evidence is measured, not assumed away."""
-        m = fit_family(x, dd, li, L, s2, name, start, spec)
-        h0, h = float(n @ (start - c)), float(n @ (m.p - c))
-        if h0 * h < 0:
-            m = fit_family(x, dd, li, L, s2, name, start, spec, pin=(n, float(n @ start)))
-        return m
-
-    first = min(
-        (fit_family(x, dd, li, L, s2, "position", q, spec) for q in (p0, mirrored(p0))), key=lambda m: m.cost
-    )
-    starts = (first.p, mirrored(first.p))  # a start near the plane descends into one basin from both sides
-    base = [first, basin_fit("position", starts[1], spec)]
+    starts = (p0, p0 - 2.0 * n * float(n @ (p0 - c)))
+    base = [fit_family(x, dd, li, L, s2, "position", s, spec) for s in starts]
     if base[1].cost < base[0].cost:
         starts = starts[::-1]
     reach = float(np.max(dd)) + float(np.max(ext))
@@ -496,13 +479,19 @@ def fit_anchor(
         models = []
         for name in families:
             for k, s in enumerate(starts):
-                m = replace(basin_fit(name, s, spec), basin=k)
+                m = replace(fit_family(x, dd, li, L, s2, name, s, spec), basin=k)
                 m.log_evidence = log_evidence(m, spec, reach)
                 models.append(m)
         best = choose(models)
         if best.name == "position":
             break
-    return _verdict(best, models, (x, dd, li, s2, t), sel, n_all, links, Vt, ext, spec, reach)
+    # the side of the plane is told by the carrier's excursions along its normal: within twice the poses' own
+    # uncertainty along it they are what pose errors alone make (a drifting height or tilt picks a side), whatever
+    # the fit's curvature says
+    sign_open = pos_cov is not None and ext[2] <= 2.0 * np.sqrt(
+        np.median(np.einsum("i,nij,j->n", n, pos_cov[sel], n))
+    )
+    return _verdict(best, models, (x, dd, li, s2, t), sel, n_all, links, Vt, ext, spec, reach, sign_open)
 
 
 def likelihood_widening(m: Model, data: tuple, spec: FitSpec, cov: np.ndarray, reach: float) -> np.ndarray:
@@ -558,13 +547,13 @@ def pattern_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> np.ndarra
     return spec.pattern_sigma**2 * M @ M.T
 
 
-def _open_height(cov: np.ndarray, max_sigma: float, reach: float) -> np.ndarray:
-    """A height the ranges leave open (the weakest direction near vertical, its sigma over ``max_sigma``) gets
-    the prior's sigma, the reach of the ranges: far beyond its curvature, the likelihood of a height seen from a
-    nearly flat motion is shaped by what the model leaves out (a range-dependent error, the other basin), not by
-    the ranges' noise."""
+def _open_height(cov: np.ndarray, max_sigma: float, reach: float, mirror: bool = False) -> np.ndarray:
+    """A height the ranges leave open (the weakest direction near vertical, its sigma over ``max_sigma``, or the
+    side of the motion plane undecided: ``mirror``) gets the prior's sigma, the reach of the ranges: far beyond its
+    curvature, the likelihood of a height seen from a nearly flat motion is shaped by what the model leaves out (a
+    range-dependent error, the other basin), not by the ranges' noise."""
     lam, V = np.linalg.eigh(cov[:3, :3])
-    if abs(V[2, -1]) < VERTICAL_COS or np.sqrt(max(lam[-1], 0.0)) <= max_sigma:
+    if not mirror and (abs(V[2, -1]) < VERTICAL_COS or np.sqrt(max(lam[-1], 0.0)) <= max_sigma):
         return cov
     out = cov.copy()
     out[2, 2] += max(reach**2 - out[2, 2], 0.0)
@@ -611,28 +600,31 @@ def jackknife_cov(m: Model, data: tuple, spec: FitSpec, blocks: int = JACKKNIFE_
     return out
 
 
-def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach) -> AnchorFit:
+def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_open=False) -> AnchorFit:
     """The AnchorFit of the chosen model: weak directions from the eigen-decomposition of its covariance
-    (widened to the likelihood's intervals), the other basin when the evidence cannot tell them apart."""
+    (widened to the likelihood's intervals), the other basin when the evidence (or, with ``sign_open``, the
+    motion) cannot tell them apart: then the height is open."""
     dd = data[1]
+    twin = [m for m in models if m.name == best.name and m.basin != best.basin]
+    other = twin[0] if twin else best
+    two = np.linalg.norm(other.p - best.p) > 1e-3
+    mirror = bool(sign_open or (two and other.log_evidence >= best.log_evidence - np.log(BAYES_FACTOR)))
+    if mirror and not two:  # one basin found: the other side is the estimate's mirror across the motion plane
+        nrm = Vt[2]
+        other = replace(other, p=best.p - 2.0 * nrm * float(nrm @ (best.p - data[0].mean(axis=0))))
+    mirror = mirror and bool(np.linalg.norm(other.p - best.p) > 1e-3)  # an anchor on the plane has no mirror
     cov, excess = mixture_cov(models, best, reach)
     wide = cov
     if spec.refine_cov:
         wide = likelihood_widening(best, data[:4], spec, cov, reach)
         wide[:3, :3] += _psd(jackknife_cov(best, data, spec) - wide[:3, :3])
         wide[:3, :3] += pattern_cov(best, data[:4], spec, reach)
-    wide = _open_height(wide, spec.max_sigma, reach)
+    wide = _open_height(wide, spec.max_sigma, reach, mirror)
     excess = excess + (wide - cov)[:3, :3]
     cov = wide
     lam, V = np.linalg.eigh(cov[:3, :3])
     sd = np.sqrt(np.maximum(lam, 0.0))
     sig = 1.4826 * float(np.median(np.abs(best.r - np.median(best.r))))
-    twin = [m for m in models if m.name == best.name and m.basin != best.basin]
-    other = twin[0] if twin else best
-    mirror = bool(
-        np.linalg.norm(other.p - best.p) > 1e-3
-        and other.log_evidence >= best.log_evidence - np.log(BAYES_FACTOR)
-    )
     inl = np.zeros(n_all, bool)
     inl[sel] = np.abs(best.r) < 4.0 * max(sig, 1e-3)
     evidence = {
