@@ -26,7 +26,8 @@ the anchors, per-link offsets and NLOS rates (``links``) and the visibility wind
   Exp bias, mean 1.5 m) and the others none.
 
 The classes of real recordings the evidence fit (`pipeline.uwb.evidence`) is built for, each with
-beta 1 and the offsets real hardware has:
+beta 1 and the offsets real hardware has, their calibration declaring no offset or scale prior (as a converted
+real recording does):
 
 - ``climbing-drone``: a quadrotor climbing and descending on the spot (`trajectory.climb_trajectory`, 100 s,
   height 0.1-1.9 m, ~0.2 m horizontal extent) amid 4 anchors at the corners of a 2 m x 2 m square at 0.6-1.1 m,
@@ -156,6 +157,7 @@ def _climbing_drone(seed: int) -> dict:
         anchors=DRONE_ANCHORS,
         beta=1.0,
         gamma=rng.uniform(0.2, 0.4, len(DRONE_ANCHORS)).tolist(),
+        declared_priors=False,
     )
 
 
@@ -170,12 +172,15 @@ def _far_cluster(seed: int) -> dict:
         odometry_sigma_p=0.03,
         odometry_sigma_theta_deg=0.3,
         odometry_correlation_s=10.0,
+        declared_priors=False,
     )
 
 
 def _clock_offset(seed: int) -> dict:
     rng = stream(seed, "scenario/clock-offset")
-    return dict(n_anchors=6, beta=1.0, gamma=0.1, range_latency_s=float(rng.uniform(0.1, 0.2)))
+    return dict(
+        n_anchors=6, beta=1.0, gamma=0.1, range_latency_s=float(rng.uniform(0.1, 0.2)), declared_priors=False
+    )
 
 
 def _antenna_pattern(seed: int) -> dict:
@@ -186,7 +191,12 @@ def _antenna_pattern(seed: int) -> dict:
         [rng.uniform(0.05, 0.15, n), rng.uniform(0.05, 0.15, n), rng.uniform(0, 360, n), b2]
     )
     return dict(
-        trajectory="handheld", anchors=ROOM_ANCHORS, beta=1.0, gamma=0.0, antenna_pattern=pattern.tolist()
+        trajectory="handheld",
+        anchors=ROOM_ANCHORS,
+        beta=1.0,
+        gamma=0.0,
+        antenna_pattern=pattern.tolist(),
+        declared_priors=False,
     )
 
 

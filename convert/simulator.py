@@ -105,6 +105,9 @@ class SimConfig:
     # [s] the ranges' stamps lag their measurement by this (a driver's filter, a radio link): a range measured at
     # t is stamped t + range_latency_s, the poses are not (negative: stamped early). 0: stamped when measured
     range_latency_s: float = 0.0
+    # the calibration record declares the paper's offset and scale priors (gamma ~ N(0, 1), beta ~ N(1, 0.2^2)), as
+    # the paper's simulations do; False: it declares none, as a converted real recording does
+    declared_priors: bool = True
     scenario: str | None = None  # the `convert.scenarios` name this config came from (recorded in the truth)
     knot_dt: float = 0.1  # B-spline knot spacing when fitting a ground-truth file
     # external odometry (/odometry) drifting exactly as the odometry filter's drift model says (its default
@@ -746,12 +749,13 @@ def _links_truth(data: SimData) -> list[dict]:
 
 
 def uwb_calibration(cfg: SimConfig) -> dict:
-    """The calibration record of the simulated tags: lever arms, range noise, the priors a user would declare."""
+    """The calibration record of the simulated tags: lever arms, range noise, the priors a user would declare
+    (``cfg.declared_priors``)."""
+    priors = {"gamma_prior": {"mean": 0.0, "sigma": 1.0}, "beta_prior": {"mean": 1.0, "sigma": 0.2}}
     return {
         "tags": {str(cfg.tag_id + i): {"antennas": [arm.tolist()]} for i, arm in enumerate(cfg.lever_arms())},
         "sigma_range": cfg.sigma_range,
-        "gamma_prior": {"mean": 0.0, "sigma": 1.0},
-        "beta_prior": {"mean": 1.0, "sigma": 0.2},
+        **(priors if cfg.declared_priors else {}),
         "antenna_pattern_sigma": pattern_sigma(cfg.antenna_pattern),
     }
 
