@@ -26,10 +26,10 @@ from uwbcal.pipeline.core.series import bracket
 # A gap in the ground truth longer than this many median sampling intervals is not interpolated across.
 AUTO_GAP_FACTOR = 10
 
-# Ground-truth glitch bounds: what no carrier this tool meets (hand-held rigs, MAVs, ground robots, cars) performs.
-# 1000 deg/s is 15x the fastest rotation of the INRoL hand-held rig's gyro (67 deg/s over 193 s), ~7x the fastest of
-# the EuRoC MAV flights' ground truth and half the usual MEMS gyro range (+-2000 deg/s); 50 m/s (180 km/h) is
-# beyond every carrier here (cars included). A sample interval counts at least the median ground-truth interval:
+# Ground-truth glitch bounds: what no carrier this tool meets (hand-held rigs, MAVs, ground robots, cars) performs:
+# 1000 deg/s is 5-15x the fastest turns of the hand-held rig and the MAV flights here and half a usual
+# MEMS gyro range, 50 m/s (180 km/h) beyond every carrier here (docs/results/measurements.md: the carriers' rates
+# and the samples dropped per dataset). A sample interval counts at least the median ground-truth interval:
 # arrival-stamped motion capture bunches samples 0.1 ms apart (their motion took a full interval).
 GLITCH_MAX_RATE_RAD_S = np.radians(1000.0)
 GLITCH_MAX_SPEED_M_S = 50.0
