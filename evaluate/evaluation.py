@@ -107,8 +107,17 @@ def evaluate_run(run_dir: Path, align: str | None = None, series: dict | None = 
     part, warnings = _anchor_section(run, ref, fit)
     metrics.update(part)
     metrics["warnings"].extend(warnings)
+    if metrics.get("groundtruth_glitches"):
+        metrics["warnings"].append(_glitch_note(metrics["groundtruth_glitches"]))
     metrics["evaluate_s"] = time.perf_counter() - t0
     return metrics
+
+
+def _glitch_note(n: int) -> str:
+    return (
+        f"ground truth: {n} sample(s) dropped as glitches (a jump away and back no carrier can make in one sample "
+        "interval, e.g. a motion-capture marker swap; evaluate.association.glitch_mask)"
+    )
 
 
 def _run_notes(run_dir: Path, reader: RecordingReader, traj: RunTrajectory) -> dict:
@@ -149,6 +158,7 @@ def _trajectory_metrics(run: _Run, gt: GroundTruth, series: dict | None) -> tupl
         if (run.align == "none" or run.static_frame) and traj.cov is not None:
             out.update(_pose_nees(traj, cmp, R_est, R_gt, fit.gauge, series))
     out["matched_poses"] = int(len(cmp.t_ns))
+    out["groundtruth_glitches"] = cmp.assoc.n_gt_glitches  # dropped (association.glitch_mask)
     return out, fit
 
 

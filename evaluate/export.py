@@ -209,6 +209,11 @@ def export_run(run_dir: str | Path, output: str | Path, fmt: str = "tum") -> str
         f"({c.assoc.n_outside} estimate stamps outside the ground truth, {c.assoc.n_gap} in ground-truth gaps)",
         f"ground truth: {gt.topic}, lever arm {np.round(gt.lever_arm, 4).tolist()} applied to the estimate",
     ]
+    if c.assoc.n_gt_glitches:
+        lines.append(
+            f"ground truth: {c.assoc.n_gt_glitches} glitch sample(s) dropped before interpolating (a jump away "
+            "and back no carrier can make in one sample interval)"
+        )
     if gt.q_xyzw is None:
         lines.append("ground truth is position-only: groundtruth.tum carries the identity orientation")
     return "\n".join(lines)

@@ -63,6 +63,48 @@ def test_gaps_dropped_and_unsorted_duplicates_tolerated():
         associate(t_est, [1], [[0, 0, 0]])
 
 
+def _spin(t_s: np.ndarray, rate_deg_s: float, wobble_deg: float = 0.0) -> np.ndarray:
+    """Rotation about a tilted axis at a constant rate plus a 5 Hz wobble about x (quaternions)."""
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    R = exp_so3(np.radians(rate_deg_s) * t_s[:, None] * axis)
+    wob = exp_so3(np.radians(wobble_deg) * np.sin(2 * np.pi * 5.0 * t_s)[:, None] * np.array([1.0, 0, 0]))
+    return rot_to_quat(R @ wob)
+
+
+def test_ground_truth_glitches_dropped_and_counted():
+    """Motion capture at 100 Hz, 40 deg/s: a one-sample 20 deg jump and a 3-sample 150 deg marker swap (the samples
+    either side agree) are dropped; the ground truth at their stamps is interpolated from the good neighbours."""
+    t_gt = np.arange(0, 3_000_000_000, 10_000_000, dtype=np.int64)
+    t_s = t_gt * 1e-9
+    q_true = _spin(t_s, 40.0)
+    p_gt = np.c_[np.sin(t_s), np.cos(t_s), 0.1 * t_s]
+    q_gt = q_true.copy()
+    q_gt[100] = rot_to_quat(quat_to_rot(q_true[100]) @ exp_so3(np.radians([20.0, 0, 0])))
+    swap = exp_so3(np.radians([0, 0, 150.0]))
+    q_gt[200:203] = rot_to_quat(quat_to_rot(q_true[200:203]) @ swap)
+    p_gt[200:203] += 0.03  # the swap moves the fitted centroid by a few cm too
+    a = associate(t_gt[50:250], t_gt, p_gt, q_gt)
+    assert a.n_gt_glitches == 4
+    np.testing.assert_allclose(quat_to_rot(a.q_xyzw), quat_to_rot(q_true[50:250]), atol=2e-5)
+    # a position-only track (20 Hz prism) with a one-sample 3 m jump: 60 m/s for one interval and back
+    t20 = np.arange(0, 2_000_000_000, 50_000_000, dtype=np.int64)
+    p20 = np.c_[t20 * 1e-9, np.zeros(len(t20)), np.zeros(len(t20))]
+    p20[17, 1] += 3.0
+    assert associate(t20, t20, p20).n_gt_glitches == 1
+
+
+def test_fast_real_motion_is_not_a_glitch():
+    """Fast but rigid motion is kept: a 900 deg/s spin (9 deg per 100 Hz sample), a 5 Hz +-15 deg wobble, a stop
+    from 600 deg/s to rest in one sample, a 40 m/s car, and arrival stamps bunched 0.1 ms apart."""
+    rng = np.random.default_rng(3)
+    t_gt = np.arange(0, 2_000_000_000, 10_000_000, dtype=np.int64) + rng.integers(-4_900_000, 4_900_000, 200)
+    t_gt.sort()
+    t_s = t_gt * 1e-9
+    p_car = np.c_[40.0 * t_s, np.zeros(len(t_s)), np.zeros(len(t_s))]
+    for q in (_spin(t_s, 900.0), _spin(t_s, 0.0, wobble_deg=15.0), _spin(np.minimum(t_s, 1.0), 600.0)):
+        assert associate(t_gt, t_gt, p_car, q).n_gt_glitches == 0
+
+
 def test_interpolation_keeps_nanoseconds_at_epoch_scale():
     t_gt = np.array([1_700_000_000_000_000_000, 1_700_000_000_000_000_010], np.int64)
     p = interpolate_positions(t_gt, np.array([[0.0, 0, 0], [10.0, 0, 0]]), t_gt[:1] + 3)

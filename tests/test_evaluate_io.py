@@ -191,13 +191,16 @@ def _gt_motion(t_ns):
     return p, rot_to_quat(R)
 
 
-def _synthetic_run(tmp_path, position_only: bool, lever):
+def _synthetic_run(tmp_path, position_only: bool, lever, glitch: int | None = None):
     from uwbcal.convert.recording import RecordingWriter
 
     t0 = 1_600_000_000_000_000_000
     t_gt = t0 + np.arange(0, 20_000_000_001, 10_000_000, dtype=np.int64)  # 100 Hz, 20 s
     p_body, q_gt = _gt_motion(t_gt)
     p_point = p_body + np.einsum("nij,j->ni", quat_to_rot(q_gt), lever)
+    if glitch is not None:  # a marker swap: one sample 90 deg off about z
+        q_gt = q_gt.copy()
+        q_gt[glitch] = rot_to_quat(quat_to_rot(q_gt[glitch]) @ exp_so3(np.array([0, 0, np.pi / 2])))
     rec = tmp_path / "rec.mcap"
     with RecordingWriter(rec) as w:
         if position_only:
@@ -255,6 +258,19 @@ def test_export_run_matches_evo_ape(tmp_path, position_only):
     assert abs(ape.get_statistic(metrics.StatisticsType.rmse) - ours) < 1e-9
     lines = (out / "estimate.tum").read_text().splitlines()
     assert lines[0].split()[0] == format_stamps(t[:1])[0] and len(lines[0].split()) == 8
+
+
+def test_ground_truth_glitch_reported_in_metrics_and_export(tmp_path):
+    from uwbcal.evaluate.evaluation import evaluate_run
+
+    run, *_ = _synthetic_run(tmp_path, False, np.zeros(3), glitch=700)
+    m = evaluate_run(run)
+    assert m["groundtruth_glitches"] == 1
+    assert any("1 sample(s) dropped as glitches" in w for w in m["warnings"])
+    assert m["ormse_deg"]["all"] < 1.0  # the 90 deg sample is not in the comparison
+    assert "1 glitch sample(s) dropped" in export_run(run, tmp_path / "out")
+    clean, *_ = _synthetic_run(tmp_path / "clean", False, np.zeros(3))
+    assert evaluate_run(clean)["groundtruth_glitches"] == 0
 
 
 def test_export_tum_pure_and_errors(tmp_path):

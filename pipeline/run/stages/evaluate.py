@@ -22,4 +22,6 @@ def run(ctx: StageContext) -> StageResult:
         parts.append(f"PRMSE {m['prmse_m'].get('all', float('nan')):.3f} m")
     if "anchor_error_m" in m:
         parts.append(f"anchor error {m['anchor_error_m']:.3f} m")
+    if m.get("groundtruth_glitches"):
+        parts.append(f"{m['groundtruth_glitches']} ground-truth glitch samples dropped")
     return StageResult("evaluate", ", ".join(parts) or "metrics written")
