@@ -17,7 +17,8 @@ runner = CliRunner()
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
     rec = tmp_path_factory.mktemp("calibrate") / "sim.mcap"
-    simulate_to_file(SimConfig(duration=20.0, n_anchors=3, odometry_rate=20.0, camera=False, seed=2), rec)
+    # long enough for the init window (a third of it) to determine every anchor: the command's output is tested
+    simulate_to_file(SimConfig(duration=40.0, n_anchors=3, odometry_rate=20.0, camera=False, seed=2), rec)
     return rec
 
 

@@ -65,6 +65,23 @@ def test_stated_offset_holds_in_the_base_family():
     assert _nees(r, p) < CHI2_3_999
 
 
+@pytest.mark.parametrize("true_offset", [0.0, 0.3])
+def test_a_stated_offset_prior_is_tested_against_the_ranges(true_offset):
+    """A recording stating gamma ~ N(0, 0.05^2): ranges with that offset confirm it; ranges 0.3 m longer (a wrong
+    statement) are told against an offset the statement does not hold: contradicted (the ranges' own offset is
+    used) or, when that fits only as well, not confirmed (both in the covariance). Either way the anchor is
+    inside its covariance."""
+    t, xyz, rng = _track()
+    p = np.array([3.0, 5.0, 2.5])
+    d = np.linalg.norm(xyz - p, axis=1) + true_offset + rng.normal(0, 0.05, len(t))
+    spec = FitSpec(sigma_range=0.05, gamma_mean=0.0, gamma_sigma=0.05, stated=("gamma",))
+    r = fit_anchor(xyz, d, t_ns=t * 1e9, spec=spec)
+    test = r.costs["evidence"]["offset_prior"]
+    assert r.ok and test["free_offset_m"] == pytest.approx(true_offset, abs=0.05)
+    assert test["verdict"] == "confirmed" if true_offset == 0 else test["verdict"] != "confirmed"
+    assert _nees(r, p) < CHI2_3_999
+
+
 def test_deflation_measures_correlated_errors():
     """White range errors at the nominal sigma tell what they say (deflation 1); errors that drift slowly along
     the path (multipath, pose error) tell far less, and the fit's covariance says so."""

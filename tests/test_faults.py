@@ -1858,7 +1858,7 @@ case(
     "data quality",
     run_on(edited_ranges(lambda r: np.where(r.anchor == 2, r.distance + 2.0, r.distance), TIGHT_GAMMA, True)),
     "ok",
-    check=metrics_warn("anchor 2: ranging offset gamma"),
+    check=metrics_warn("anchor 2: 2: ranging offset gamma", "check this anchor"),
 )
 
 

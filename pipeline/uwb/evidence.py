@@ -26,6 +26,7 @@ weak vertical is an open height with its prior-limited sigma.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 from scipy.cluster.vq import kmeans2
@@ -44,6 +45,9 @@ CAUCHY_SCALE = 2.0  # [range sigmas] of the robust fit's redescending loss
 VERTICAL_COS = 0.9  # a weak direction this close to vertical is a height the geometry leaves open
 TWR_SCALE_SIGMA = 1e-3  # range scale of two-way ranging: the clocks' error, parts per million (unless stated)
 # the priors that hold an offset / the scale at its mean when the evidence leaves it out of an anchor's model
+STATED_SIGMAS = (
+    3.0  # an offset this many stated sigmas from a stated prior's mean is one the statement excludes
+)
 FIXED_OFFSET_SIGMA = 1e-3  # [m]
 FIXED_BETA_SIGMA = 1e-5
 
@@ -72,6 +76,7 @@ class AnchorFit:
     costs: dict = field(default_factory=dict)
     beta: float = 1.0  # range scale of the fit (1 unless its model estimates it)
     residuals: np.ndarray | None = None  # (n_used,) of the fit over the ranges it used (model tests)
+    gamma_prior: tuple[float, float] = (0.0, 0.3)  # the offset prior of the chosen model (mean, sigma)
 
     @property
     def ok(self) -> bool:
@@ -385,12 +390,15 @@ def _psd(A: np.ndarray) -> np.ndarray:
     return (V * np.maximum(lam, 0.0)) @ V.T
 
 
-def mixture_cov(models: list[Model], chosen: Model, reach: float) -> tuple[np.ndarray, np.ndarray]:
+def mixture_cov(
+    models: list[Model], chosen: Model, reach: float, alternatives: list[Model] = ()
+) -> tuple[np.ndarray, np.ndarray]:
     """Covariance of (p, offsets per link) of the chosen model, its position block widened by what the model leaves
     out, and that widening alone (3x3, PSD):
 
-    - the other basin: the evidence-weighted mixture of the chosen family's basins (their covariances plus the
-      spread of their positions about the chosen one);
+    - the other basin: the evidence-weighted mixture of the chosen family's basins and ``alternatives`` (fits
+      under another prior: a stated offset the ranges do not confirm) (their covariances plus the spread of their
+      positions about the chosen one);
     - the parameters it does not fit: for each richer family in the same basin, its position covariance plus the
       shift of its estimate (the expected effect of an offset left at its prior mean, under that offset's
       posterior); the widest of them."""
@@ -404,7 +412,7 @@ def mixture_cov(models: list[Model], chosen: Model, reach: float) -> tuple[np.nd
         return pos_cov(m)[:3, :3] + np.outer(m.p - chosen.p, m.p - chosen.p)
 
     C = pos_cov(chosen)
-    twins = [m for m in models if m.name == chosen.name]
+    twins = [m for m in models if m.name == chosen.name] + list(alternatives)
     z = np.array([m.log_evidence for m in twins])
     wts = np.exp(z - z.max()) / np.sum(np.exp(z - z.max()))
     basins = sum(w * spread(m) for m, w in zip(twins, wts, strict=True))
@@ -471,27 +479,62 @@ def fit_anchor(
     reach = float(np.max(dd)) + float(np.max(ext))
     families = model_families(spec.stated, L)
     best = min(base, key=lambda m: m.cost)
+    fit_all = partial(_fit_families, families, starts, (x, dd, li, L, s2), reach)
     for _ in range(2):  # the deflation is what the chosen model leaves unexplained: measured on its residuals
         d_new = deflation(best, x, s2, t, spec, li)
         if best.name != "position" and abs(np.log(d_new / spec.deflate)) < 0.1:
             break
         spec = replace(spec, deflate=d_new)
-        models = []
-        for name in families:
-            for k, s in enumerate(starts):
-                m = replace(fit_family(x, dd, li, L, s2, name, s, spec), basin=k)
-                m.log_evidence = log_evidence(m, spec, reach)
-                models.append(m)
+        models = fit_all(spec)
         best = choose(models)
         if best.name == "position":
             break
+    test, alternatives = None, []
+    if "gamma" in spec.stated:
+        spec, models, best, test, alternatives = _stated_offset(spec, models, best, fit_all, reach)
     # the side of the plane is told by the carrier's excursions along its normal: within twice the poses' own
     # uncertainty along it they are what pose errors alone make (a drifting height or tilt picks a side), whatever
     # the fit's curvature says
     sign_open = pos_cov is not None and ext[2] <= 2.0 * np.sqrt(
         np.median(np.einsum("i,nij,j->n", n, pos_cov[sel], n))
     )
-    return _verdict(best, models, (x, dd, li, s2, t), sel, n_all, links, Vt, ext, spec, reach, sign_open)
+    data = (x, dd, li, s2, t)
+    fit = _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_open, alternatives)
+    if test and "evidence" in fit.costs:
+        fit.costs["evidence"]["offset_prior"] = test
+    return replace(fit, gamma_prior=(spec.gamma_mean, spec.gamma_sigma))
+
+
+def _stated_offset(spec: FitSpec, models: list[Model], best: Model, fit_all, reach: float):
+    """A stated offset prior is a hypothesis too, tested by the same rule against an offset it does not hold
+    (N(0, reach^2)): beaten by the Bayes factor, the statement gives way ("contradicted"); fitting as well with an
+    offset the statement excludes, both are reported as two basins are ("not confirmed": the other's fits widen
+    the covariance). Returns (spec, models, best, the test's record, the alternative fits)."""
+    free_spec = replace(spec, gamma_mean=0.0, gamma_sigma=reach)
+    alt = fit_all(free_spec)
+    free = max(alt, key=lambda m: m.log_evidence)
+    log_bf = free.log_evidence - max(m.log_evidence for m in models)
+    g = float(np.mean(free.g))
+    test = {"stated": [spec.gamma_mean, spec.gamma_sigma], "free_offset_m": round(g, 3)}
+    test["log_bayes_factor"] = round(float(log_bf), 2)
+    if log_bf > np.log(BAYES_FACTOR):
+        return free_spec, alt, choose(alt), test | {"verdict": "contradicted"}, []
+    if log_bf > -np.log(BAYES_FACTOR) and abs(g - spec.gamma_mean) > STATED_SIGMAS * spec.gamma_sigma:
+        twins = [m for m in alt if m.name == best.name and m.basin == best.basin]
+        return spec, models, best, test | {"verdict": "not confirmed"}, twins
+    return spec, models, best, test | {"verdict": "confirmed"}, []
+
+
+def _fit_families(families, starts, data, reach, spec: FitSpec) -> list[Model]:
+    """Every family from every basin's start under ``spec``, each with its log evidence (``data``: the
+    positions, ranges, link indices, link count and variances of `fit_family`)."""
+    models = []
+    for name in families:
+        for k, s in enumerate(starts):
+            m = replace(fit_family(*data, name, s, spec), basin=k)
+            m.log_evidence = log_evidence(m, spec, reach)
+            models.append(m)
+    return models
 
 
 def likelihood_widening(m: Model, data: tuple, spec: FitSpec, cov: np.ndarray, reach: float) -> np.ndarray:
@@ -600,7 +643,7 @@ def jackknife_cov(m: Model, data: tuple, spec: FitSpec, blocks: int = JACKKNIFE_
     return out
 
 
-def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_open=False) -> AnchorFit:
+def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_open=False, alternatives=()):
     """The AnchorFit of the chosen model: weak directions from the eigen-decomposition of its covariance
     (widened to the likelihood's intervals), the other basin when the evidence (or, with ``sign_open``, the
     motion) cannot tell them apart: then the height is open."""
@@ -613,7 +656,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
         nrm = Vt[2]
         other = replace(other, p=best.p - 2.0 * nrm * float(nrm @ (best.p - data[0].mean(axis=0))))
     mirror = mirror and bool(np.linalg.norm(other.p - best.p) > 1e-3)  # an anchor on the plane has no mirror
-    cov, excess = mixture_cov(models, best, reach)
+    cov, excess = mixture_cov(models, best, reach, alternatives)
     wide = cov
     if spec.refine_cov:
         wide = likelihood_widening(best, data[:4], spec, cov, reach)
@@ -696,7 +739,7 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
             "not determined",
             nan5,
             np.full((5, 5), np.nan),
-            warnings=[msg],
+            warnings=[msg] + [w for w in [_offset_warning(anchor, ev or {})] if w],
             window=window,
             verdict=verdict,
         )
@@ -745,10 +788,30 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
         res.link_cov = T @ sr.cov[3:, 3:] @ T
     res.excess_cov = np.zeros((5, 5))
     res.excess_cov[:3, :3] = sr.costs["excess_cov"]
-    gamma = (spec.gamma_mean, spec.gamma_sigma if offsets else FIXED_OFFSET_SIGMA)
+    gamma = (sr.gamma_prior[0], sr.gamma_prior[1] if offsets else FIXED_OFFSET_SIGMA)
     res.model_priors = (gamma, (1.0, spec.beta_sigma if has_scale(model) else FIXED_BETA_SIGMA))
+    if msg := _offset_warning(anchor, ev):
+        res.warnings.append(msg)
+        res.status = "warning"
     if not sr.height_observable:
         why = "the mirror across the motion plane fits as well" if sr.mirror else "weak vertical direction"
         res.warnings.append(f"{anchor}: height not determined ({why}): {sr.p[2]:.2f} +- {sr.sigma_h:.2f} m")
         res.status = "warning"
     return res
+
+
+def _offset_warning(anchor: str, evidence: dict) -> str:
+    """The warning of a stated offset prior the ranges contradict or do not confirm (`_stated_offset`), or ""."""
+    test = evidence.get("offset_prior") or {}
+    if test.get("verdict") not in ("contradicted", "not confirmed"):
+        return ""
+    (m0, s0), g = test["stated"], test["free_offset_m"]
+    used = (
+        "the ranges' own offset is used"
+        if test["verdict"] == "contradicted"
+        else "both are in the covariance"
+    )
+    return (
+        f"{anchor}: ranging offset gamma {g:+.2f} m fits the ranges (log Bayes factor {test['log_bayes_factor']:+.1f}"
+        f" over the stated prior {m0:g} +- {s0:g} m: {test['verdict']}; {used}) — check this anchor's ranging bias"
+    )
