@@ -76,7 +76,6 @@ class AnchorFit:
     costs: dict = field(default_factory=dict)
     beta: float = 1.0  # range scale of the fit (1 unless its model estimates it)
     residuals: np.ndarray | None = None  # (n_used,) of the fit over the ranges it used (model tests)
-    gamma_prior: tuple[float, float] = (0.0, 0.3)  # the offset prior of the chosen model (mean, sigma)
 
     @property
     def ok(self) -> bool:
@@ -491,7 +490,7 @@ def fit_anchor(
             break
     test, alternatives = None, []
     if "gamma" in spec.stated:
-        spec, models, best, test, alternatives = _stated_offset(spec, models, best, fit_all, reach)
+        test, alternatives = _stated_offset(spec, models, best, fit_all, reach)
     # the side of the plane is told by the carrier's excursions along its normal: within twice the poses' own
     # uncertainty along it they are what pose errors alone make (a drifting height or tilt picks a side), whatever
     # the fit's curvature says
@@ -502,27 +501,25 @@ def fit_anchor(
     fit = _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_open, alternatives)
     if test and "evidence" in fit.costs:
         fit.costs["evidence"]["offset_prior"] = test
-    return replace(fit, gamma_prior=(spec.gamma_mean, spec.gamma_sigma))
+    return fit
 
 
 def _stated_offset(spec: FitSpec, models: list[Model], best: Model, fit_all, reach: float):
     """A stated offset prior is a hypothesis too, tested by the same rule against an offset it does not hold
-    (N(0, reach^2)): beaten by the Bayes factor, the statement gives way ("contradicted"); fitting as well with an
-    offset the statement excludes, both are reported as two basins are ("not confirmed": the other's fits widen
-    the covariance). Returns (spec, models, best, the test's record, the alternative fits)."""
-    free_spec = replace(spec, gamma_mean=0.0, gamma_sigma=reach)
-    alt = fit_all(free_spec)
+    (N(0, reach^2)). When that offset lies outside the statement and fits better ("contradicted": by the Bayes
+    factor) or as well ("not confirmed"), both are reported as two basins are: the estimate keeps the statement
+    (a free offset trades against the distance), the other's fits widen its covariance. Returns (the test's
+    record, the alternative fits)."""
+    alt = fit_all(replace(spec, gamma_mean=0.0, gamma_sigma=reach))
     free = max(alt, key=lambda m: m.log_evidence)
     log_bf = free.log_evidence - max(m.log_evidence for m in models)
     g = float(np.mean(free.g))
     test = {"stated": [spec.gamma_mean, spec.gamma_sigma], "free_offset_m": round(g, 3)}
     test["log_bayes_factor"] = round(float(log_bf), 2)
-    if log_bf > np.log(BAYES_FACTOR):
-        return free_spec, alt, choose(alt), test | {"verdict": "contradicted"}, []
-    if log_bf > -np.log(BAYES_FACTOR) and abs(g - spec.gamma_mean) > STATED_SIGMAS * spec.gamma_sigma:
-        twins = [m for m in alt if m.name == best.name and m.basin == best.basin]
-        return spec, models, best, test | {"verdict": "not confirmed"}, twins
-    return spec, models, best, test | {"verdict": "confirmed"}, []
+    if log_bf <= -np.log(BAYES_FACTOR) or abs(g - spec.gamma_mean) <= STATED_SIGMAS * spec.gamma_sigma:
+        return test | {"verdict": "confirmed"}, []
+    test["verdict"] = "contradicted" if log_bf > np.log(BAYES_FACTOR) else "not confirmed"
+    return test, [m for m in alt if m.name == best.name and m.basin == best.basin]
 
 
 def _fit_families(families, starts, data, reach, spec: FitSpec) -> list[Model]:
@@ -788,7 +785,7 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
         res.link_cov = T @ sr.cov[3:, 3:] @ T
     res.excess_cov = np.zeros((5, 5))
     res.excess_cov[:3, :3] = sr.costs["excess_cov"]
-    gamma = (sr.gamma_prior[0], sr.gamma_prior[1] if offsets else FIXED_OFFSET_SIGMA)
+    gamma = (spec.gamma_mean, spec.gamma_sigma if offsets else FIXED_OFFSET_SIGMA)
     res.model_priors = (gamma, (1.0, spec.beta_sigma if has_scale(model) else FIXED_BETA_SIGMA))
     if msg := _offset_warning(anchor, ev):
         res.warnings.append(msg)
@@ -806,12 +803,8 @@ def _offset_warning(anchor: str, evidence: dict) -> str:
     if test.get("verdict") not in ("contradicted", "not confirmed"):
         return ""
     (m0, s0), g = test["stated"], test["free_offset_m"]
-    used = (
-        "the ranges' own offset is used"
-        if test["verdict"] == "contradicted"
-        else "both are in the covariance"
-    )
     return (
         f"{anchor}: ranging offset gamma {g:+.2f} m fits the ranges (log Bayes factor {test['log_bayes_factor']:+.1f}"
-        f" over the stated prior {m0:g} +- {s0:g} m: {test['verdict']}; {used}) — check this anchor's ranging bias"
+        f" over the stated prior {m0:g} +- {s0:g} m: {test['verdict']}; the estimate keeps the statement, its "
+        "covariance spans both) — check this anchor's ranging bias"
     )
