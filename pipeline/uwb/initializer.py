@@ -115,6 +115,28 @@ class InitResult:
     def ok(self) -> bool:
         return self.status in ("ok", "warning")
 
+    @classmethod
+    def without_estimate(
+        cls,
+        anchor: str,
+        method: str,
+        status: str,
+        window: InitWindow,
+        warnings: list,
+        verdict: dict | None = None,
+    ) -> InitResult:
+        """An anchor the initialiser gives no estimate (``status`` "skipped" or "not determined"), NaN state."""
+        return cls(
+            anchor,
+            method,
+            status,
+            np.full(5, np.nan),
+            np.full((5, 5), np.nan),
+            warnings=warnings,
+            window=window,
+            verdict={} if verdict is None else verdict,
+        )
+
 
 # ---------------------------------------------------------------------------------------------------------------
 # closed form
@@ -383,10 +405,9 @@ def initialize_anchor(
     weighted = method != "lsi"
     robust = robust_loss if method == "ri-robust" else None
     w, warns = _clean(window, anchor)
-    nan5 = np.full(5, np.nan)
     if len(w) < max(min_ranges, 5):
         warns.append(f"{anchor}: only {len(w)} usable ranges (< {max(min_ranges, 5)}); anchor skipped")
-        return InitResult(anchor, method, "skipped", nan5, np.full((5, 5), np.nan), warnings=warns, window=w)
+        return InitResult.without_estimate(anchor, method, "skipped", w, warns)
 
     verdict: dict = {}
     link_offsets: dict = {}
@@ -395,16 +416,7 @@ def initialize_anchor(
         verdict = search_verdict(search)
         if not search.ok:
             warns.append(f"{anchor}: not determined: {search.reason}")
-            return InitResult(
-                anchor,
-                method,
-                "not determined",
-                nan5,
-                np.full((5, 5), np.nan),
-                warnings=warns,
-                window=w,
-                verdict=verdict,
-            )
+            return InitResult.without_estimate(anchor, method, "not determined", w, warns, verdict)
         if max_ranges is not None and len(w) > max_ranges:
             keep = np.zeros(len(w), bool)
             keep[subsample(len(w), max_ranges)] = True
