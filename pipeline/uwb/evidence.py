@@ -723,23 +723,14 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
     """The initialiser's result from an evidence fit (`fit_anchor` on ``window``): x = (p, beta, mean offset), its
     covariance (a parameter the model left out at its prior mean with the sigma that holds it there), the links'
     offsets relative to their mean, the chosen model and its evidence in the verdict."""
-    nan5 = np.full(5, np.nan)
     verdict = {"status": sr.status, "reason": sr.reason, "height_observable": bool(sr.height_observable)}
     ev = sr.costs.get("evidence")
     if ev:
         verdict["model"] = ev
     if not sr.ok:
         msg = f"{anchor}: not determined: {sr.reason}"
-        return InitResult(
-            anchor,
-            method,
-            "not determined",
-            nan5,
-            np.full((5, 5), np.nan),
-            warnings=[msg] + [w for w in [_offset_warning(anchor, ev or {})] if w],
-            window=window,
-            verdict=verdict,
-        )
+        warns = [msg] + [w for w in [_offset_warning(anchor, ev or {})] if w]
+        return InitResult.without_estimate(anchor, method, "not determined", window, warns, verdict)
     model = ev["model"]
     L = len(sr.links)
     wts = np.full(L, 1.0 / L)

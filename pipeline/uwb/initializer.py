@@ -75,6 +75,28 @@ class InitResult:
     def ok(self) -> bool:
         return self.status in ("ok", "warning")
 
+    @classmethod
+    def without_estimate(
+        cls,
+        anchor: str,
+        method: str,
+        status: str,
+        window: InitWindow,
+        warnings: list,
+        verdict: dict | None = None,
+    ) -> InitResult:
+        """An anchor the initialiser gives no estimate (``status`` "skipped" or "not determined"), NaN state."""
+        return cls(
+            anchor,
+            method,
+            status,
+            np.full(5, np.nan),
+            np.full((5, 5), np.nan),
+            warnings=warnings,
+            window=window,
+            verdict={} if verdict is None else verdict,
+        )
+
 
 # ---------------------------------------------------------------------------------------------------------------
 # closed form
@@ -337,8 +359,7 @@ def initialize_anchor(
     w, warns = _clean(window, anchor)
     if len(w) < max(min_ranges, 5):
         warns.append(f"{anchor}: only {len(w)} usable ranges (< {max(min_ranges, 5)}); anchor skipped")
-        nan = np.full(5, np.nan)
-        return InitResult(anchor, method, "skipped", nan, np.full((5, 5), np.nan), warnings=warns, window=w)
+        return InitResult.without_estimate(anchor, method, "skipped", w, warns)
     kw = dict(
         weighted=method != "lsi",
         sigma_range=sigma_range,
