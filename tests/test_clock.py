@@ -1,11 +1,13 @@
 """The range-to-pose clock offset (`pipeline.uwb.clock`): found where the ranges are stamped late or early, used
 only when the evidence demands it."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from uwbcal.pipeline.uwb.clock import estimate_clock
-from uwbcal.pipeline.uwb.evidence import FitSpec
+from uwbcal.pipeline.uwb.evidence import FitSpec, fit_anchor
 from uwbcal.pipeline.uwb.window import InitWindow
 
 ANCHORS = {1: np.array([5.0, 4.0, 2.0]), 2: np.array([-4.0, 6.0, 0.5]), 3: np.array([0.0, -6.0, 2.5])}
@@ -47,3 +49,24 @@ def test_no_offset_is_not_used():
     c = estimate_clock(_windows(0.0, seed=1), FitSpec(sigma_range=0.05))
     assert not c.used and c.applied_s == 0.0
     assert abs(c.offset_s) < 0.02
+
+
+def test_the_offsets_error_reaches_the_anchors_covariance():
+    """``shift`` is each anchor's displacement per second of offset: an anchor fitted (`fit_anchor`, from
+    scratch) with the ranges re-stamped 40 ms past the estimate moves by 40 ms times it; `position_cov` carries
+    the offset's variance through it, and when the offset is not used also the estimate it left out."""
+    at = _windows(0.15)
+    c = estimate_clock(at, FitSpec(sigma_range=0.05))
+    assert set(c.shift) == set(ANCHORS)
+    for a in ANCHORS:
+        w0, w1 = at(c.offset_s)[a], at(c.offset_s + 0.04)[a]
+        p0, p1 = (fit_anchor(w.tag_xyz, w.d, t_ns=w.t_ns, spec=FitSpec(sigma_range=0.05)).p for w in (w0, w1))
+        g = np.asarray(c.shift[a])
+        assert np.linalg.norm(g) > 0.5  # ~1.5 m/s of carrier: tenths of a metre per second
+        np.testing.assert_allclose(p1 - p0, 0.04 * g, atol=0.15 * np.linalg.norm(0.04 * g) + 1e-3)
+        np.testing.assert_allclose(c.position_cov(a), c.sigma_s**2 * np.outer(g, g), rtol=1e-12)
+        unused = replace(c, used=False)
+        np.testing.assert_allclose(
+            unused.position_cov(a), (c.sigma_s**2 + c.offset_s**2) * np.outer(g, g), rtol=1e-12
+        )
+    assert not np.any(c.position_cov("no such anchor"))

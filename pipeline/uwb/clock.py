@@ -12,7 +12,7 @@ curvature gives sigma. The offset enters by the evidence rule of the anchors' op
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -29,10 +29,19 @@ class ClockOffset:
     used: bool
     log_bayes: float  # log evidence of the offset over none
     anchors: int  # anchors the scan used
+    shift: Mapping = field(default_factory=dict)  # anchor -> d position / d offset [m/s] (3,)
 
     @property
     def applied_s(self) -> float:
         return self.offset_s if self.used else 0.0
+
+    def position_cov(self, anchor) -> np.ndarray:
+        """(3, 3) what the offset's error about the applied one does to the anchor's position: the offset's
+        variance (plus, when it is not used, its estimate squared) through the anchor's shift per second."""
+        if anchor not in self.shift:
+            return np.zeros((3, 3))
+        g = np.asarray(self.shift[anchor], float)
+        return (self.sigma_s**2 + (self.offset_s - self.applied_s) ** 2) * np.outer(g, g)
 
     def summary(self) -> dict:
         return {
@@ -70,12 +79,23 @@ def _block_costs(windows_at, anchors: Mapping, grid: np.ndarray, blocks: int) ->
     for i, tau in enumerate(grid):
         ws = windows_at(float(tau))
         for a, an in anchors.items():
-            w = ws[a].subset(an.keep)
-            li = np.searchsorted(an.links, w.links()).clip(0, len(an.links) - 1)
-            s2 = np.full(len(w), an.spec.sigma_range**2)
-            m = fit_family(w.tag_xyz, w.d, li, len(an.links), s2, an.fit.name, an.fit.p, an.spec, warm=an.fit)
+            m, s2 = _refit(ws[a], an)
             out[i] += np.bincount(an.block, range_losses(m, s2, an.spec), minlength=blocks)
     return out
+
+
+def _refit(window: InitWindow, an: _Anchor) -> tuple[Model, np.ndarray]:
+    """The anchor's family refitted from its fit on its ranges of ``window``; and the ranges' variances."""
+    w = window.subset(an.keep)
+    li = np.searchsorted(an.links, w.links()).clip(0, len(an.links) - 1)
+    s2 = np.full(len(w), an.spec.sigma_range**2)
+    return fit_family(w.tag_xyz, w.d, li, len(an.links), s2, an.fit.name, an.fit.p, an.spec, warm=an.fit), s2
+
+
+def _positions(windows_at, anchors: Mapping, tau: float) -> dict:
+    """Each anchor's position refitted (its family, from its fit) with the ranges re-stamped by ``tau``."""
+    ws = windows_at(float(tau))
+    return {a: _refit(ws[a], an)[0].p for a, an in anchors.items()}
 
 
 def _vertex(grid: np.ndarray, c: np.ndarray) -> tuple[float, float]:
@@ -103,7 +123,8 @@ def estimate_clock(
     tau). Only anchors the evidence fit determines at tau = 0 take part, each with its chosen family and its
     deflation. The offset's own deflation is measured by a block jackknife over time (the anchors share the pose's
     error, so their evidence is not independent): the scatter of the offsets with each time block left out over
-    the curvature's variance."""
+    the curvature's variance. ``shift``: each anchor's position change per second of offset (central difference
+    over +-sigma), what the offset's error does to the anchors."""
     anchors = {}
     base = windows_at(0.0)
     stamps = np.concatenate([w.t_ns for w in base.values()]) if base else np.zeros(0, np.int64)
@@ -141,4 +162,8 @@ def estimate_clock(
     info /= deflate
     log_bf = 0.5 * (c0 - c_tau) / deflate - 0.5 * tau**2 / prior_s**2 - 0.5 * np.log(1.0 + info * prior_s**2)
     used = bool(log_bf > np.log(BAYES_FACTOR))
-    return ClockOffset(tau, float(1.0 / np.sqrt(info)), used, float(log_bf), len(anchors))
+    sigma = float(1.0 / np.sqrt(info))
+    h = max(min(sigma, max_s), step_s)
+    hi, lo = _positions(windows_at, anchors, tau + h), _positions(windows_at, anchors, tau - h)
+    shift = {a: (hi[a] - lo[a]) / (2.0 * h) for a in anchors}
+    return ClockOffset(tau, sigma, used, float(log_bf), len(anchors), shift)

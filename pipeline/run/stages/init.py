@@ -64,6 +64,7 @@ def run(ctx: StageContext) -> StageResult:
     }
     for res in results.values():
         for a, r in res.items():
+            _add_clock_cov(r, clock.position_cov(a))
             j = joins.get(a)
             r.join_ns = j if (j is not None and j > win.init_end_ns) else None
     ctx.dir.save_pickle("init.pkl", results)
@@ -76,6 +77,16 @@ def run(ctx: StageContext) -> StageResult:
         info["range_clock"] = clock.summary()
     ctx.dir.save_json("init.json", info)
     return _report(ctx, results, chosen, win, levers, clock)
+
+
+def _add_clock_cov(r, C: np.ndarray) -> None:
+    """The clock offset's error in the anchor's covariance, as what its model leaves out (``excess_cov``)."""
+    if not r.ok or not np.any(C):
+        return
+    r.cov = r.cov.copy()
+    r.cov[:3, :3] += C
+    r.excess_cov = np.zeros((5, 5)) if r.excess_cov is None else r.excess_cov.copy()
+    r.excess_cov[:3, :3] += C
 
 
 def _link_corrected(windows: dict, searches: dict) -> dict:
