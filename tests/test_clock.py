@@ -54,7 +54,8 @@ def test_no_offset_is_not_used():
 def test_the_offsets_error_reaches_the_anchors_covariance():
     """``shift`` is each anchor's displacement per second of offset: an anchor fitted (`fit_anchor`, from
     scratch) with the ranges re-stamped 40 ms past the estimate moves by 40 ms times it; `position_cov` carries
-    the offset's variance through it, and when the offset is not used also the estimate it left out."""
+    the offset's mean squared error about the applied one (the two models weighted by their evidence) through
+    it."""
     at = _windows(0.15)
     c = estimate_clock(at, FitSpec(sigma_range=0.05))
     assert set(c.shift) == set(ANCHORS)
@@ -64,9 +65,10 @@ def test_the_offsets_error_reaches_the_anchors_covariance():
         g = np.asarray(c.shift[a])
         assert np.linalg.norm(g) > 0.5  # ~1.5 m/s of carrier: tenths of a metre per second
         np.testing.assert_allclose(p1 - p0, 0.04 * g, atol=0.15 * np.linalg.norm(0.04 * g) + 1e-3)
-        np.testing.assert_allclose(c.position_cov(a), c.sigma_s**2 * np.outer(g, g), rtol=1e-12)
-        unused = replace(c, used=False)
-        np.testing.assert_allclose(
-            unused.position_cov(a), (c.sigma_s**2 + c.offset_s**2) * np.outer(g, g), rtol=1e-12
-        )
+        p1 = 1.0 / (1.0 + np.exp(-c.log_bayes))  # the offset's posterior probability (~1 here)
+        expect = (1 - p1) * c.offset_s**2 + p1 * c.sigma_s**2
+        np.testing.assert_allclose(c.position_cov(a), expect * np.outer(g, g), rtol=1e-9)
+        doubtful = replace(c, used=False, log_bayes=0.0)  # even odds, left out: half its squared error
+        expect = 0.5 * (c.sigma_s**2 + c.offset_s**2)
+        np.testing.assert_allclose(doubtful.position_cov(a), expect * np.outer(g, g), rtol=1e-9)
     assert not np.any(c.position_cov("no such anchor"))

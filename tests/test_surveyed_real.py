@@ -141,11 +141,9 @@ def test_planar_trolley_lever_arms_and_heights(trolley):
 
 @pytest.mark.data
 @pytest.mark.xdist_group("trolley")
-@pytest.mark.xfail(
-    strict=True,
-    reason="known gap: horizontal mean 0.104 m against the goal 0.10 m (max 0.155 m; naive 0.157 / 0.249 m); "
-    "the joint lever-arm fit's anchors re-fitted by the evidence rule on the corrected ranges",
-)
 def test_planar_trolley_horizontal_goal(trolley):
+    """Measured: horizontal mean 0.076 m, max 0.150 m (0.104 / 0.155 m before the installation's shared link
+    offsets entered the joint fit as a prior: the anchors ranged from inside the ring traded offset against
+    distance and sat 0.09-0.15 m outward; naive 0.157 / 0.249 m)."""
     eh = trolley[-1]
     assert eh.mean() <= 0.10, eh

@@ -36,12 +36,16 @@ class ClockOffset:
         return self.offset_s if self.used else 0.0
 
     def position_cov(self, anchor) -> np.ndarray:
-        """(3, 3) what the offset's error about the applied one does to the anchor's position: the offset's
-        variance (plus, when it is not used, its estimate squared) through the anchor's shift per second."""
+        """(3, 3) what the clock's error about the applied offset does to the anchor's position, through the
+        anchor's shift per second: the offset's mean squared error under the two models weighted by their
+        evidence (no offset; the estimate +- sigma)."""
         if anchor not in self.shift:
             return np.zeros((3, 3))
+        p1 = float(1.0 / (1.0 + np.exp(-np.clip(self.log_bayes, -50.0, 50.0))))
+        a = self.applied_s
+        err2 = (1.0 - p1) * a**2 + p1 * (self.sigma_s**2 + (self.offset_s - a) ** 2)
         g = np.asarray(self.shift[anchor], float)
-        return (self.sigma_s**2 + (self.offset_s - self.applied_s) ** 2) * np.outer(g, g)
+        return err2 * np.outer(g, g)
 
     def summary(self) -> dict:
         return {

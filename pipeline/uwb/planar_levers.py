@@ -38,6 +38,8 @@ CONSISTENT_COS = np.cos(
     np.radians(20.0)
 )  # spin axis within 20 deg of the plane normal: a consistent attitude
 MAX_PER_ANCHOR = 1500  # ranges per anchor in the joint fit (evenly spread)
+MIN_SHARED = 3  # anchors on a link to measure the installation's offset and its scatter
+MIN_OFFSET_SPREAD = 0.01  # [m] offsets closer than a centimetre are not told apart by UWB ranging
 
 
 @dataclass
@@ -211,13 +213,15 @@ def fit_planar_levers(
     *,
     estimate_lever: bool = True,
     lam_prior: tuple[np.ndarray, float] | None = None,
+    offset_prior: tuple[np.ndarray, float] | None = None,
     max_nfev: int = 100,
 ) -> dict:
     """Robust (Cauchy, ``scale`` [m]) trust-region least squares over every anchor's in-plane position (its
     height along ``n`` stays at B0's: not separable from the arms' heights, unobservable for a planar carrier),
     its link offsets gamma_{a,l} and, with ``estimate_lever``, every link's in-plane arm lam_l from (B0, G0,
     lam0). ``lam_prior`` (mean (K,2), sigma [m]): a weak prior on the arms (the gauge when the carrier barely
-    turns). Analytic Jacobian (`lever_residuals`); trust region with Jacobian scaling, because an anchor's
+    turns). ``offset_prior`` (mean (K,) per link, weight [1/m] of a prior residual against the ranges' metres):
+    the installation's shared offsets (`shared_offsets`). Analytic Jacobian (`lever_residuals`); trust region with Jacobian scaling, because an anchor's
     distance and offset are strongly correlated (a damped Gauss-Newton crawls along that valley). Returns B, G,
     lam, cost (sum of the Cauchy loss, m^2), r (range residuals), w (IRLS weights)."""
     from scipy.optimize import least_squares
@@ -233,6 +237,9 @@ def fit_planar_levers(
     lam0 = np.asarray(lam0, float)
     sw, lm = _prior_weight(lam_prior if estimate_lever else None, lam0, scale)
     n_pr = 2 * K if sw else 0
+    g_mu, gw = offset_prior if offset_prior is not None else (np.zeros(K), 0.0)
+    ng = nb - 2 * A if gw else 0
+    g_mu = np.broadcast_to(np.asarray(g_mu, float), (A, K))[pres]
 
     def unpack(x):
         B = x[: 2 * A].reshape(A, 2) @ basis + h0[:, None] * n
@@ -244,12 +251,14 @@ def fit_planar_levers(
     def fun(x):
         B, G, lam = unpack(x)
         r = lever_residuals(data, B, G, lam, height, sense, e1, e2, n)[0]
-        return np.concatenate([r, sw * (lam - lm).ravel()]) if n_pr else r
+        prior = [sw * (lam - lm).ravel()] if n_pr else []
+        prior += [gw * (x[2 * A : nb] - g_mu)] if ng else []
+        return np.concatenate([r, *prior])
 
     def jac(x):
         B, G, lam = unpack(x)
         _, u, dlam = lever_residuals(data, B, G, lam, height, sense, e1, e2, n)
-        J = np.zeros((N + n_pr, P))
+        J = np.zeros((N + n_pr + ng, P))
         ub = u @ basis.T
         J[rows, 2 * data.a] = ub[:, 0]  # dr/db = u (r = d - |x - b| - gamma)
         J[rows, 2 * data.a + 1] = ub[:, 1]
@@ -259,6 +268,8 @@ def fit_planar_levers(
             J[rows, nb + 2 * data.k + 1] = dlam[:, 1]
         if n_pr:
             J[N + np.arange(n_pr), nb + np.arange(n_pr)] = sw
+        if ng:
+            J[N + n_pr + np.arange(ng), 2 * A + np.arange(ng)] = gw
         return J
 
     x0 = np.concatenate([(B0 @ basis.T).ravel(), np.asarray(G0, float)[pres]])
@@ -491,11 +502,28 @@ def planar_windows(
     return pl.apply(windows), pl
 
 
+def shared_offsets(G: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """The installation's offsets: the links of one installation share their hardware (each tag's antenna delay
+    enters every anchor's ranges), so each link's offsets over the anchors scatter about a common value.
+    Returns per link the median over the anchors of the free fit's offsets ``G`` (A, K) (``seen``: which the
+    data hold) and their robust spread about it (at least `MIN_OFFSET_SPREAD`), or None with fewer than
+    `MIN_SHARED` anchors on a link (no scatter to measure)."""
+    if np.any(seen.sum(axis=0) < MIN_SHARED):
+        return None
+    Gm = np.where(seen, G, np.nan)
+    mu = np.nanmedian(Gm, axis=0)
+    dev = (Gm - mu)[seen]
+    return mu, max(1.4826 * float(np.median(np.abs(dev - np.median(dev)))), MIN_OFFSET_SPREAD)
+
+
 def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_range: float) -> dict:
     """The per-anchor searches on the corrected windows, their in-plane positions and link offsets re-fitted
     together with the arms held (`fit_planar_levers`, heights kept: they carry the searches' verdicts and
     sigmas). The search's own damped refinement stops short along the distance/offset valley of an anchor
-    ranged from one side; the trust-region fit converges (same minimum from any start)."""
+    ranged from one side; the trust-region fit converges (same minimum from any start). Along that valley the
+    data hardly fix the offset: the fit is repeated under the installation's offsets (`shared_offsets`, an
+    empirical-Bayes prior with a Cauchy tail: an anchor whose ranges demand another offset keeps it), weighted
+    against ranges of the robust residual sigma deflated by the arms' fit's noise inflation."""
     import copy
 
     ok = {a: s for a, s in searches.items() if s is not None and s.ok and len(windows[a])}
@@ -522,6 +550,13 @@ def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_ra
     s0 = _robust_sigma(lever_residuals(data, B0, G0, levers.lam, *args)[0])
     scale = max(3.0 * s0, 0.6 * sigma_range, 0.03)
     f = fit_planar_levers(data, B0, G0, levers.lam, *args, scale, estimate_lever=False)
+    shared = shared_offsets(f["G"], _offset_layout(data, len(keep_a), len(links))[0])
+    if shared is not None:  # the fit again under the installation's offsets, from its optimum
+        s_range = np.sqrt(float(levers.info.get("noise_inflation", 1.0))) * max(s0, 1e-3)
+        prior = (shared[0], s_range / shared[1])
+        f = fit_planar_levers(
+            data, f["B"], f["G"], levers.lam, *args, scale, estimate_lever=False, offset_prior=prior
+        )
     out = dict(searches)
     for i, a in enumerate(keep_a):
         s = copy.copy(ok[a])
