@@ -220,10 +220,11 @@ def fit_planar_levers(
     height along ``n`` stays at B0's: not separable from the arms' heights, unobservable for a planar carrier),
     its link offsets gamma_{a,l} and, with ``estimate_lever``, every link's in-plane arm lam_l from (B0, G0,
     lam0). ``lam_prior`` (mean (K,2), sigma [m]): a weak prior on the arms (the gauge when the carrier barely
-    turns). ``offset_prior`` (mean (K,) per link, weight [1/m] of a prior residual against the ranges' metres):
-    the installation's shared offsets (`shared_offsets`). Analytic Jacobian (`lever_residuals`); trust region with Jacobian scaling, because an anchor's
-    distance and offset are strongly correlated (a damped Gauss-Newton crawls along that valley). Returns B, G,
-    lam, cost (sum of the Cauchy loss, m^2), r (range residuals), w (IRLS weights)."""
+    turns). ``offset_prior`` (mean (K,) per link, weight of a prior residual against the ranges' metres): the
+    installation's shared offsets (`shared_offsets`). Analytic Jacobian (`lever_residuals`); trust region with
+    Jacobian scaling, because an anchor's distance and offset are strongly correlated (a damped Gauss-Newton
+    crawls along that valley). Returns B, G, lam, cost (sum of the Cauchy loss, m^2), r (range residuals), w (IRLS
+    weights)."""
     from scipy.optimize import least_squares
 
     A, K = G0.shape
@@ -236,10 +237,7 @@ def fit_planar_levers(
     h0 = B0 @ n
     lam0 = np.asarray(lam0, float)
     sw, lm = _prior_weight(lam_prior if estimate_lever else None, lam0, scale)
-    n_pr = 2 * K if sw else 0
-    g_mu, gw = offset_prior if offset_prior is not None else (np.zeros(K), 0.0)
-    ng = nb - 2 * A if gw else 0
-    g_mu = np.broadcast_to(np.asarray(g_mu, float), (A, K))[pres]
+    cols, mean, wts = _prior_rows(sw, lm, offset_prior, pres, nb)
 
     def unpack(x):
         B = x[: 2 * A].reshape(A, 2) @ basis + h0[:, None] * n
@@ -251,14 +249,12 @@ def fit_planar_levers(
     def fun(x):
         B, G, lam = unpack(x)
         r = lever_residuals(data, B, G, lam, height, sense, e1, e2, n)[0]
-        prior = [sw * (lam - lm).ravel()] if n_pr else []
-        prior += [gw * (x[2 * A : nb] - g_mu)] if ng else []
-        return np.concatenate([r, *prior])
+        return np.concatenate([r, wts * (x[cols] - mean)])
 
     def jac(x):
         B, G, lam = unpack(x)
         _, u, dlam = lever_residuals(data, B, G, lam, height, sense, e1, e2, n)
-        J = np.zeros((N + n_pr + ng, P))
+        J = np.zeros((N + len(cols), P))
         ub = u @ basis.T
         J[rows, 2 * data.a] = ub[:, 0]  # dr/db = u (r = d - |x - b| - gamma)
         J[rows, 2 * data.a + 1] = ub[:, 1]
@@ -266,10 +262,7 @@ def fit_planar_levers(
         if estimate_lever:
             J[rows, nb + 2 * data.k] = dlam[:, 0]
             J[rows, nb + 2 * data.k + 1] = dlam[:, 1]
-        if n_pr:
-            J[N + np.arange(n_pr), nb + np.arange(n_pr)] = sw
-        if ng:
-            J[N + n_pr + np.arange(ng), 2 * A + np.arange(ng)] = gw
+        J[N + np.arange(len(cols)), cols] = wts
         return J
 
     x0 = np.concatenate([(B0 @ basis.T).ravel(), np.asarray(G0, float)[pres]])
@@ -285,6 +278,25 @@ def fit_planar_levers(
     J = jac(sol.x)[:N]
     cost = float(np.sum(c2 * np.log1p(r**2 / c2)))
     return dict(B=B, G=G, lam=lam, cost=cost, r=r, w=w, info=(J * w[:, None]).T @ J, nb=nb, nfev=sol.nfev)
+
+
+def _prior_rows(sw: float, lam_mean: np.ndarray, offset_prior, seen: np.ndarray, nb: int):
+    """The priors as rows ``weight * (x[columns] - mean)``: the arms' (weight ``sw``, mean ``lam_mean``, after
+    the ``nb`` non-arm parameters) and the offsets' (``offset_prior`` = (mean per link, weight); ``seen``: the
+    (anchor, link) offsets in the parameter vector, after the anchors' in-plane positions)."""
+    A = seen.shape[0]
+    parts = [(nb + np.arange(lam_mean.size), lam_mean.ravel(), sw)] if sw else []
+    if offset_prior is not None and offset_prior[1]:
+        mu = np.broadcast_to(np.asarray(offset_prior[0], float), seen.shape)[seen]
+        parts.append((np.arange(2 * A, nb), mu, float(offset_prior[1])))
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    cols, mean, w = zip(*parts, strict=True)
+    return (
+        np.concatenate(cols),
+        np.concatenate(mean),
+        np.concatenate([np.full(len(c), x) for c, x in zip(cols, w, strict=True)]),
+    )
 
 
 def _offset_layout(data: LeverData, A: int, K: int) -> tuple[np.ndarray, np.ndarray, int]:
