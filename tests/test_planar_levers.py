@@ -17,8 +17,10 @@ from uwbcal.pipeline.uwb.planar_levers import (
     carrier_heading,
     choose_lever_arms,
     estimate_planar_levers,
+    fit_planar_levers,
     lever_residuals,
     refit_searches,
+    shared_offsets,
 )
 from uwbcal.pipeline.uwb.window import InitWindow
 
@@ -151,3 +153,60 @@ def test_planar_scenario_recovers_arms_of_another_body_frame(planar_sim):
         after.append(np.hypot(*(fit.p - data.anchors[a])[:2]))
     print("horizontal before", np.round(before, 3), "after", np.round(after, 3))
     assert np.mean(after) < 0.75 * np.mean(before), (before, after)
+
+
+def test_shared_offsets_are_each_links_median_and_robust_spread():
+    G = np.array(
+        [[0.20, 0.10], [0.22, 0.12], [0.18, 0.14], [0.60, 0.11]]
+    )  # anchor 3's first link: an outlier
+    seen = np.ones_like(G, bool)
+    mu, sd = shared_offsets(G, seen)
+    np.testing.assert_allclose(mu, [0.21, 0.115])
+    dev = (G - mu).ravel()
+    assert sd == pytest.approx(1.4826 * np.median(np.abs(dev - np.median(dev))))
+    assert shared_offsets(np.full((4, 2), 0.2), seen)[1] == pytest.approx(0.01)  # identical: the floor
+    seen[1:, 1] = [True, False, False]
+    assert shared_offsets(G, seen) is None  # two anchors on link 1: no scatter to measure
+
+
+def _ring(offsets: np.ndarray, radius: float, seed: int = 0):
+    """Four anchors on a ring of 4 m, each with its own offset, ranged by one tag (zero arm) circling at
+    ``radius`` (inside the ring: each anchor seen from one side, its offset trading against its distance)."""
+    rng = np.random.default_rng(seed)
+    B = np.array([[4.0, 0, 1], [0, 4.0, 1], [-4.0, 0, 1], [0, -4.0, 1]])
+    t = np.linspace(0, 6 * np.pi, 1200)
+    p = np.c_[radius * np.cos(t), 0.8 * radius * np.sin(t), np.zeros_like(t)]
+    a = np.arange(len(t)) % 4
+    d = np.linalg.norm(p - B[a], axis=1) + offsets[a] + rng.normal(0, 0.05, len(t))
+    data = LeverData(a, np.zeros(len(t), np.int64), d, p, np.zeros(len(t)))
+    return data, B
+
+
+def _fit(data, B, prior=None, G0=None):
+    e = np.eye(3)
+    args = (np.zeros((1, 2)), np.zeros(1), 1, e[0], e[1], e[2], 0.15)
+    G0 = np.zeros((len(B), 1)) if G0 is None else G0
+    return fit_planar_levers(data, B, G0, *args, estimate_lever=False, offset_prior=prior)
+
+
+def test_the_offset_prior_pulls_only_what_the_ranges_leave_open():
+    """From a free fit's optimum (as `refit_searches` starts): around the anchors the ranges fix every offset, and
+    a prior of the ranges' own weight (5 cm against 5 cm ranges) changes them by less than 2 cm, keeping one far
+    from its mean (the Cauchy tail); a negligible one changes nothing. From inside the ring the offsets trade
+    against the distances; the installation's offset as a prior brings the anchors back."""
+    true = np.array([0.2, 0.2, 0.2, 0.6])
+    data, B = _ring(true, radius=6.0)
+    free = _fit(data, B)
+    np.testing.assert_allclose(free["G"][:, 0], true, atol=0.02)
+    own = _fit(data, free["B"], (np.array([0.2]), 1.0), free["G"])
+    np.testing.assert_allclose(own["G"][:, 0], true, atol=0.02)
+    np.testing.assert_allclose(
+        _fit(data, free["B"], (np.array([0.3]), 1e-6), free["G"])["G"], free["G"], atol=1e-4
+    )
+
+    data, B = _ring(np.full(4, 0.2), radius=1.5)
+    free = _fit(data, B)
+    held = _fit(data, free["B"], (np.array([0.2]), 1.0), free["G"])
+    err = [np.linalg.norm(f["B"][:, :2] - B[:, :2], axis=1) for f in (free, held)]
+    print("inside the ring: free", np.round(err[0], 3), "under the prior", np.round(err[1], 3))
+    assert err[1].mean() < 0.5 * err[0].mean(), err

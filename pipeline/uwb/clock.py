@@ -54,6 +54,7 @@ class ClockOffset:
             "used": self.used,
             "log_bayes_factor": round(self.log_bayes, 2),
             "anchors": self.anchors,
+            "anchor_shift_m_per_s": {str(a): np.round(g, 3).tolist() for a, g in self.shift.items()},
         }
 
     def message(self) -> str:

@@ -533,9 +533,9 @@ def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_ra
     together with the arms held (`fit_planar_levers`, heights kept: they carry the searches' verdicts and
     sigmas). The search's own damped refinement stops short along the distance/offset valley of an anchor
     ranged from one side; the trust-region fit converges (same minimum from any start). Along that valley the
-    data hardly fix the offset: the fit is repeated under the installation's offsets (`shared_offsets`, an
-    empirical-Bayes prior with a Cauchy tail: an anchor whose ranges demand another offset keeps it), weighted
-    against ranges of the robust residual sigma deflated by the arms' fit's noise inflation."""
+    data hardly fix the offset: the fit is repeated from its optimum under the installation's offsets
+    (`shared_offsets`, an empirical-Bayes prior weighted against ranges of the robust residual sigma deflated by
+    the arms' fit's noise inflation; its Cauchy tail leaves an offset many spreads from the installation's alone)."""
     import copy
 
     ok = {a: s for a, s in searches.items() if s is not None and s.ok and len(windows[a])}
