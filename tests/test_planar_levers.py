@@ -198,6 +198,8 @@ def test_the_offset_prior_pulls_only_what_the_ranges_leave_open():
     data, B = _ring(true, radius=6.0)
     free = _fit(data, B)
     np.testing.assert_allclose(free["G"][:, 0], true, atol=0.02)
+    far = _fit(data, B, G0=np.full((4, 1), 0.5))  # the same optimum from offsets 0.1-0.3 m off
+    np.testing.assert_allclose(far["G"], free["G"], atol=1e-3)
     own = _fit(data, free["B"], (np.array([0.2]), 1.0), free["G"])
     np.testing.assert_allclose(own["G"][:, 0], true, atol=0.02)
     np.testing.assert_allclose(
