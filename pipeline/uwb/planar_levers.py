@@ -268,17 +268,9 @@ def fit_planar_levers(
     x0 = np.concatenate([(B0 @ basis.T).ravel(), np.asarray(G0, float)[pres]])
     if estimate_lever:
         x0 = np.concatenate([x0, lam0.ravel()])
-    sol = least_squares(  # no step-size test (xtol): with Jacobian scaling it stops short of the optimum
-        fun,
-        x0,
-        jac=jac,
-        loss="cauchy",
-        f_scale=scale,
-        x_scale="jac",
-        method="trf",
-        xtol=None,
-        max_nfev=max_nfev,
-    )
+    # no step-size test (xtol): with Jacobian scaling and the Cauchy loss it stops short of the optimum
+    opts = dict(loss="cauchy", f_scale=scale, x_scale="jac", method="trf", xtol=None, max_nfev=max_nfev)
+    sol = least_squares(fun, x0, jac=jac, **opts)
     B, G, lam = unpack(sol.x)
     r = lever_residuals(data, B, G, lam, height, sense, e1, e2, n)[0]
     c2 = scale**2
