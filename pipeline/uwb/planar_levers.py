@@ -525,7 +525,7 @@ def shared_offsets(G: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, float] 
     Gm = np.where(seen, G, np.nan)
     mu = np.nanmedian(Gm, axis=0)
     dev = (Gm - mu)[seen]
-    return mu, max(1.4826 * float(np.median(np.abs(dev - np.median(dev)))), MIN_OFFSET_SPREAD)
+    return mu, max(_robust_sigma(dev), MIN_OFFSET_SPREAD)
 
 
 def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_range: float) -> dict:
