@@ -10,7 +10,7 @@ import pytest
 
 from uwbcal.pipeline.core.state import State
 from uwbcal.pipeline.uwb.config import UwbConfig
-from uwbcal.pipeline.uwb.evidence import FitSpec, fit_anchor
+from uwbcal.pipeline.uwb.evidence import FitSpec, Model, basin_evidence, fit_anchor, mixture_cov
 from uwbcal.pipeline.uwb.initializer import _fuse_z_prior
 from uwbcal.pipeline.uwb.schedule import candidate_ends, choose_schedule, join_time
 from uwbcal.pipeline.uwb.updater import add_initialised_anchors, initialize_anchors, search_window
@@ -75,6 +75,40 @@ def test_planar_motion_height_honest_and_two_basins():
         assert abs(res.p[2] - anchor[2]) <= 2 * res.sigma_h
         if h == 2.0:
             assert res.mirror and res.mirror_p is not None and not res.height_observable
+
+
+def test_the_basins_evidence_sums_over_the_range_models():
+    """The side of the plane is one question whatever offsets the ranges carry: a basin the chosen family (the
+    position alone) rules out but a richer family fits as well keeps its weight in the covariance."""
+    p0, p1 = np.array([5.0, 2.0, 1.0]), np.array([5.0, 2.0, -1.0])
+
+    def model(name, basin, z):
+        k = 3 + (name != "position")
+        return Model(
+            name,
+            basin,
+            p1 if basin else p0,
+            1.0,
+            np.zeros(1),
+            0.0,
+            1e4 * np.eye(k),
+            np.zeros(1),
+            np.ones(1),
+            z,
+        )
+
+    models = [
+        model("position", 0, 0.0),
+        model("position", 1, -6.0),
+        model("gamma", 0, -1.0),
+        model("gamma", 1, 0.5),
+    ]
+    z = np.array([basin_evidence(models, 0), basin_evidence(models, 1)])
+    np.testing.assert_allclose(z, [np.logaddexp(0.0, -1.0), np.logaddexp(-6.0, 0.5)])
+    w1 = 1.0 / (1.0 + np.exp(z[0] - z[1]))
+    cov, excess = mixture_cov(models, models[0], reach=50.0)
+    assert cov[2, 2] == pytest.approx(1e-4 + w1 * 4.0, rel=1e-3)  # the mixture's spread: w1 |p1 - p0|^2
+    assert excess[2, 2] == pytest.approx(w1 * 4.0, rel=1e-3) and abs(cov[0, 0] - 1e-4) < 1e-6
 
 
 def test_large_area_far_ranges_intermittent():

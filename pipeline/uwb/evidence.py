@@ -13,8 +13,8 @@ i.e. the ranges' sequential one-step-ahead predictive probability, with its para
 priors) with the ranges' likelihood deflated by how much less they tell than independent ranges do (`deflation`:
 the residual spread over the nominal sigma, squared, times the variance factor of block means over time and over
 directions of arrival). The simplest family within a Bayes factor `BAYES_FACTOR` of the best one is chosen; the
-two basins of the mirror across the motion plane are told apart by the same rule, and both are reported when it
-cannot tell them apart.
+two basins of the mirror across the motion plane are told apart by the same rule, on each one's evidence summed over
+the families (`basin_evidence`), and both are reported when it cannot tell them apart.
 
 The covariance is the evidence-weighted mixture of every family and basin fitted (each one's covariance plus the
 spread of its estimate about the chosen one): what the chosen model leaves out (an offset it did not fit, the
@@ -30,6 +30,7 @@ from functools import partial
 
 import numpy as np
 from scipy.cluster.vq import kmeans2
+from scipy.special import logsumexp
 
 from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.uwb.fim import assess_observability
@@ -287,6 +288,13 @@ def model_families(stated: tuple[str, ...], links: int) -> list[str]:
     ]
 
 
+def basin_evidence(models: list[Model], basin: int) -> float:
+    """The log evidence of a basin with the range model integrated out (every family's evidence in it, summed):
+    which side of the motion plane the anchor is on does not depend on which offsets the ranges carry, and a
+    basin one family disfavours another may fit as well."""
+    return float(logsumexp([m.log_evidence for m in models if m.basin == basin]))
+
+
 def choose(models: list[Model]) -> Model:
     """The simplest family (in `FAMILIES` order) whose log evidence is within log `BAYES_FACTOR` of the best
     model's; of its basins, the one of higher evidence."""
@@ -395,9 +403,9 @@ def mixture_cov(
     """Covariance of (p, offsets per link) of the chosen model, its position block widened by what the model leaves
     out, and that widening alone (3x3, PSD):
 
-    - the other basin: the evidence-weighted mixture of the chosen family's basins and ``alternatives`` (fits
-      under another prior: a stated offset the ranges do not confirm) (their covariances plus the spread of their
-      positions about the chosen one);
+    - the other basin: the mixture of the chosen family's basins, weighted by `basin_evidence`, and
+      ``alternatives`` (fits under another prior: a stated offset the ranges do not confirm) (their covariances
+      plus the spread of their positions about the chosen one);
     - the parameters it does not fit: for each richer family in the same basin, its position covariance plus the
       shift of its estimate (the expected effect of an offset left at its prior mean, under that offset's
       posterior); the widest of them."""
@@ -411,8 +419,9 @@ def mixture_cov(
         return pos_cov(m)[:3, :3] + np.outer(m.p - chosen.p, m.p - chosen.p)
 
     C = pos_cov(chosen)
-    twins = [m for m in models if m.name == chosen.name] + list(alternatives)
-    z = np.array([m.log_evidence for m in twins])
+    twins = [m for m in models if m.name == chosen.name]
+    z = np.array([basin_evidence(models, m.basin) for m in twins] + [m.log_evidence for m in alternatives])
+    twins += list(alternatives)
     wts = np.exp(z - z.max()) / np.sum(np.exp(z - z.max()))
     basins = sum(w * spread(m) for m, w in zip(twins, wts, strict=True))
     rank = FAMILIES.index(chosen.name)
@@ -648,7 +657,8 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
     twin = [m for m in models if m.name == best.name and m.basin != best.basin]
     other = twin[0] if twin else best
     two = np.linalg.norm(other.p - best.p) > 1e-3
-    mirror = bool(sign_open or (two and other.log_evidence >= best.log_evidence - np.log(BAYES_FACTOR)))
+    close = basin_evidence(models, other.basin) >= basin_evidence(models, best.basin) - np.log(BAYES_FACTOR)
+    mirror = bool(sign_open or (two and close))
     if mirror and not two:  # one basin found: the other side is the estimate's mirror across the motion plane
         nrm = Vt[2]
         other = replace(other, p=best.p - 2.0 * nrm * float(nrm @ (best.p - data[0].mean(axis=0))))
