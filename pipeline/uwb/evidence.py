@@ -400,35 +400,26 @@ def _psd(A: np.ndarray) -> np.ndarray:
 def mixture_cov(
     models: list[Model], chosen: Model, reach: float, alternatives: list[Model] = ()
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Covariance of (p, offsets per link) of the chosen model, its position block widened by what the model leaves
-    out, and that widening alone (3x3, PSD):
-
-    - the other basin: the mixture of the chosen family's basins, weighted by `basin_evidence`, and
-      ``alternatives`` (fits under another prior: a stated offset the ranges do not confirm) (their covariances
-      plus the spread of their positions about the chosen one);
-    - the parameters it does not fit: for each richer family in the same basin, its position covariance plus the
-      shift of its estimate (the expected effect of an offset left at its prior mean, under that offset's
-      posterior); the widest of them."""
+    """Covariance of (p, offsets per link) of the chosen model, its position block widened to the evidence-weighted
+    mixture of every family and basin fitted and of ``alternatives`` (fits under another prior: a stated offset
+    the ranges do not confirm): their covariances plus the spread of their positions about the chosen one. What
+    the chosen model leaves out (the other basin, an offset it holds at its prior mean) stays in the sigma as much
+    as the ranges allow it. Returns the covariance and that widening alone (3x3, PSD)."""
 
     def pos_cov(m: Model) -> np.ndarray:
         A = m.info.copy()
         A[:3, :3] += np.eye(3) / reach**2
         return np.linalg.inv(A)
 
-    def spread(m: Model) -> np.ndarray:
-        return pos_cov(m)[:3, :3] + np.outer(m.p - chosen.p, m.p - chosen.p)
-
     C = pos_cov(chosen)
-    twins = [m for m in models if m.name == chosen.name]
-    z = np.array([basin_evidence(models, m.basin) for m in twins] + [m.log_evidence for m in alternatives])
-    twins += list(alternatives)
+    every = list(models) + list(alternatives)
+    z = np.array([m.log_evidence for m in every])
     wts = np.exp(z - z.max()) / np.sum(np.exp(z - z.max()))
-    basins = sum(w * spread(m) for m, w in zip(twins, wts, strict=True))
-    rank = FAMILIES.index(chosen.name)
-    richer = [spread(m) for m in models if m.basin == chosen.basin and FAMILIES.index(m.name) > rank]
-    left_out = max(richer, key=np.trace) if richer else C[:3, :3]
-    excess = _psd(basins - C[:3, :3])
-    excess = excess + _psd(left_out - C[:3, :3] - excess)
+    mix = sum(
+        w * (pos_cov(m)[:3, :3] + np.outer(m.p - chosen.p, m.p - chosen.p))
+        for m, w in zip(every, wts, strict=True)
+    )
+    excess = _psd(mix - C[:3, :3])
     L = len(chosen.g)
     out = np.zeros((3 + L, 3 + L))
     out[:3, :3] = C[:3, :3] + excess
