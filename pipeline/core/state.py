@@ -24,6 +24,7 @@ from scipy.linalg.lapack import dtrtrs
 from scipy.special import gammaincinv
 
 from uwbcal.pipeline.core.geometry import exp_so3, exp_so3_each
+from uwbcal.pipeline.core.robust import robust_loss
 
 
 def _fresh(cls, **arrays: np.ndarray):
@@ -627,13 +628,7 @@ def _per_row(S, r, R, PHt, chi2_gate, robust, robust_R):
         kind, c = robust
         s_w = d if robust_R is None else d - np.diag(R) + np.asarray(robust_R, float)
         e = np.abs(r) / np.sqrt(np.maximum(s_w, 1e-300))
-        c = np.asarray(c, float)
-        if kind == "huber":
-            wt = np.where(e <= c, 1.0, c / np.maximum(e, 1e-300))
-        elif kind == "cauchy":
-            wt = 1.0 / (1.0 + (e / c) ** 2)
-        else:
-            raise ValueError(f"unknown robust update loss {kind!r} (huber or cauchy)")
+        wt = robust_loss(e, kind, np.asarray(c, float))[1]
         S = S + np.diag(np.where(wt < 1.0, d / wt - d, 0.0))
     idx = np.flatnonzero(keep)
     return S[np.ix_(idx, idx)], r[idx], PHt[:, idx], _Rows(row_nis, keep, gate)
@@ -762,11 +757,7 @@ def _robust_weight(
     if robust_R is not None:
         s_w = float(S[0, 0]) - float(R[0, 0]) + float(robust_R)
         e = abs(float(r[0])) / np.sqrt(max(s_w, 1e-300))
-    if kind == "huber":
-        return 1.0 if e <= c else c / e
-    if kind == "cauchy":
-        return 1.0 / (1.0 + (e / c) ** 2)
-    raise ValueError(f"unknown robust update loss {kind!r} (huber or cauchy)")
+    return float(robust_loss(e, kind, c)[1])
 
 
 def _apply_schmidt(state: State, W: np.ndarray, y: np.ndarray, schmidt: set[str]) -> None:

@@ -31,6 +31,7 @@ from functools import partial
 import numpy as np
 from scipy.cluster.vq import kmeans2
 
+from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
 from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.uwb.fim import assess_observability
 from uwbcal.pipeline.uwb.initializer import InitResult
@@ -143,28 +144,15 @@ class Model:
         return 0 if self.name == "position" else len(self.g) if per_link(self.name) else 1
 
 
-def _loss(e: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
-    """rho(e) (e^2 near 0) of whitened residuals and the IRLS weights rho'(e) / (2 e): ``l2``; ``soft_l1``
-    2 (sqrt(1 + e^2) - 1), convex, the robust start; ``cauchy`` c^2 log(1 + (e/c)^2) with c = `CAUCHY_SCALE`,
-    redescending: one-sided NLOS junk pulls a convex loss's fit away by a constant influence per range, not
-    this one's."""
-    if kind == "soft_l1":
-        q = np.sqrt(1.0 + e**2)
-        return 2.0 * (q - 1.0), 1.0 / q
-    if kind == "cauchy":
-        u = (e / CAUCHY_SCALE) ** 2
-        return CAUCHY_SCALE**2 * np.log1p(u), 1.0 / (1.0 + u)
-    return e**2, np.ones_like(e)
-
-
-def _losses(spec: FitSpec) -> tuple[str, ...]:
-    """The losses a fit runs through: the convex soft-L1 first, then the redescending Cauchy from its optimum."""
-    return ("soft_l1", "cauchy") if spec.robust else ("l2",)
+def _losses(spec: FitSpec) -> tuple[tuple[str | None, float], ...]:
+    """The (loss, scale) pairs of `robust_loss` a fit runs through: the convex soft-L1 first, then the
+    redescending Cauchy (scale `CAUCHY_SCALE`) from its optimum; least squares when not robust."""
+    return (("soft_l1", 1.0), ("cauchy", CAUCHY_SCALE)) if spec.robust else ((None, 1.0),)
 
 
 def range_losses(m: Model, s2: np.ndarray, spec: FitSpec) -> np.ndarray:
     """Each range's deflated robust loss under the fit ``m`` (its share of the data cost)."""
-    return _loss(m.r / np.sqrt(s2), _losses(spec)[-1])[0] / spec.deflate
+    return robust_loss(m.r / np.sqrt(s2), *_losses(spec)[-1])[0] / spec.deflate
 
 
 def has_scale(name: str) -> bool:
@@ -214,19 +202,19 @@ def fit_family(
     gi = li if links else np.zeros(len(d), np.int64)
     sd, f = np.sqrt(s2), 1.0 / spec.deflate
 
-    def evaluate(th, kind):
+    def evaluate(th, loss):
         diff = th[:3] - xyz
         rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
         b = th[3] if scale else 1.0
         r = (
             d - b * rho - (th[3 + scale :][gi] if ng else spec.gamma_mean)
         )  # no offset family: held at its mean
-        loss, w = _loss(r / sd, kind)
+        rho_k, w = robust_loss(r / sd, *loss)
         J = [b * diff / rho[:, None]] + ([rho[:, None]] if scale else [])
         if ng:
             J.append(np.eye(ng)[gi])
         dt = th - mu
-        cost = f * float(np.sum(loss)) + float(dt @ Lam @ dt)
+        cost = f * float(np.sum(rho_k)) + float(dt @ Lam @ dt)
         return cost, np.hstack(J) / sd[:, None], r, w
 
     theta = np.r_[np.asarray(p0, float), mu[3:]]
@@ -235,8 +223,8 @@ def fit_family(
         g = warm.g if links else warm.g[:1]
         theta = np.r_[np.asarray(p0, float), [warm.beta] * scale, g if ng else []]
         losses, iters = losses[-1:], WARM_ITERATIONS
-    for kind in losses:
-        theta, (cost, J, r, w) = _irls(lambda th, k=kind: evaluate(th, k), theta, mu, Lam, f, sd, iters)
+    for loss in losses:
+        theta, (cost, J, r, w) = _irls(lambda th, k=loss: evaluate(th, k), theta, mu, Lam, f, sd, iters)
     info = (J * (f * w)[:, None]).T @ J + np.diag(prec)
     g = theta[3 + scale :] if ng else np.zeros(0)
     g_links = g.copy() if links else np.full(L, g[0] if ng else spec.gamma_mean)
@@ -335,7 +323,7 @@ def deflation(
     if li is not None:
         for k in np.unique(li):
             e[li == k] -= np.median(e[li == k])
-    spread = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+    spread = mad_sigma(e)
     ec = np.clip(e / max(spread, 1e-6), -3.0, 3.0)
     u = xyz - m.p
     u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
@@ -664,7 +652,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
     cov = wide
     lam, V = np.linalg.eigh(cov[:3, :3])
     sd = np.sqrt(np.maximum(lam, 0.0))
-    sig = 1.4826 * float(np.median(np.abs(best.r - np.median(best.r))))
+    sig = mad_sigma(best.r)
     inl = np.zeros(n_all, bool)
     inl[sel] = np.abs(best.r) < 4.0 * max(sig, 1e-3)
     evidence = {

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from uwbcal.pipeline.core.names import INIT_METHODS
+from uwbcal.pipeline.core.robust import mad_sigma, psi_slope, robust_loss
 from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.uwb.fim import FimReport, assess_observability
 from uwbcal.pipeline.uwb.model import jacobians, range_variance
@@ -140,19 +141,6 @@ def multilateration(
 
 # ---------------------------------------------------------------------------------------------------------------
 # iterative solvers
-def _loss(e: np.ndarray, kind: str | None, c: float) -> tuple[np.ndarray, np.ndarray]:
-    """rho(e) (scaled so that rho = e^2 near 0) and the IRLS weight rho'(e) / (2 e)."""
-    if kind is None:
-        return e**2, np.ones_like(e)
-    a = np.abs(e)
-    if kind == "huber":
-        rho = np.where(a <= c, e**2, 2 * c * a - c**2)
-        return rho, np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
-    if kind == "cauchy":
-        return c**2 * np.log1p((e / c) ** 2), 1.0 / (1.0 + (e / c) ** 2)
-    raise ValueError(f"unknown robust loss {kind!r} (huber or cauchy)")
-
-
 @dataclass
 class _Fit:
     theta: np.ndarray
@@ -198,7 +186,7 @@ def ri_cost(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c, be
     else:
         s2 = np.full_like(r, sigma2_d)
     e = r / np.sqrt(s2)
-    rho, wt = _loss(e, robust, c)
+    rho, wt = robust_loss(e, robust, c)
     cost = float(np.sum(rho))
     for i, m, sd in _priors(len(theta), gamma_prior, beta_prior):
         cost += ((theta[i] - m) / sd) ** 2
@@ -269,16 +257,6 @@ def solve_from(
 
 
 # ---------------------------------------------------------------------------------------------------------------
-def _psi_slope(e: np.ndarray, kind: str, c: float) -> np.ndarray:
-    """psi'(e) of the robust loss (psi = w e, `_loss` weight w): the curvature the estimate really has."""
-    a = np.abs(e)
-    if kind == "huber":
-        return (a <= c).astype(float)
-    if kind == "cauchy":
-        return (1.0 - (e / c) ** 2) / (1.0 + (e / c) ** 2) ** 2
-    raise ValueError(f"unknown robust loss {kind!r} (huber or cauchy)")
-
-
 def robust_noise_factor(e: np.ndarray, kind: str, c: float, quantile: float = 0.99) -> float:
     """Variance factor >= 1 of a robust fit's estimate: its M-estimator (sandwich) covariance relative to the
     IRLS covariance the fit reports.
@@ -293,7 +271,7 @@ def robust_noise_factor(e: np.ndarray, kind: str, c: float, quantile: float = 0.
     ``quantile`` (evidence of heavy tails; clean ranges keep 1)."""
     e = np.asarray(e, float)
     e = e[np.isfinite(e)]
-    _, w = _loss(e, kind, c)
+    _, w = robust_loss(e, kind, c)
     w2 = float(np.sum(w**2))
     if len(e) < 2 or w2 <= 0:
         return 1.0
@@ -301,7 +279,7 @@ def robust_noise_factor(e: np.ndarray, kind: str, c: float, quantile: float = 0.
     n_eff = max(round(w2**2 / float(np.sum(w**4))), 1)
     if f_psi <= chi2_ppf(quantile, n_eff) / n_eff:
         return 1.0
-    slope = float(np.sum(_psi_slope(e, kind, c)))
+    slope = float(np.sum(psi_slope(e, kind, c)))
     curv = (float(np.sum(w)) / slope) ** 2 if slope > 0 else 1.0
     return max(f_psi * curv, 1.0)
 
@@ -412,7 +390,7 @@ def _result(anchor, method, w, fits, lbl_best, best, est, robust, warns, verdict
         n_used=len(w) - (n_rej if robust else 0),
         n_rejected=n_rej,
         residual_rms=float(np.sqrt(np.mean(best.r**2))),
-        residual_robust_sigma=float(1.4826 * np.median(np.abs(best.r - np.median(best.r)))),
+        residual_robust_sigma=mad_sigma(best.r),
         warnings=warns,
         starts=starts,
         weights=best.weights if robust else np.ones(len(w)),

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
 from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR
 from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
 
@@ -273,10 +274,9 @@ def fit_planar_levers(
     sol = least_squares(fun, x0, jac=jac, **opts)
     B, G, lam = unpack(sol.x)
     r = lever_residuals(data, B, G, lam, height, sense, e1, e2, n)[0]
-    c2 = scale**2
-    w = 1.0 / (1.0 + r**2 / c2)
+    rho, w = robust_loss(r, "cauchy", scale)
     J = jac(sol.x)[:N]
-    cost = float(np.sum(c2 * np.log1p(r**2 / c2)))
+    cost = float(np.sum(rho))
     return dict(B=B, G=G, lam=lam, cost=cost, r=r, w=w, info=(J * w[:, None]).T @ J, nb=nb, nfev=sol.nfev)
 
 
@@ -362,7 +362,7 @@ def estimate_planar_levers(
     data = _joint_data(keep_a, anchor, d, kk, p, head, R, t_ns)
     B0, G0 = _joint_start(starts, keep_a, links)
     fixed = fit_planar_levers(data, B0, G0, lam_given, height, 1, e1, e2, n, 0.5, estimate_lever=False)
-    scale = max(3.0 * _robust_sigma(fixed["r"]), 0.6 * sigma_range, 0.03)
+    scale = max(3.0 * mad_sigma(fixed["r"]), 0.6 * sigma_range, 0.03)
     fixed = fit_planar_levers(
         data, fixed["B"], fixed["G"], lam_given, height, 1, e1, e2, n, scale, estimate_lever=False
     )
@@ -372,13 +372,13 @@ def estimate_planar_levers(
         f = fit_planar_levers(data, B1, G1, lam_given, height, s, e1, e2, n, scale, lam_prior=prior)
         fits.append((f["cost"], s, f))
     _, sense, best = min(fits, key=lambda t: t[0])
-    sig = _robust_sigma(best["r"])
+    sig = mad_sigma(best["r"])
     kappa, lam_sigma = _arm_sigma(data, best, sig, K)
     whit = 1.0 / max(sig, 1e-6) ** 2
     dchi2 = float((fixed["cost"] - best["cost"]) * whit / kappa)
     info = {
         "residual_sigma_m": round(sig, 4),
-        "residual_sigma_given_m": round(_robust_sigma(fixed["r"]), 4),
+        "residual_sigma_given_m": round(mad_sigma(fixed["r"]), 4),
         "delta_chi2": round(dchi2, 1),
         "log_bayes_factor": round(_log_bayes(best, dchi2, whit / kappa, lam_given, prior_sigma_m), 1),
         "noise_inflation": round(float(kappa), 2),
@@ -444,10 +444,6 @@ def _log_bayes(fit: dict, dchi2: float, whit: float, lam_given: np.ndarray, prio
     occam = np.linalg.slogdet(np.eye(len(S)) + prior_sigma**2 * S)[1]
     penalty = float(np.sum((fit["lam"] - lam_given) ** 2)) / prior_sigma**2
     return 0.5 * dchi2 - 0.5 * penalty - 0.5 * float(occam)
-
-
-def _robust_sigma(r: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(r - np.median(r)))) if len(r) else float("nan")
 
 
 def choose_lever_arms(R: np.ndarray, p: np.ndarray, n_antennas: int = 2) -> tuple[str, str]:
@@ -525,7 +521,7 @@ def shared_offsets(G: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, float] 
     Gm = np.where(seen, G, np.nan)
     mu = np.nanmedian(Gm, axis=0)
     dev = (Gm - mu)[seen]
-    return mu, max(_robust_sigma(dev), MIN_OFFSET_SPREAD)
+    return mu, max(mad_sigma(dev), MIN_OFFSET_SPREAD)
 
 
 def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_range: float) -> dict:
@@ -559,7 +555,7 @@ def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_ra
     B0 = np.stack([ok[a].p for a in keep_a])
     G0 = np.stack([[ok[a].gamma_of(np.array([lk]))[0] for lk in links] for a in keep_a])
     args = (levers.height, levers.sense, levers.e1, levers.e2, levers.heading.normal)
-    s0 = _robust_sigma(lever_residuals(data, B0, G0, levers.lam, *args)[0])
+    s0 = mad_sigma(lever_residuals(data, B0, G0, levers.lam, *args)[0])
     scale = max(3.0 * s0, 0.6 * sigma_range, 0.03)
     f = fit_planar_levers(data, B0, G0, levers.lam, *args, scale, estimate_lever=False)
     shared = shared_offsets(f["G"], _offset_layout(data, len(keep_a), len(links))[0])
