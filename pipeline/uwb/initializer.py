@@ -32,8 +32,6 @@ _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
 _ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)
 OUTLIER_SIGMAS = 3.0
 
-BASIN_REJECT_CHI2 = 13.8  # chi2(2 dof) at 99.9 %
-
 
 @dataclass
 class InitResult:
@@ -101,9 +99,6 @@ class InitResult:
 
 # ---------------------------------------------------------------------------------------------------------------
 # closed form
-_plane_frame = plane_frame
-
-
 def multilateration(
     tag_xyz: np.ndarray, d: np.ndarray, gamma: float | None = None, planar_ratio: float = 0.05
 ) -> list[np.ndarray]:
@@ -114,7 +109,7 @@ def multilateration(
     trajectory the out-of-plane component b_3 is recovered from k, with both signs (the mirror ambiguity); otherwise
     the linear solution and its mirror across the plane are returned. Each candidate is [p_a(3), gamma].
     """
-    c, Vt, ext = _plane_frame(tag_xyz)
+    c, Vt, ext = plane_frame(tag_xyz)
     y = (tag_xyz - c) @ Vt.T
     planar = ext[2] < planar_ratio * max(ext[0], 1e-12)
     dims = 2 if planar else 3

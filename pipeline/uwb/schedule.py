@@ -21,8 +21,6 @@ import numpy as np
 from uwbcal.pipeline.uwb.evidence import AnchorFit
 from uwbcal.pipeline.uwb.window import InitWindow
 
-SCHEDULES = ("windows", "per-anchor")
-
 
 def choose_schedule(
     t_ns: np.ndarray,
