@@ -585,6 +585,12 @@ def chi2_ppf(quantile: float, dof: int) -> float:
     return float(chi2_quantile(quantile, dof))
 
 
+def nearest_psd(A: np.ndarray) -> np.ndarray:
+    """The nearest positive semi-definite matrix of each symmetrised (..., n, n) ``A``: eigenvalues clipped at 0."""
+    w, V = np.linalg.eigh(0.5 * (A + np.swapaxes(A, -1, -2)))
+    return (V * np.maximum(w, 0.0)[..., None, :]) @ np.swapaxes(V, -1, -2)
+
+
 def _stacked_jacobian(
     state: State, H: Mapping[str, np.ndarray], m: int
 ) -> tuple[slice | np.ndarray, np.ndarray]:

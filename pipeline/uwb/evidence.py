@@ -33,6 +33,7 @@ from scipy.cluster.vq import kmeans2
 
 from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
 from uwbcal.pipeline.core.state import chi2_ppf
+from uwbcal.pipeline.core.state import nearest_psd as _psd
 from uwbcal.pipeline.uwb.fim import assess_observability
 from uwbcal.pipeline.uwb.initializer import InitResult
 from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
@@ -370,11 +371,6 @@ def not_determined(reason: str, n: int, links: np.ndarray, **kw) -> AnchorFit:
         nan,
         **kw,
     )
-
-
-def _psd(A: np.ndarray) -> np.ndarray:
-    lam, V = np.linalg.eigh(0.5 * (A + A.T))
-    return (V * np.maximum(lam, 0.0)) @ V.T
 
 
 def mixture_cov(

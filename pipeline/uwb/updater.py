@@ -26,6 +26,7 @@ from uwbcal.pipeline.core.state import (
     Vec,
     chi2_ppf,
     ekf_update,
+    nearest_psd,
     remove_probes,
     schmidt_update,
 )
@@ -168,10 +169,6 @@ def auto_init_method(dataset: str | None) -> str:
     return "ri" if str(dataset or "simulation").lower() == "simulation" else "ri-robust"
 
 
-def _method(m: str) -> str:
-    return auto_init_method(None) if m == "auto" else m
-
-
 def initialize_anchors(
     windows: Mapping[Any, InitWindow],
     config: UwbConfig,
@@ -186,7 +183,8 @@ def initialize_anchors(
     multi-start (`initializer.initialize_anchor`). ``cheap``: the evidence fit's model-mixture covariance only (an
     initialiser run for comparison)."""
     sigma = config.sigma(calibration) * config.sigma_scale
-    method = _method(method or config.init_method)
+    method = method or config.init_method
+    method = auto_init_method(None) if method == "auto" else method
     out = {}
     searches = searches if searches is not None else {}
     for a, w in windows.items():
@@ -237,24 +235,6 @@ def evidence_spec(config: UwbConfig, sigma: float, calibration: Mapping | None, 
     )
 
 
-def _evidence_fit(
-    w: InitWindow,
-    config: UwbConfig,
-    sigma: float,
-    calibration: Mapping | None,
-    method: str,
-    cheap: bool = False,
-) -> AnchorFit:
-    """`evidence.fit_anchor` on an init window: the robust position fit, the range model the evidence chooses,
-    the anchor's weak directions (or "not determined" with the reason); RI and RI-robust weigh each range by the
-    pose's uncertainty along its line of sight, LSI does not."""
-    spec = replace(evidence_spec(config, sigma, calibration, method), refine_cov=not cheap)
-    pos_cov = None
-    if method != "lsi":
-        pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
-    return fit_anchor(w.tag_xyz, w.d, w.links(), t_ns=w.t_ns, pos_cov=pos_cov, spec=spec)
-
-
 def search_window(
     w: InitWindow,
     config: UwbConfig,
@@ -263,8 +243,10 @@ def search_window(
     method: str = "ri-robust",
     cheap: bool = False,
 ) -> AnchorFit:
-    """The evidence fit of an init window (`evidence.fit_anchor`; ``cheap``: its model-mixture covariance only,
-    for a start), or "not determined" when the anchor was ranged for less than ``min_duration_s``."""
+    """The evidence fit of an init window (`evidence.fit_anchor`): the robust position fit, the range model the
+    evidence chooses, the anchor's weak directions (``cheap``: its model-mixture covariance only, for a start), or
+    "not determined" with the reason (also when the anchor was ranged for less than ``min_duration_s``); RI and
+    RI-robust weigh each range by the pose's uncertainty along its line of sight, LSI does not."""
     if len(w) == 0:
         return not_determined("no ranges", 0, np.zeros(0, np.int64))
     if w.t_ns is not None and (w.t_ns.max() - w.t_ns.min()) * 1e-9 < config.min_duration_s:
@@ -272,16 +254,14 @@ def search_window(
         return not_determined(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
-    return _evidence_fit(w, config, sigma, calibration, method, cheap)
+    spec = replace(evidence_spec(config, sigma, calibration, method), refine_cov=not cheap)
+    pos_cov = None
+    if method != "lsi":
+        pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
+    return fit_anchor(w.tag_xyz, w.d, w.links(), t_ns=w.t_ns, pos_cov=pos_cov, spec=spec)
 
 
 # -----------------------------------------------------------------------------------------------------------------
-def _psd(A: np.ndarray) -> np.ndarray:
-    A = 0.5 * (A + np.swapaxes(A, -1, -2))
-    w, V = np.linalg.eigh(A)
-    return (V * np.maximum(w, 0.0)[..., None, :]) @ np.swapaxes(V, -1, -2)
-
-
 def anchor_init_covariance(
     result: InitResult,
     state: State,
@@ -354,7 +334,7 @@ def anchor_init_covariance(
     for i, sd in priors:  # the error of each prior mean, N(0, sd^2), enters through G^-1 e_i / sd^2
         gp = L @ Ginv[:, i] / sd
         cov += np.outer(gp, gp)
-    return Jd, _psd(cov)
+    return Jd, nearest_psd(cov)
 
 
 def _estimator_gain(result: InitResult, sigma_range: float, gamma_prior, beta_sigma: float):
@@ -448,7 +428,7 @@ def _gauss_markov_map(
     Jn = np.linalg.solve(P_now.T, C.T).T
     Jfull = np.zeros((5, state.dim(pose_var)))
     Jfull[:, 0:6] = Jn
-    return {pose_var: Jfull}, _psd(cov_pose - Jn @ P_now @ Jn.T)
+    return {pose_var: Jfull}, nearest_psd(cov_pose - Jn @ P_now @ Jn.T)
 
 
 def _random_walk_map(
@@ -462,7 +442,7 @@ def _random_walk_map(
     PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
     order = np.argsort(t_k, kind="stable")
     Bo = B[order]
-    dP = _psd(np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6))))
+    dP = nearest_psd(np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6))))
     S = np.cumsum(Bo[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
     cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
     Pk = np.cumsum(dP, axis=0)  # implied P_k under the random-walk model
@@ -506,7 +486,7 @@ def add_anchor_to_state(
     if result.link_offsets and result.link_cov is not None:
         links = link_var(anchor)
         offsets = np.array(list(result.link_offsets.values()), float)
-        Q_links = _psd(np.asarray(result.link_cov, float))
+        Q_links = nearest_psd(np.asarray(result.link_cov, float))
         state.augment(links, Vec(offsets), {}, Q=Q_links, kind=Kind.LINK, key=anchor)
     J, Q = anchor_init_covariance(
         result,
