@@ -686,7 +686,7 @@ def ekf_update(
     and the robust loss act on each row with its marginal innovation variance S_ii — a row whose NIS r_i^2 / S_ii
     exceeds the 1-dof ``chi2_gate`` is dropped, the others update together; the robust weight w_i inflates S_ii
     to S_ii / w_i (``robust`` scale ``c`` and ``robust_R`` may then be per-row arrays). With one row the result is
-    that of the scalar update, bit for bit.
+    that of the scalar update, bit for bit (its row fields None).
     """
     r, R = _measurement(r, R)
     m = r.shape[0]
@@ -757,13 +757,14 @@ def _cholesky(S: np.ndarray, m: int) -> np.ndarray:
 def _robust_weight(
     robust: tuple[str, float], nis: float, r: np.ndarray, S: np.ndarray, R: np.ndarray, robust_R
 ) -> float:
-    """IRLS weight of a one-row innovation whitened by S (or by S with ``robust_R`` in place of R)."""
+    """IRLS weight of a one-row innovation whitened by S (or by S with ``robust_R`` in place of R); the scale and
+    ``robust_R`` scalars or (a `per_row` update's) arrays of the one row."""
     kind, c = robust
     e = float(np.sqrt(nis))
     if robust_R is not None:
-        s_w = float(S[0, 0]) - float(R[0, 0]) + float(robust_R)
+        s_w = float(S[0, 0]) - float(R[0, 0]) + float(np.squeeze(robust_R))
         e = abs(float(r[0])) / np.sqrt(max(s_w, 1e-300))
-    return float(robust_loss(e, kind, c)[1])
+    return float(np.squeeze(robust_loss(e, kind, c)[1]))
 
 
 def _apply_schmidt(state: State, W: np.ndarray, y: np.ndarray, schmidt: set[str]) -> None:

@@ -703,61 +703,8 @@ class UwbUpdater:
         return self.update_epoch(estimator.state, batch)
 
     def update(self, state: State, meas: RangeMeasurement) -> UpdateResult | None:
-        name = anchor_var(meas.anchor)
-        in_state = name in state or (bool(self.pending) and self._join(state, meas))
-        if self.mode == "frozen" and meas.anchor in self.frozen:
-            x_cur = x_lin = self.frozen[meas.anchor]
-        elif in_state:
-            x_cur = state.value(name).x
-            x_lin = state.fej(name).x
-        else:
-            self.counts["skipped"] += 1
-            return None
-        pose_var = self.pose_var or state.nav
-        pose = state.value(pose_var)
-        # Jacobians at the first estimates of pose and anchor (FEJ: a range at a camera stamp comes after that
-        # frame's update, when the pose estimate already differs from its propagated first estimate)
-        pose_lin = state.fej(pose_var)
-        p_T = self._arms(pose_lin.R, [meas])[0]
-        J = jacobians(pose_lin.R, pose_lin.p, p_T, x_lin)
-        same = (
-            pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
-        ) and (x_lin is x_cur or np.array_equal(x_lin, x_cur))
-        h = J.h[0] if same else range_model(pose.R, pose.p, p_T, x_cur)[0]
-        d = meas.distance
-        lvar, lcol = None, -1
-        if self.link_offsets:
-            off, lvar, lcol = self._offset(state, meas)
-            d -= off
-        r = float(d - h)
-        R0 = (self.sigma * x_cur[3]) ** 2
-        R = self.inflation.get(meas.anchor, 1.0) * R0
-        robust = None
-        if self.robust is not None:  # scale in sigmas of the per-sample noise, as at init
-            robust = (self.robust[0], self.robust[1] / (self.sigma * x_cur[3]))
-        if meas.anchor in self.fixed_height:
-            J.H_U[:, 2] = 0.0
-        H_imu = np.zeros((1, state.dim(pose_var)))
-        H_imu[:, 0:6] = J.H_I
-        H = {pose_var: H_imu}
-        if in_state:  # a frozen anchor outside the state has no covariance to consider
-            H[name] = J.H_U
-            if lvar is not None:
-                H[lvar] = np.zeros((1, state.dim(lvar)))
-                H[lvar][0, lcol] = 1.0
-        if self.mode == "none":  # record only: NIS of the would-be joint update
-            S = R + sum(
-                float((Ha @ state.cov(a, b) @ Hb.T).squeeze()) for a, Ha in H.items() for b, Hb in H.items()
-            )
-            res = UpdateResult(True, r * r / S, 1, None)
-            self.counts["recorded"] += 1
-        else:
-            options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
-            res = self._apply(state, H, np.array([r]), R, options)
-            self.counts["accepted" if res.accepted else "rejected"] += 1
-        x, P = (state.value(name).x.copy(), state.cov(name).copy()) if in_state else (x_cur, None)
-        self._record(meas, x, P, r, res.nis, not res.accepted)
-        return res
+        """One range: the epoch of it alone (`update_epoch`)."""
+        return self.update_epoch(state, [meas])
 
     def _apply(self, state: State, H: dict, r: np.ndarray, R, options: dict) -> UpdateResult:
         """One update in the updater's mode: ``frozen`` considers the anchors (the ranges correct the pose only),
@@ -782,21 +729,46 @@ class UwbUpdater:
     def update_epoch(self, state: State, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
         """All ranges of one epoch (the same stamp, hence the same pose) in one stacked `ekf_update`: block
         Jacobians (the pose block of every row, each anchor's block on its rows), per-row gate / robust weight
-        on the marginal innovation variance (``per_row``), one covariance update. One range: exactly `update`.
-        Mode ``none`` records each range as `update` does. The records get the anchor state after the epoch."""
-        if len(batch) == 1 or self.mode == "none":
-            res = None
-            for meas in batch:
-                res = self.update(state, meas)
-            return res
+        on the marginal innovation variance (``per_row``; one range: the scalar update), one covariance update.
+        Mode ``none`` only records each range's NIS of the would-be update. The records get the anchor state
+        after the epoch."""
         rows, names, xs_cur, xs_lin = self._epoch_rows(state, batch)
-        if len(rows) <= 1:
-            return self.update(state, rows[0]) if rows else None
+        if not rows:
+            return None
+        k = len(rows)
+        H, r, R, sig = self._epoch_model(state, rows, names, np.stack(xs_cur), np.stack(xs_lin))
+        if self.mode == "none":  # record only: each range's NIS of the would-be joint update
+            S = R[0] + np.diag(sum(Ha @ state.cov(a, b) @ Hb.T for a, Ha in H.items() for b, Hb in H.items()))
+            nis, ok = r * r / S, np.ones(k, bool)
+            res = UpdateResult(True, float(np.sum(nis)), k, None, nis, ok)
+            self.counts["recorded"] += k
+        else:  # the robust scale in sigmas of the per-sample noise, as at init
+            robust = None if self.robust is None else (self.robust[0], self.robust[1] / sig)
+            options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": sig**2, "per_row": True}
+            res = self._apply(state, H, r, R, options)
+            one = res.row_accepted is None  # one row: the scalar update
+            ok = np.array([res.accepted]) if one else res.row_accepted
+            nis = np.array([res.nis]) if one else res.row_nis
+            self.counts["accepted"] += int(ok.sum())
+            self.counts["rejected"] += int(k - ok.sum())
+        after = {n: (state.value(n).x.copy(), state.cov(n).copy()) for n in set(names) if n in state}
+        for i, (meas, name) in enumerate(zip(rows, names, strict=True)):
+            x, P = after.get(name, (xs_cur[i], None))
+            self._record(meas, x, P, r[i], nis[i], not ok[i])
+        return res
+
+    def _epoch_model(
+        self, state: State, rows: list, names: list, X_cur: np.ndarray, X_lin: np.ndarray
+    ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+        """The stacked model of an epoch's judged ranges ``rows`` (anchor variables ``names``, their current and
+        first estimates): the Jacobian blocks, the residuals (the links' offsets taken off), the noise variances
+        (1, k) (inflated per anchor) and the per-sample sigmas."""
         k = len(rows)
         pose_var = self.pose_var or state.nav
+        # Jacobians at the first estimates of pose and anchor (FEJ: a range at a camera stamp comes after that
+        # frame's update, when the pose estimate already differs from its propagated first estimate)
         pose, pose_lin = state.value(pose_var), state.fej(pose_var)
         p_T = self._arms(pose_lin.R, rows)
-        X_cur, X_lin = np.stack(xs_cur), np.stack(xs_lin)
         J = jacobians(pose_lin.R, pose_lin.p, p_T, X_lin)
         same_pose = pose_lin is pose or (
             np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R)
@@ -810,15 +782,11 @@ class UwbUpdater:
                 d[i] -= off
                 if lvar is not None:
                     link_rows.append((i, lvar, lcol))
-        r = d - h
         sig = self.sigma * X_cur[:, 3]
-        R0 = sig**2
-        R = (np.array([self.inflation.get(m.anchor, 1.0) for m in rows]) * R0)[None, :]
-        robust = None if self.robust is None else (self.robust[0], self.robust[1] / sig)
+        R = (np.array([self.inflation.get(m.anchor, 1.0) for m in rows]) * sig**2)[None, :]
         H_imu = np.zeros((k, state.dim(pose_var)))
         H_imu[:, 0:6] = J.H_I
         H: dict[str, np.ndarray] = {pose_var: H_imu}
-        options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0, "per_row": True}
         for i, name in enumerate(names):
             if name in state:  # frozen: only the anchors of the state have a covariance to consider
                 H.setdefault(name, np.zeros((k, 5)))[i] = J.H_U[i]
@@ -826,15 +794,7 @@ class UwbUpdater:
                     H[name][i, 2] = 0.0
         for i, lvar, lcol in link_rows:
             H.setdefault(lvar, np.zeros((k, state.dim(lvar))))[i, lcol] = 1.0
-        res = self._apply(state, H, r, R, options)
-        ok = res.row_accepted
-        self.counts["accepted"] += int(ok.sum())
-        self.counts["rejected"] += int(k - ok.sum())
-        after = {n: (state.value(n).x.copy(), state.cov(n).copy()) for n in set(names) if n in state}
-        for i, (meas, name) in enumerate(zip(rows, names, strict=True)):
-            x, P = after.get(name, (xs_cur[i], None))
-            self._record(meas, x, P, r[i], res.row_nis[i], not ok[i])
-        return res
+        return H, d - h, R, sig
 
     def _epoch_rows(self, state: State, batch: Sequence[RangeMeasurement]) -> tuple[list, list, list, list]:
         """The epoch's ranges the updater judges (an anchor in the state, joining it, or frozen) with their anchor
