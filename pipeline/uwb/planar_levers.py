@@ -237,8 +237,9 @@ def fit_planar_levers(
     B0 = np.asarray(B0, float)
     h0 = B0 @ n
     lam0 = np.asarray(lam0, float)
-    sw, lm = _prior_weight(lam_prior if estimate_lever else None, lam0, scale)
-    cols, mean, wts = _prior_rows(sw, lm, offset_prior, pres, nb)
+    # a prior residual of the arms' sigma weighs as one range residual of ``scale``
+    arms = None if lam_prior is None or not estimate_lever else (lam_prior[0], scale / float(lam_prior[1]))
+    cols, mean, wts = _prior_rows(arms, offset_prior, pres, nb)
 
     def unpack(x):
         B = x[: 2 * A].reshape(A, 2) @ basis + h0[:, None] * n
@@ -280,15 +281,18 @@ def fit_planar_levers(
     return dict(B=B, G=G, lam=lam, cost=cost, r=r, w=w, info=(J * w[:, None]).T @ J, nb=nb, nfev=sol.nfev)
 
 
-def _prior_rows(sw: float, lam_mean: np.ndarray, offset_prior, seen: np.ndarray, nb: int):
-    """The priors as rows ``weight * (x[columns] - mean)``: the arms' (weight ``sw``, mean ``lam_mean``, after
-    the ``nb`` non-arm parameters) and the offsets' (``offset_prior`` = (mean per link, weight); ``seen``: the
-    (anchor, link) offsets in the parameter vector, after the anchors' in-plane positions)."""
-    A = seen.shape[0]
-    parts = [(nb + np.arange(lam_mean.size), lam_mean.ravel(), sw)] if sw else []
+def _prior_rows(arm_prior, offset_prior, seen: np.ndarray, nb: int):
+    """The priors, each (mean, weight of a prior residual against the ranges' metres) or None, as rows
+    ``weight * (x[columns] - mean)``: the arms' (mean (K, 2), after the ``nb`` non-arm parameters) and the
+    offsets' (mean per link; ``seen``: the (anchor, link) offsets in the parameter vector, after the anchors'
+    in-plane positions)."""
+    parts = []
+    if arm_prior is not None and arm_prior[1]:
+        mu = np.asarray(arm_prior[0], float).ravel()
+        parts.append((nb + np.arange(mu.size), mu, float(arm_prior[1])))
     if offset_prior is not None and offset_prior[1]:
         mu = np.broadcast_to(np.asarray(offset_prior[0], float), seen.shape)[seen]
-        parts.append((np.arange(2 * A, nb), mu, float(offset_prior[1])))
+        parts.append((np.arange(2 * seen.shape[0], nb), mu, float(offset_prior[1])))
     if not parts:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     cols, mean, w = zip(*parts, strict=True)
@@ -307,16 +311,6 @@ def _offset_layout(data: LeverData, A: int, K: int) -> tuple[np.ndarray, np.ndar
     gidx = -np.ones((A, K), np.int64)
     gidx[pres] = 2 * A + np.arange(int(pres.sum()))
     return pres, gidx, 2 * A + int(pres.sum())
-
-
-def _prior_weight(
-    lam_prior: tuple[np.ndarray, float] | None, lam0: np.ndarray, scale: float
-) -> tuple[float, np.ndarray]:
-    """The weight and mean of the arms' prior residuals: a prior residual of sigma weighs as one range residual of
-    ``scale`` (weight 0: no prior)."""
-    if lam_prior is None:
-        return 0.0, lam0
-    return scale / float(lam_prior[1]), np.asarray(lam_prior[0], float)
 
 
 def estimate_planar_levers(
