@@ -149,15 +149,16 @@ class _Fit:
     info: np.ndarray  # Gauss-Newton information incl. priors (4x4, or 5x5 with beta)
 
 
-def _x_u(theta: np.ndarray, beta: float = 1.0) -> np.ndarray:
-    """x_U from theta = (p_a, gamma) (beta fixed to ``beta``) or (p_a, beta, gamma)."""
+def _x_u(theta: np.ndarray, beta_prior: tuple[float, float] | None = None) -> np.ndarray:
+    """x_U from theta = (p_a, beta, gamma) or (p_a, gamma), beta then fixed at ``beta_prior``'s mean (else 1)."""
     theta = np.asarray(theta, float)
     if theta.shape[0] == 5:
         return theta.copy()
+    beta = float(beta_prior[0]) if beta_prior is not None else 1.0
     return np.array([theta[0], theta[1], theta[2], beta, theta[3]])
 
 
-def _priors(n: int, gamma_prior, beta_prior) -> list[tuple[int, float, float]]:
+def prior_terms(n: int, gamma_prior, beta_prior) -> list[tuple[int, float, float]]:
     """(index in theta, mean, sigma) of the priors; beta only when it is estimated (n == 5)."""
     out = []
     if gamma_prior is not None:
@@ -171,8 +172,7 @@ def ri_cost(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c, be
     """The initialisation cost at ``theta``: sum_k loss(r_k / s_k) + priors with r_k = d_k - range_model(...);
     RI (``weighted``): s_k^2 = `range_variance` (the pose covariance propagated into the range), LSI: s_k^2 the
     range noise. Returns (cost, H_U columns of theta, r, whitened e, s^2, IRLS weights)."""
-    bfix = float(beta_prior[0]) if beta_prior is not None else 1.0
-    x = _x_u(theta, bfix)
+    x = _x_u(theta, beta_prior)
     idx = _ABG if len(theta) == 5 else _AG
     J = jacobians(w.R, w.p, w.p_T, x)
     r = w.d - J.h
@@ -183,7 +183,7 @@ def ri_cost(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c, be
     e = r / np.sqrt(s2)
     rho, wt = robust_loss(e, robust, c)
     cost = float(np.sum(rho))
-    for i, m, sd in _priors(len(theta), gamma_prior, beta_prior):
+    for i, m, sd in prior_terms(len(theta), gamma_prior, beta_prior):
         cost += ((theta[i] - m) / sd) ** 2
     return cost, J.H_U[:, idx], r, e, s2, wt
 
@@ -212,7 +212,7 @@ def solve_from(
     c = robust_scale / sigma_range
     theta = np.asarray(theta0, float).copy()
     lam = 1e-4
-    priors = _priors(len(theta), gamma_prior, beta_prior)
+    priors = prior_terms(len(theta), gamma_prior, beta_prior)
     cost, Hu, r, e, s2, wt = ri_cost(w, theta, weighted, s2d, gamma_prior, robust, c, beta_prior)
     costs = [cost]
     iterations = 0
@@ -343,8 +343,7 @@ def initialize_anchor(
     )
     fits = _multi_start(w, kw, n_perturbed, seed)
     lbl_best, _, best = min(fits, key=lambda f: f[2].cost)
-    b0 = float(beta_prior[0]) if beta_prior is not None else 1.0
-    x = _x_u(best.theta, b0)
+    x = _x_u(best.theta, beta_prior)
     idx = _ABG if beta_prior is not None else _AG
     kappa = _inflation(w, best, kw, correlation_block_s)
     cov = _covariance(best, idx, kappa, gamma_prior, beta_prior, beta_sigma)
@@ -400,11 +399,10 @@ def _multi_start(w: InitWindow, kw: dict, n_perturbed: int, seed: int) -> list[t
     """(label, start, fit) of every start: the closed form and its mirror, the same with gamma at its prior
     mean, then ``n_perturbed`` starts around the best of those."""
     beta_prior, gamma_prior = kw["beta_prior"], kw["gamma_prior"]
-    b0 = float(beta_prior[0]) if beta_prior is not None else 1.0
 
     def full(th: np.ndarray) -> np.ndarray:
         """(p_a, gamma) start -> the solver's theta (with beta at its prior mean when it is estimated)."""
-        return np.r_[th[:3], b0, th[3]] if beta_prior is not None else th
+        return _x_u(th, beta_prior) if beta_prior is not None else th
 
     xyz = w.tag_xyz
     starts: list[tuple[str, np.ndarray]] = []
@@ -446,7 +444,7 @@ def _covariance(best: _Fit, idx, kappa: float, gamma_prior, beta_prior, beta_sig
     """(5, 5) covariance of x_U: the ranges' information shrunk by kappa, the priors' not; beta fixed: its
     prior variance."""
     prior_info = np.zeros(len(idx))
-    for i, _, sd in _priors(len(idx), gamma_prior, beta_prior):
+    for i, _, sd in prior_terms(len(idx), gamma_prior, beta_prior):
         prior_info[i] += 1.0 / sd**2
     cov = np.zeros((5, 5))
     try:

@@ -39,7 +39,7 @@ from uwbcal.pipeline.uwb.evidence import (
     init_result,
     not_determined,
 )
-from uwbcal.pipeline.uwb.initializer import InitResult, initialize_anchor
+from uwbcal.pipeline.uwb.initializer import InitResult, initialize_anchor, prior_terms
 from uwbcal.pipeline.uwb.model import jacobians, range_model, range_variance
 from uwbcal.pipeline.uwb.window import InitWindow
 
@@ -331,7 +331,7 @@ def anchor_init_covariance(
         g_beta[3] = 1.0
         g_beta -= L @ (a.T @ J.rho)
         cov += np.outer(g_beta, g_beta) * beta_sigma**2
-    for i, sd in priors:  # the error of each prior mean, N(0, sd^2), enters through G^-1 e_i / sd^2
+    for i, _, sd in priors:  # the error of each prior mean, N(0, sd^2), enters through G^-1 e_i / sd^2
         gp = L @ Ginv[:, i] / sd
         cov += np.outer(gp, gp)
     return Jd, nearest_psd(cov)
@@ -340,7 +340,7 @@ def anchor_init_covariance(
 def _estimator_gain(result: InitResult, sigma_range: float, gamma_prior, beta_sigma: float):
     """The initialiser's linearised error map over its window: the Jacobians J, the selection L (5,na) of the
     estimated parameters, G^-1 of the weighted normal equations with the priors, the gains a_k = G^-1 H_Bk^T w_k
-    (n,na) and the priors as (column, sigma)."""
+    (n,na) and the priors (`initializer.prior_terms`)."""
     w, x = result.window, result.x
     J = jacobians(w.R, w.p, w.p_T, x)
     ag = list(result.params)
@@ -352,10 +352,8 @@ def _estimator_gain(result: InitResult, sigma_range: float, gamma_prior, beta_si
         s2, _ = range_variance(w.R, w.p, w.p_T, x, w.P_pose, sigma_range**2)
     wk = (result.weights if result.weights is not None else np.ones(len(w))) / s2
     G = (HB * wk[:, None]).T @ HB
-    priors = [(na - 1, float(gamma_prior[1]))] if gamma_prior is not None else []
-    if 3 in ag:
-        priors.append((3, beta_sigma))
-    for i, sd in priors:
+    priors = prior_terms(na, gamma_prior, (1.0, beta_sigma))
+    for i, _, sd in priors:
         G[i, i] += 1.0 / sd**2
     Ginv = np.linalg.inv(G)
     L = np.zeros((5, na))
