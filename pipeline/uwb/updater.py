@@ -316,12 +316,9 @@ def anchor_init_covariance(
     pr = state.probes
     if pr and w.t_ns is not None:
         Jd, cov = _probe_map(state, B, np.asarray(t_k, np.int64), pr)
-    elif pose_correlation_s is not None and w.t_ns is not None:
-        Jd, cov = _gauss_markov_map(
-            state, B, w, np.asarray(t_k, np.int64), pose_var or state.nav, pose_correlation_s
-        )
-    else:
-        Jd, cov = _random_walk_map(state, B, w, t_k, pose_var or state.nav)
+    else:  # bounded pose errors (a correlation time) need stamps
+        tau = pose_correlation_s if w.t_ns is not None else None
+        Jd, cov = _pose_error_map(state, B, w, np.asarray(t_k, np.int64), pose_var or state.nav, tau)
     # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
     cov += result.noise_inflation * sigma_range**2 * (La.T @ La)
     if links is not None and result.link_offsets:
@@ -390,69 +387,54 @@ def _probe_map(
     return Jd, np.zeros((5, 5))
 
 
-def _gauss_markov_map(
-    state: State, B: np.ndarray, w: InitWindow, t_ns: np.ndarray, pose_var: str, tau_s: float
+def _pose_error_map(
+    state: State, B: np.ndarray, w: InitWindow, t_ns: np.ndarray, pose_var: str, tau_s: float | None
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Bounded pose errors (no probes): world-frame errors stationary with correlation exp(-|dt| / tau), the
-    pose source's bounded model. The ranges are pooled in bins of tau / 10 (B summed, the covariance averaged);
-    Cov(e_i, e_j) = rho_ij (P_i + P_j) / 2, Cov(e_i, e_now) = rho_i,now P_i with "now" the window's last stamp;
-    the part correlated with the current pose enters J[pose_var], the rest Q."""
+    """No probes: the window's world-frame pose errors modelled from their marginal covariances, the part
+    correlated with the current pose in J[pose_var], the rest in Q. ``tau_s`` None: the random walk of
+    `anchor_init_covariance`; else bounded errors (the pose source's model), stationary with correlation
+    exp(-|dt| / tau): the ranges pooled in bins of tau / 10 (B summed, the covariance averaged),
+    Cov(e_i, e_j) = rho_ij (P_i + P_j) / 2, Cov(e_i, e_now) = rho_i,now P_i with "now" the window's last stamp,
+    Q clipped to PSD."""
     T = np.zeros((len(B), 6, 6))
     T[:, 0:3, 0:3] = w.R
     T[:, 3:6, 3:6] = np.eye(3)
     PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
-    t = (t_ns - t_ns.min()) * 1e-9
-    h = max(tau_s / 10.0, 1e-3)
-    b = np.floor(t / h).astype(np.int64)
-    ub, inv = np.unique(b, return_inverse=True)
-    nb = len(ub)
-    Bb = np.zeros((nb, 5, 6))
-    np.add.at(Bb, inv, B)
-    cnt = np.bincount(inv, minlength=nb).astype(float)
-    Pb = np.zeros((nb, 6, 6))
-    np.add.at(Pb, inv, PW)
-    Pb /= cnt[:, None, None]
-    tb = np.bincount(inv, weights=t, minlength=nb) / cnt
-    rho = np.exp(-np.abs(tb[:, None] - tb[None, :]) / tau_s)
-    BP = np.einsum("bij,bjk->bik", Bb, Pb)  # B_b P_b
-    # sum_ij rho_ij B_i (P_i + P_j)/2 B_j^T
-    cov_pose = 0.5 * (np.einsum("ab,aij,bkj->ik", rho, BP, Bb) + np.einsum("ab,aij,bkj->ik", rho, Bb, BP))
-    rn = np.exp(-(t.max() - tb) / tau_s)
+    if tau_s is None:
+        order = np.argsort(t_ns, kind="stable")
+        Bo = B[order]
+        dP = nearest_psd(np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6))))
+        S = np.cumsum(Bo[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
+        cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
+        C = np.einsum("nij,njk->ik", Bo, np.cumsum(dP, axis=0))  # with the P_k the random walk implies
+    else:
+        t = (t_ns - t_ns.min()) * 1e-9
+        h = max(tau_s / 10.0, 1e-3)
+        b = np.floor(t / h).astype(np.int64)
+        ub, inv = np.unique(b, return_inverse=True)
+        nb = len(ub)
+        Bb = np.zeros((nb, 5, 6))
+        np.add.at(Bb, inv, B)
+        cnt = np.bincount(inv, minlength=nb).astype(float)
+        Pb = np.zeros((nb, 6, 6))
+        np.add.at(Pb, inv, PW)
+        Pb /= cnt[:, None, None]
+        tb = np.bincount(inv, weights=t, minlength=nb) / cnt
+        rho = np.exp(-np.abs(tb[:, None] - tb[None, :]) / tau_s)
+        BP = np.einsum("bij,bjk->bik", Bb, Pb)  # B_b P_b
+        # sum_ij rho_ij B_i (P_i + P_j)/2 B_j^T
+        cov_pose = 0.5 * (np.einsum("ab,aij,bkj->ik", rho, BP, Bb) + np.einsum("ab,aij,bkj->ik", rho, Bb, BP))
+        C = np.einsum("b,bij->ij", np.exp(-(t.max() - tb) / tau_s), BP)
     Tn = np.eye(6)
     Tn[0:3, 0:3] = state.value(pose_var).R
-    C = np.einsum("b,bij->ij", rn, BP) @ Tn
+    C = C @ Tn  # Cov(x~_U, e_now (body))
     P_now = state.cov(pose_var)[0:6, 0:6]
     P_now = 0.5 * (P_now + P_now.T)
     Jn = np.linalg.solve(P_now.T, C.T).T
     Jfull = np.zeros((5, state.dim(pose_var)))
     Jfull[:, 0:6] = Jn
-    return {pose_var: Jfull}, nearest_psd(cov_pose - Jn @ P_now @ Jn.T)
-
-
-def _random_walk_map(
-    state: State, B: np.ndarray, w: InitWindow, t_k: np.ndarray, pose_var: str
-) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """The random-walk model of `anchor_init_covariance` (no probes): J on the current pose, the rest in Q."""
-    n = len(B)
-    T = np.zeros((n, 6, 6))
-    T[:, 0:3, 0:3] = w.R
-    T[:, 3:6, 3:6] = np.eye(3)
-    PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
-    order = np.argsort(t_k, kind="stable")
-    Bo = B[order]
-    dP = nearest_psd(np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6))))
-    S = np.cumsum(Bo[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
-    cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
-    Pk = np.cumsum(dP, axis=0)  # implied P_k under the random-walk model
-    Tn = np.eye(6)
-    Tn[0:3, 0:3] = state.value(pose_var).R
-    C = np.einsum("nij,njk->ik", Bo, Pk) @ Tn  # Cov(x~_U, e_now (body))
-    P_now = state.cov(pose_var)[0:6, 0:6]
-    P_now = 0.5 * (P_now + P_now.T)
-    Jn = np.linalg.solve(P_now.T, C.T).T
-    Jfull = np.zeros((5, state.dim(pose_var)))
-    Jfull[:, 0:6] = Jn
-    return {pose_var: Jfull}, cov_pose - Jn @ P_now @ Jn.T
+    Q = cov_pose - Jn @ P_now @ Jn.T
+    return {pose_var: Jfull}, Q if tau_s is None else nearest_psd(Q)
 
 
 def add_anchor_to_state(
