@@ -728,8 +728,6 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
     else:
         cov[4, 4] = FIXED_OFFSET_SIGMA**2
     cov[3, 3] = spec.beta_sigma**2 if has_scale(model) else FIXED_BETA_SIGMA**2
-    keep = np.zeros(len(window), bool)
-    keep[subsample(len(window), spec.max_ranges)] = True
     res = InitResult(
         anchor,
         method,
@@ -740,7 +738,7 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
         noise_inflation=float(sr.costs.get("kappa", 1.0)),
         residual_rms=float(np.sqrt(np.mean(sr.residuals**2))),
         residual_robust_sigma=sr.scale,
-        window=window.subset(keep),
+        window=window.subset(subsample(len(window), spec.max_ranges)),
         params=(0, 1, 2, 3, 4) if has_scale(model) else (0, 1, 2, 4),
         verdict=verdict,
     )

@@ -475,9 +475,7 @@ def planar_windows(
     for a, w in windows.items():
         if len(w) == 0:
             continue
-        keep = np.zeros(len(w), bool)
-        keep[subsample(len(w), max_search)] = True
-        sr = search(w.subset(keep))
+        sr = search(w.subset(subsample(len(w), max_search)))
         if sr.ok:
             starts[a] = (sr.p, {int(lk): float(g) for lk, g in zip(sr.links, sr.gamma, strict=True)})
     if not starts:
