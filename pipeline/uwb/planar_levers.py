@@ -391,7 +391,7 @@ def estimate_planar_levers(
 
 
 def _joint_data(keep_a, anchor, d, kk, p, head: CarrierHeading, R, t_ns) -> LeverData:
-    """Every kept anchor's ranges (evenly subsampled to `MAX_PER_ANCHOR`) as one `LeverData`."""
+    """Every kept anchor's finite ranges (evenly subsampled to `MAX_PER_ANCHOR`) as one `LeverData`."""
     sel, aidx = [], []
     for i, a in enumerate(keep_a):
         ii = np.flatnonzero((anchor == a) & np.isfinite(d))
@@ -399,6 +399,23 @@ def _joint_data(keep_a, anchor, d, kk, p, head: CarrierHeading, R, t_ns) -> Leve
         aidx.append(np.full(len(sel[-1]), i, np.int64))
     idx, aidx = np.concatenate(sel), np.concatenate(aidx)
     return LeverData(aidx, kk[idx], d[idx], p[idx], head.psi(R[idx]), None if t_ns is None else t_ns[idx])
+
+
+def _stacked(windows: dict) -> dict:
+    """The ranges of the non-empty ``windows`` (anchor -> InitWindow) stacked as `estimate_planar_levers` takes
+    them: poses, ranges, anchor ids, link ids, lever arms and stamps (None unless every window has them)."""
+    ws = {a: w for a, w in windows.items() if len(w)}
+    cat = lambda f: np.concatenate([f(w) for w in ws.values()])  # noqa: E731
+    stamped = all(w.t_ns is not None for w in ws.values())
+    return dict(
+        R=cat(lambda w: w.R),
+        p=cat(lambda w: w.p),
+        d=cat(lambda w: w.d),
+        anchor=np.concatenate([np.full(len(w), a, object) for a, w in ws.items()]),
+        link=cat(lambda w: w.links()),
+        given_arms=cat(lambda w: w.p_T),
+        t_ns=cat(lambda w: w.t_ns) if stamped else None,
+    )
 
 
 def _joint_start(starts: dict, keep_a: list, links: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -480,21 +497,7 @@ def planar_windows(
             starts[a] = (sr.p, {int(lk): float(g) for lk, g in zip(sr.links, sr.gamma, strict=True)})
     if not starts:
         return windows, None
-    ws = [w for w in windows.values() if len(w)]
-    cat = lambda f: np.concatenate([f(w) for w in ws])  # noqa: E731
-    anchor = np.concatenate([np.full(len(w), a, object) for a, w in windows.items() if len(w)])
-    t = None if any(w.t_ns is None for w in ws) else cat(lambda w: w.t_ns)
-    pl = estimate_planar_levers(
-        cat(lambda w: w.R),
-        cat(lambda w: w.p),
-        cat(lambda w: w.d),
-        anchor,
-        cat(lambda w: w.links()),
-        cat(lambda w: w.p_T),
-        starts,
-        t_ns=t,
-        sigma_range=sigma_range,
-    )
+    pl = estimate_planar_levers(**_stacked(windows), starts=starts, sigma_range=sigma_range)
     if pl is None or pl.info["log_bayes_factor"] <= np.log(
         BAYES_FACTOR
     ):  # the arms enter by the evidence rule
@@ -529,21 +532,10 @@ def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_ra
     ok = {a: s for a, s in searches.items() if s is not None and s.ok and len(windows[a])}
     if not ok:
         return searches
-    ws = {a: windows[a] for a in ok}
-    keep_a = list(ok)
-    links = levers.links
-    sel_d, sel_a, sel_k, sel_p, sel_psi = [], [], [], [], []
-    for i, a in enumerate(keep_a):
-        w = ws[a]
-        j = subsample(len(w), MAX_PER_ANCHOR)
-        fin = np.isfinite(w.d[j])
-        j = j[fin]
-        sel_d.append(w.d[j])
-        sel_a.append(np.full(len(j), i, np.int64))
-        sel_k.append(np.searchsorted(links, w.links()[j]).clip(0, len(links) - 1))
-        sel_p.append(w.p[j])
-        sel_psi.append(levers.heading.psi(w.R[j]))
-    data = LeverData(*(np.concatenate(x) for x in (sel_a, sel_k, sel_d, sel_p, sel_psi)))
+    keep_a, links = list(ok), levers.links
+    s = _stacked({a: windows[a] for a in keep_a})
+    kk = np.searchsorted(links, s["link"]).clip(0, len(links) - 1)
+    data = _joint_data(keep_a, s["anchor"], s["d"], kk, s["p"], levers.heading, s["R"], None)
     B0 = np.stack([ok[a].p for a in keep_a])
     G0 = np.stack([[ok[a].gamma_of(np.array([lk]))[0] for lk in links] for a in keep_a])
     args = (levers.height, levers.sense, levers.e1, levers.e2, levers.heading.normal)
