@@ -138,11 +138,8 @@ class Model:
     info: np.ndarray  # information of (p, [beta], offsets), deflated, priors included
     r: np.ndarray  # residuals [m]
     w: np.ndarray  # robust weights
+    J: np.ndarray | None = None  # the ranges' whitened Jacobian in (p, [beta], offsets) at the fit
     log_evidence: float = float("nan")
-
-    @property
-    def n_offsets(self) -> int:
-        return 0 if self.name == "position" else len(self.g) if per_link(self.name) else 1
 
 
 def _losses(spec: FitSpec) -> tuple[tuple[str | None, float], ...]:
@@ -229,7 +226,7 @@ def fit_family(
     info = (J * (f * w)[:, None]).T @ J + np.diag(prec)
     g = theta[3 + scale :] if ng else np.zeros(0)
     g_links = g.copy() if links else np.full(L, g[0] if ng else spec.gamma_mean)
-    return Model(name, 0, theta[:3].copy(), float(theta[3]) if scale else 1.0, g_links, cost, info, r, w)
+    return Model(name, 0, theta[:3].copy(), float(theta[3]) if scale else 1.0, g_links, cost, info, r, w, J)
 
 
 def _irls(evaluate, theta, mu, Lam, f, sd, max_iter: int = 60):
@@ -555,18 +552,13 @@ def pattern_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> np.ndarra
     G the fit's linear map from ranges to parameters (priors included)."""
     if spec.pattern_sigma <= 0:
         return np.zeros((3, 3))
-    xyz, d, li, s2 = data
+    xyz, _, _, s2 = data
     diff = m.p - xyz
-    rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
-    u = -diff / rho[:, None]  # anchor to tag
-    J = [m.beta * diff / rho[:, None]] + ([rho[:, None]] if has_scale(m.name) else [])
-    if m.n_offsets:
-        J.append(np.eye(m.n_offsets)[li if per_link(m.name) else np.zeros(len(d), np.int64)])
+    u = -diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]  # anchor to tag
     sd = np.sqrt(s2)
-    Jw = np.hstack(J) / sd[:, None]
     A = m.info.copy()
     A[:3, :3] += np.eye(3) / reach**2
-    G = np.linalg.solve(A, (Jw * (m.w / spec.deflate)[:, None]).T)[:3]  # (3, N): whitened ranges -> position
+    G = np.linalg.solve(A, (m.J * (m.w / spec.deflate)[:, None]).T)[:3]  # (3, N): whitened ranges -> position
     M = G @ (u / sd[:, None])
     return spec.pattern_sigma**2 * M @ M.T
 
