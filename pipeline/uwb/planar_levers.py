@@ -334,14 +334,11 @@ def estimate_planar_levers(
     Returns None when the carrier does not move in a plane or does not turn enough to see the arms."""
     R = np.asarray(R, float).reshape(-1, 3, 3)
     p = np.asarray(p, float).reshape(-1, 3)
-    c, Vt, ext = plane_frame(p[subsample(len(p), 20000)])
-    if ext[0] <= 0 or ext[2] > PLANAR_RATIO * ext[0]:
+    _, Vt, head = _planar_carrier(R, p)
+    if head is None:
         return None
     n, e1 = Vt[2], Vt[0]
     e2 = np.cross(n, e1)
-    head = carrier_heading(R, n)
-    if head.turn < MIN_TURN:
-        return None
     keep_a = [a for a in starts if np.all(np.isfinite(starts[a][0]))]
     if not keep_a:
         return None
@@ -465,19 +462,21 @@ def choose_lever_arms(R: np.ndarray, p: np.ndarray, n_antennas: int = 2) -> tupl
     p = np.asarray(p, float).reshape(-1, 3)
     if len(p) < 10:
         return "given", "too few poses"
+    why, _, head = _planar_carrier(R, p)
+    return "given" if head is None else "planar", why
+
+
+def _planar_carrier(R: np.ndarray, p: np.ndarray) -> tuple[str, np.ndarray, CarrierHeading | None]:
+    """Whether the carrier's arms are seen apart from the anchors, and why: the principal axes of its positions
+    ``p`` (N, 3) (rows, the last the plane's normal) and its heading, None unless it moves in a plane and turns."""
     _, Vt, ext = plane_frame(p[subsample(len(p), 20000)])
     if ext[0] <= 0 or ext[2] > PLANAR_RATIO * ext[0]:
-        return "given", f"the carrier does not move in a plane (extents {ext.round(2).tolist()} m)"
-    head = carrier_heading(np.asarray(R, float).reshape(-1, 3, 3), Vt[2])
+        return f"the carrier does not move in a plane (extents {ext.round(2).tolist()} m)", Vt, None
+    head = carrier_heading(R, Vt[2])
+    turn = f"heading circular variance {head.turn:.2f}"
     if head.turn < MIN_TURN:
-        return (
-            "given",
-            f"planar carrier that barely turns (heading circular variance {head.turn:.2f} < {MIN_TURN})",
-        )
-    return (
-        "planar",
-        f"planar carrier that turns (heading circular variance {head.turn:.2f}): in-plane arms estimated",
-    )
+        return f"planar carrier that barely turns ({turn} < {MIN_TURN})", Vt, None
+    return f"planar carrier that turns ({turn}): in-plane arms estimated", Vt, head
 
 
 def planar_windows(
