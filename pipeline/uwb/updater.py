@@ -18,7 +18,7 @@ import numpy as np
 
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import quat_slerp, quat_to_rot
-from uwbcal.pipeline.core.series import sliding_mean
+from uwbcal.pipeline.core.series import bracket, sliding_mean
 from uwbcal.pipeline.core.state import (
     Kind,
     State,
@@ -105,19 +105,12 @@ def range_lever_arms(calibration: Mapping, tag: np.ndarray, antenna: np.ndarray)
 
 # -----------------------------------------------------------------------------------------------------------------
 def interpolate_poses(traj: Mapping[str, np.ndarray], t_ns: np.ndarray):
-    """Pose (R, p) and 6x6 covariance linearly interpolated (slerp for R) at ``t_ns``; mask of stamps inside."""
+    """Pose (R, p) and 6x6 covariance linearly interpolated (slerp for R) at the stamps ``t_ns`` inside the
+    trajectory's span (`series.bracket`); mask of those."""
     tt = np.asarray(traj["t_ns"], np.int64)
     t_ns = np.asarray(t_ns, np.int64)
-    inside = (t_ns >= tt[0]) & (t_ns <= tt[-1]) if len(tt) else np.zeros(len(t_ns), bool)
-    t = t_ns[inside]
-    i1 = (
-        np.clip(np.searchsorted(tt, t, side="right"), 1, len(tt) - 1)
-        if len(tt) > 1
-        else np.zeros(len(t), int)
-    )
-    i0 = np.maximum(i1 - 1, 0)
-    dt = (tt[i1] - tt[i0]).astype(float)
-    s = np.where(dt > 0, (t - tt[i0]) / np.where(dt > 0, dt, 1.0), 0.0)
+    inside = (t_ns >= tt[0]) & (t_ns <= tt[-1]) if len(tt) > 1 else np.zeros(len(t_ns), bool)
+    i0, i1, s = bracket(tt, t_ns[inside])
     p = traj["p"][i0] + s[:, None] * (traj["p"][i1] - traj["p"][i0])
     q = quat_slerp(traj["q_xyzw"][i0], traj["q_xyzw"][i1], s)
     cov = traj["cov"][i0] + s[:, None, None] * (traj["cov"][i1] - traj["cov"][i0])
