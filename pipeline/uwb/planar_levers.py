@@ -24,14 +24,14 @@ motion: unobservable anyway) and stays at the given arm's value.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
 from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR
-from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
+from uwbcal.pipeline.uwb.window import noise_inflation, plane_frame, subsample
 
 PLANAR_RATIO = 0.05  # out-of-plane extent (std) below this x the largest: the carrier moves in a plane
 MIN_TURN = 0.2  # circular variance 1 - |mean exp(i psi)| of the heading: the carrier turns enough
@@ -119,10 +119,7 @@ class PlanarLevers:
     def apply(self, windows: dict) -> dict:
         """The init windows with each range's body-frame arm from the estimated in-plane arms."""
         return {
-            a: InitWindow(w.d, self.body_arms(w.R, w.links()), w.R, w.p, w.P_pose, w.t_ns, w.link)
-            if len(w)
-            else w
-            for a, w in windows.items()
+            a: replace(w, p_T=self.body_arms(w.R, w.links())) if len(w) else w for a, w in windows.items()
         }
 
     def summary(self) -> dict:
