@@ -207,12 +207,12 @@ def fit_family(
         r = (
             d - b * rho - (th[3 + scale :][gi] if ng else spec.gamma_mean)
         )  # no offset family: held at its mean
-        rho_k, w = robust_loss(r / sd, *loss)
+        cost_k, w = robust_loss(r / sd, *loss)
         J = [b * diff / rho[:, None]] + ([rho[:, None]] if scale else [])
         if ng:
             J.append(np.eye(ng)[gi])
         dt = th - mu
-        cost = f * float(np.sum(rho_k)) + float(dt @ Lam @ dt)
+        cost = f * float(np.sum(cost_k)) + float(dt @ Lam @ dt)
         return cost, np.hstack(J) / sd[:, None], r, w
 
     theta = np.r_[np.asarray(p0, float), mu[3:]]
