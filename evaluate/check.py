@@ -17,6 +17,7 @@ import numpy as np
 
 from uwbcal.evaluate import check_truth as ct
 from uwbcal.evaluate.check_data import CheckData, load_check_data
+from uwbcal.pipeline.core.robust import MAD_SIGMA
 from uwbcal.pipeline.uwb.initializer import multilateration
 
 OUTLIER_M = 0.5  # a range this far (and 4 MAD) from its link's running median is an outlier
@@ -60,7 +61,7 @@ def _outliers(d: np.ndarray) -> int:
     pad = np.pad(d, h, mode="edge")
     win = sliding_window_view(pad, OUTLIER_WINDOW)
     med = np.median(win, axis=1)
-    mad = 1.4826 * np.median(np.abs(win - med[:, None]), axis=1)
+    mad = MAD_SIGMA * np.median(np.abs(win - med[:, None]), axis=1)
     return int((np.abs(d - med) > np.maximum(4 * mad, OUTLIER_M)).sum())
 
 

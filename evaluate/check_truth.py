@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uwbcal.evaluate.check_data import CheckData
+from uwbcal.pipeline.core.robust import mad_sigma
 
 MAX_ROWS = 20_000  # the truth tests use an even subsample of the ranges (their precision is ~1/sqrt(n))
 CLOCK_SCAN_S = 1.0  # offsets scanned: +-1 s
@@ -23,10 +24,6 @@ MIN_GAIN_M = 0.003
 FITTED_BETTER = 1.25  # a fitted lever arm (3 free parameters) must gain more to be named
 SWAP_RATIO = 0.5  # an anchor's ranges fit another anchor's truth with under half the scatter
 MISFIT_FRAC = 0.5  # an anchor with more of its ranges > 1 m off the prediction fits its truth not at all
-
-
-def mad_sigma(x: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if len(x) else float("nan")
 
 
 def line_residuals(pred: np.ndarray, meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -43,8 +43,6 @@ LONG_UNITS_ALLOWED = frozenset(
         "pipeline/uwb/planar_levers.py::estimate_planar_levers",
         "pipeline/uwb/planar_levers.py::fit_planar_levers",
         "pipeline/uwb/updater.py::anchor_init_covariance",
-        "pipeline/uwb/updater.py::UwbUpdater",
-        "pipeline/uwb/updater.py::UwbUpdater.update_epoch",
     }
 )
 

@@ -155,18 +155,19 @@ def test_robust_noise_factor_is_the_m_estimators_variance():
     """Independent reference (Monte Carlo): a location M-estimate (Cauchy, c = 5 sigma, IRLS) from 300 samples,
     30 % of them junk of +-Exp(15 sigma). The IRLS variance sum w^2 / (sum w)^2 is over-confident by > 2x; the
     sandwich factor closes the gap to within 20 %. On Gaussian samples the factor stays exactly 1."""
-    from uwbcal.pipeline.uwb.initializer import _loss, robust_noise_factor
+    from uwbcal.pipeline.core.robust import robust_loss
+    from uwbcal.pipeline.uwb.initializer import robust_noise_factor
 
     c = 5.0
 
     def m_estimate(y):
         x = float(np.median(y))
         for _ in range(200):
-            w = _loss(y - x, "cauchy", c)[1]
+            w = robust_loss(y - x, "cauchy", c)[1]
             x, x_old = float(np.sum(w * y) / np.sum(w)), x
             if abs(x - x_old) < 1e-10:
                 break
-        w = _loss(y - x, "cauchy", c)[1]
+        w = robust_loss(y - x, "cauchy", c)[1]
         return x, float(np.sum(w**2) / np.sum(w) ** 2)
 
     rng = np.random.default_rng(0)

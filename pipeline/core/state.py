@@ -24,6 +24,7 @@ from scipy.linalg.lapack import dtrtrs
 from scipy.special import gammaincinv
 
 from uwbcal.pipeline.core.geometry import exp_so3, exp_so3_each
+from uwbcal.pipeline.core.robust import robust_loss
 
 
 def _fresh(cls, **arrays: np.ndarray):
@@ -584,6 +585,12 @@ def chi2_ppf(quantile: float, dof: int) -> float:
     return float(chi2_quantile(quantile, dof))
 
 
+def nearest_psd(A: np.ndarray) -> np.ndarray:
+    """The nearest positive semi-definite matrix of each symmetrised (..., n, n) ``A``: eigenvalues clipped at 0."""
+    w, V = np.linalg.eigh(0.5 * (A + np.swapaxes(A, -1, -2)))
+    return (V * np.maximum(w, 0.0)[..., None, :]) @ np.swapaxes(V, -1, -2)
+
+
 def _stacked_jacobian(
     state: State, H: Mapping[str, np.ndarray], m: int
 ) -> tuple[slice | np.ndarray, np.ndarray]:
@@ -627,13 +634,7 @@ def _per_row(S, r, R, PHt, chi2_gate, robust, robust_R):
         kind, c = robust
         s_w = d if robust_R is None else d - np.diag(R) + np.asarray(robust_R, float)
         e = np.abs(r) / np.sqrt(np.maximum(s_w, 1e-300))
-        c = np.asarray(c, float)
-        if kind == "huber":
-            wt = np.where(e <= c, 1.0, c / np.maximum(e, 1e-300))
-        elif kind == "cauchy":
-            wt = 1.0 / (1.0 + (e / c) ** 2)
-        else:
-            raise ValueError(f"unknown robust update loss {kind!r} (huber or cauchy)")
+        wt = robust_loss(e, kind, np.asarray(c, float))[1]
         S = S + np.diag(np.where(wt < 1.0, d / wt - d, 0.0))
     idx = np.flatnonzero(keep)
     return S[np.ix_(idx, idx)], r[idx], PHt[:, idx], _Rows(row_nis, keep, gate)
@@ -685,7 +686,7 @@ def ekf_update(
     and the robust loss act on each row with its marginal innovation variance S_ii — a row whose NIS r_i^2 / S_ii
     exceeds the 1-dof ``chi2_gate`` is dropped, the others update together; the robust weight w_i inflates S_ii
     to S_ii / w_i (``robust`` scale ``c`` and ``robust_R`` may then be per-row arrays). With one row the result is
-    that of the scalar update, bit for bit.
+    that of the scalar update, bit for bit (its row fields None).
     """
     r, R = _measurement(r, R)
     m = r.shape[0]
@@ -756,17 +757,14 @@ def _cholesky(S: np.ndarray, m: int) -> np.ndarray:
 def _robust_weight(
     robust: tuple[str, float], nis: float, r: np.ndarray, S: np.ndarray, R: np.ndarray, robust_R
 ) -> float:
-    """IRLS weight of a one-row innovation whitened by S (or by S with ``robust_R`` in place of R)."""
+    """IRLS weight of a one-row innovation whitened by S (or by S with ``robust_R`` in place of R); the scale and
+    ``robust_R`` scalars or (a `per_row` update's) arrays of the one row."""
     kind, c = robust
     e = float(np.sqrt(nis))
     if robust_R is not None:
-        s_w = float(S[0, 0]) - float(R[0, 0]) + float(robust_R)
+        s_w = float(S[0, 0]) - float(R[0, 0]) + float(np.squeeze(robust_R))
         e = abs(float(r[0])) / np.sqrt(max(s_w, 1e-300))
-    if kind == "huber":
-        return 1.0 if e <= c else c / e
-    if kind == "cauchy":
-        return 1.0 / (1.0 + (e / c) ** 2)
-    raise ValueError(f"unknown robust update loss {kind!r} (huber or cauchy)")
+    return float(np.squeeze(robust_loss(e, kind, c)[1]))
 
 
 def _apply_schmidt(state: State, W: np.ndarray, y: np.ndarray, schmidt: set[str]) -> None:

@@ -32,7 +32,9 @@ import numpy as np
 from scipy.cluster.vq import kmeans2
 from scipy.special import logsumexp
 
+from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
 from uwbcal.pipeline.core.state import chi2_ppf
+from uwbcal.pipeline.core.state import nearest_psd as _psd
 from uwbcal.pipeline.uwb.fim import assess_observability
 from uwbcal.pipeline.uwb.initializer import InitResult
 from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
@@ -137,35 +139,19 @@ class Model:
     info: np.ndarray  # information of (p, [beta], offsets), deflated, priors included
     r: np.ndarray  # residuals [m]
     w: np.ndarray  # robust weights
+    J: np.ndarray | None = None  # the ranges' whitened Jacobian in (p, [beta], offsets) at the fit
     log_evidence: float = float("nan")
 
-    @property
-    def n_offsets(self) -> int:
-        return 0 if self.name == "position" else len(self.g) if per_link(self.name) else 1
 
-
-def _loss(e: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
-    """rho(e) (e^2 near 0) of whitened residuals and the IRLS weights rho'(e) / (2 e): ``l2``; ``soft_l1``
-    2 (sqrt(1 + e^2) - 1), convex, the robust start; ``cauchy`` c^2 log(1 + (e/c)^2) with c = `CAUCHY_SCALE`,
-    redescending: one-sided NLOS junk pulls a convex loss's fit away by a constant influence per range, not
-    this one's."""
-    if kind == "soft_l1":
-        q = np.sqrt(1.0 + e**2)
-        return 2.0 * (q - 1.0), 1.0 / q
-    if kind == "cauchy":
-        u = (e / CAUCHY_SCALE) ** 2
-        return CAUCHY_SCALE**2 * np.log1p(u), 1.0 / (1.0 + u)
-    return e**2, np.ones_like(e)
-
-
-def _losses(spec: FitSpec) -> tuple[str, ...]:
-    """The losses a fit runs through: the convex soft-L1 first, then the redescending Cauchy from its optimum."""
-    return ("soft_l1", "cauchy") if spec.robust else ("l2",)
+def _losses(spec: FitSpec) -> tuple[tuple[str | None, float], ...]:
+    """The (loss, scale) pairs of `robust_loss` a fit runs through: the convex soft-L1 first, then the
+    redescending Cauchy (scale `CAUCHY_SCALE`) from its optimum; least squares when not robust."""
+    return (("soft_l1", 1.0), ("cauchy", CAUCHY_SCALE)) if spec.robust else ((None, 1.0),)
 
 
 def range_losses(m: Model, s2: np.ndarray, spec: FitSpec) -> np.ndarray:
     """Each range's deflated robust loss under the fit ``m`` (its share of the data cost)."""
-    return _loss(m.r / np.sqrt(s2), _losses(spec)[-1])[0] / spec.deflate
+    return robust_loss(m.r / np.sqrt(s2), *_losses(spec)[-1])[0] / spec.deflate
 
 
 def has_scale(name: str) -> bool:
@@ -215,19 +201,19 @@ def fit_family(
     gi = li if links else np.zeros(len(d), np.int64)
     sd, f = np.sqrt(s2), 1.0 / spec.deflate
 
-    def evaluate(th, kind):
+    def evaluate(th, loss):
         diff = th[:3] - xyz
         rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
         b = th[3] if scale else 1.0
         r = (
             d - b * rho - (th[3 + scale :][gi] if ng else spec.gamma_mean)
         )  # no offset family: held at its mean
-        loss, w = _loss(r / sd, kind)
+        cost_k, w = robust_loss(r / sd, *loss)
         J = [b * diff / rho[:, None]] + ([rho[:, None]] if scale else [])
         if ng:
             J.append(np.eye(ng)[gi])
         dt = th - mu
-        cost = f * float(np.sum(loss)) + float(dt @ Lam @ dt)
+        cost = f * float(np.sum(cost_k)) + float(dt @ Lam @ dt)
         return cost, np.hstack(J) / sd[:, None], r, w
 
     theta = np.r_[np.asarray(p0, float), mu[3:]]
@@ -236,12 +222,12 @@ def fit_family(
         g = warm.g if links else warm.g[:1]
         theta = np.r_[np.asarray(p0, float), [warm.beta] * scale, g if ng else []]
         losses, iters = losses[-1:], WARM_ITERATIONS
-    for kind in losses:
-        theta, (cost, J, r, w) = _irls(lambda th, k=kind: evaluate(th, k), theta, mu, Lam, f, sd, iters)
+    for loss in losses:
+        theta, (cost, J, r, w) = _irls(lambda th, k=loss: evaluate(th, k), theta, mu, Lam, f, sd, iters)
     info = (J * (f * w)[:, None]).T @ J + np.diag(prec)
     g = theta[3 + scale :] if ng else np.zeros(0)
     g_links = g.copy() if links else np.full(L, g[0] if ng else spec.gamma_mean)
-    return Model(name, 0, theta[:3].copy(), float(theta[3]) if scale else 1.0, g_links, cost, info, r, w)
+    return Model(name, 0, theta[:3].copy(), float(theta[3]) if scale else 1.0, g_links, cost, info, r, w, J)
 
 
 def _irls(evaluate, theta, mu, Lam, f, sd, max_iter: int = 60):
@@ -343,7 +329,7 @@ def deflation(
     if li is not None:
         for k in np.unique(li):
             e[li == k] -= np.median(e[li == k])
-    spread = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+    spread = mad_sigma(e)
     ec = np.clip(e / max(spread, 1e-6), -3.0, 3.0)
     u = xyz - m.p
     u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
@@ -390,11 +376,6 @@ def not_determined(reason: str, n: int, links: np.ndarray, **kw) -> AnchorFit:
         nan,
         **kw,
     )
-
-
-def _psd(A: np.ndarray) -> np.ndarray:
-    lam, V = np.linalg.eigh(0.5 * (A + A.T))
-    return (V * np.maximum(lam, 0.0)) @ V.T
 
 
 def mixture_cov(
@@ -571,18 +552,13 @@ def pattern_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> np.ndarra
     G the fit's linear map from ranges to parameters (priors included)."""
     if spec.pattern_sigma <= 0:
         return np.zeros((3, 3))
-    xyz, d, li, s2 = data
+    xyz, _, _, s2 = data
     diff = m.p - xyz
-    rho = np.maximum(np.linalg.norm(diff, axis=1), 1e-9)
-    u = -diff / rho[:, None]  # anchor to tag
-    J = [m.beta * diff / rho[:, None]] + ([rho[:, None]] if has_scale(m.name) else [])
-    if m.n_offsets:
-        J.append(np.eye(m.n_offsets)[li if per_link(m.name) else np.zeros(len(d), np.int64)])
+    u = -diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]  # anchor to tag
     sd = np.sqrt(s2)
-    Jw = np.hstack(J) / sd[:, None]
     A = m.info.copy()
     A[:3, :3] += np.eye(3) / reach**2
-    G = np.linalg.solve(A, (Jw * (m.w / spec.deflate)[:, None]).T)[:3]  # (3, N): whitened ranges -> position
+    G = np.linalg.solve(A, (m.J * (m.w / spec.deflate)[:, None]).T)[:3]  # (3, N): whitened ranges -> position
     M = G @ (u / sd[:, None])
     return spec.pattern_sigma**2 * M @ M.T
 
@@ -665,7 +641,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
     cov = wide
     lam, V = np.linalg.eigh(cov[:3, :3])
     sd = np.sqrt(np.maximum(lam, 0.0))
-    sig = 1.4826 * float(np.median(np.abs(best.r - np.median(best.r))))
+    sig = mad_sigma(best.r)
     inl = np.zeros(n_all, bool)
     inl[sel] = np.abs(best.r) < 4.0 * max(sig, 1e-3)
     evidence = {
@@ -745,8 +721,6 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
     else:
         cov[4, 4] = FIXED_OFFSET_SIGMA**2
     cov[3, 3] = spec.beta_sigma**2 if has_scale(model) else FIXED_BETA_SIGMA**2
-    keep = np.zeros(len(window), bool)
-    keep[subsample(len(window), spec.max_ranges)] = True
     res = InitResult(
         anchor,
         method,
@@ -757,7 +731,7 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
         noise_inflation=float(sr.costs.get("kappa", 1.0)),
         residual_rms=float(np.sqrt(np.mean(sr.residuals**2))),
         residual_robust_sigma=sr.scale,
-        window=window.subset(keep),
+        window=window.subset(subsample(len(window), spec.max_ranges)),
         params=(0, 1, 2, 3, 4) if has_scale(model) else (0, 1, 2, 4),
         verdict=verdict,
     )

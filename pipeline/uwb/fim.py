@@ -17,12 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from uwbcal.pipeline.uwb.model import jacobians, range_variance, tag_positions
+from uwbcal.pipeline.uwb.window import plane_frame
 
 PARAM_NAMES = ("x", "y", "z", "beta", "gamma")
-
-
-class DegenerateGeometryError(ValueError):
-    """The window does not determine the anchor (static or planar motion); pass force=True to go on anyway."""
 
 
 def fisher_information(
@@ -56,10 +53,9 @@ class FimReport:
     logdet: float
     cond: float
     rcond: float  # smallest / largest eigenvalue
-    weakest: np.ndarray  # unit eigenvector of the smallest eigenvalue
     weak_axis: str  # parameter(s) dominating the weakest direction, e.g. "z" or "z/gamma"
     extents: np.ndarray  # principal extents (std dev) of the tag trajectory, descending
-    plane_normal: np.ndarray
+    plane_normal: np.ndarray  # up when it can be (`plane_frame`)
     status: str = "ok"  # "ok" | "warning" | "refused"
     warnings: list[str] = field(default_factory=list)
 
@@ -97,9 +93,7 @@ def fim_report(F: np.ndarray, params: Sequence[int], tag_xyz: np.ndarray) -> Fim
     wmax = float(w[-1]) if w[-1] > 0 else 1.0
     rcond = float(w[0] / wmax)
     logdet = float(np.sum(np.log(np.maximum(w, 1e-300))))
-    centred = tag_xyz - tag_xyz.mean(axis=0)
-    _, s, Vt = np.linalg.svd(centred, full_matrices=False)
-    extents = s / np.sqrt(max(len(tag_xyz), 1))
+    _, Vt, extents = plane_frame(tag_xyz)
     return FimReport(
         F=F,
         params=names,
@@ -107,7 +101,6 @@ def fim_report(F: np.ndarray, params: Sequence[int], tag_xyz: np.ndarray) -> Fim
         logdet=logdet,
         cond=float(np.inf if w[0] <= 0 else wmax / w[0]),
         rcond=rcond,
-        weakest=V[:, 0],
         weak_axis=_axis_name(V[:, 0], names),
         extents=extents,
         plane_normal=Vt[-1],
@@ -134,8 +127,8 @@ def assess_observability(
 
     Static: largest principal extent (std dev) of the tag positions < ``static_extent_m``. Planar: smallest extent
     < ``planar_ratio`` x the largest; the weak axis is the plane normal (mirror ambiguity of the anchor across the
-    plane). Refused: rcond(F) < ``rcond_min``; raises DegenerateGeometryError unless ``force`` (then status is
-    "warning" and the figures are kept).
+    plane). Refused: rcond(F) < ``rcond_min``, status "refused" unless ``force`` (then status is "warning" and
+    the figures are kept).
     """
     tag_xyz = tag_positions(R, p, p_T)
     F = fisher_information(R, p, p_T, P_pose, x_U, q_d, params, weights)

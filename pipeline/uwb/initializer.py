@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from uwbcal.pipeline.core.names import INIT_METHODS
+from uwbcal.pipeline.core.robust import mad_sigma, psi_slope, robust_loss
 from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.uwb.fim import FimReport, assess_observability
 from uwbcal.pipeline.uwb.model import jacobians, range_variance
@@ -30,8 +31,6 @@ from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame
 _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
 _ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)
 OUTLIER_SIGMAS = 3.0
-
-BASIN_REJECT_CHI2 = 13.8  # chi2(2 dof) at 99.9 %
 
 
 @dataclass
@@ -100,9 +99,6 @@ class InitResult:
 
 # ---------------------------------------------------------------------------------------------------------------
 # closed form
-_plane_frame = plane_frame
-
-
 def multilateration(
     tag_xyz: np.ndarray, d: np.ndarray, gamma: float | None = None, planar_ratio: float = 0.05
 ) -> list[np.ndarray]:
@@ -113,7 +109,7 @@ def multilateration(
     trajectory the out-of-plane component b_3 is recovered from k, with both signs (the mirror ambiguity); otherwise
     the linear solution and its mirror across the plane are returned. Each candidate is [p_a(3), gamma].
     """
-    c, Vt, ext = _plane_frame(tag_xyz)
+    c, Vt, ext = plane_frame(tag_xyz)
     y = (tag_xyz - c) @ Vt.T
     planar = ext[2] < planar_ratio * max(ext[0], 1e-12)
     dims = 2 if planar else 3
@@ -140,19 +136,6 @@ def multilateration(
 
 # ---------------------------------------------------------------------------------------------------------------
 # iterative solvers
-def _loss(e: np.ndarray, kind: str | None, c: float) -> tuple[np.ndarray, np.ndarray]:
-    """rho(e) (scaled so that rho = e^2 near 0) and the IRLS weight rho'(e) / (2 e)."""
-    if kind is None:
-        return e**2, np.ones_like(e)
-    a = np.abs(e)
-    if kind == "huber":
-        rho = np.where(a <= c, e**2, 2 * c * a - c**2)
-        return rho, np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
-    if kind == "cauchy":
-        return c**2 * np.log1p((e / c) ** 2), 1.0 / (1.0 + (e / c) ** 2)
-    raise ValueError(f"unknown robust loss {kind!r} (huber or cauchy)")
-
-
 @dataclass
 class _Fit:
     theta: np.ndarray
@@ -166,15 +149,16 @@ class _Fit:
     info: np.ndarray  # Gauss-Newton information incl. priors (4x4, or 5x5 with beta)
 
 
-def _x_u(theta: np.ndarray, beta: float = 1.0) -> np.ndarray:
-    """x_U from theta = (p_a, gamma) (beta fixed to ``beta``) or (p_a, beta, gamma)."""
+def _x_u(theta: np.ndarray, beta_prior: tuple[float, float] | None = None) -> np.ndarray:
+    """x_U from theta = (p_a, beta, gamma) or (p_a, gamma), beta then fixed at ``beta_prior``'s mean (else 1)."""
     theta = np.asarray(theta, float)
     if theta.shape[0] == 5:
         return theta.copy()
+    beta = float(beta_prior[0]) if beta_prior is not None else 1.0
     return np.array([theta[0], theta[1], theta[2], beta, theta[3]])
 
 
-def _priors(n: int, gamma_prior, beta_prior) -> list[tuple[int, float, float]]:
+def prior_terms(n: int, gamma_prior, beta_prior) -> list[tuple[int, float, float]]:
     """(index in theta, mean, sigma) of the priors; beta only when it is estimated (n == 5)."""
     out = []
     if gamma_prior is not None:
@@ -188,8 +172,7 @@ def ri_cost(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c, be
     """The initialisation cost at ``theta``: sum_k loss(r_k / s_k) + priors with r_k = d_k - range_model(...);
     RI (``weighted``): s_k^2 = `range_variance` (the pose covariance propagated into the range), LSI: s_k^2 the
     range noise. Returns (cost, H_U columns of theta, r, whitened e, s^2, IRLS weights)."""
-    bfix = float(beta_prior[0]) if beta_prior is not None else 1.0
-    x = _x_u(theta, bfix)
+    x = _x_u(theta, beta_prior)
     idx = _ABG if len(theta) == 5 else _AG
     J = jacobians(w.R, w.p, w.p_T, x)
     r = w.d - J.h
@@ -198,9 +181,9 @@ def ri_cost(w: InitWindow, theta, weighted, sigma2_d, gamma_prior, robust, c, be
     else:
         s2 = np.full_like(r, sigma2_d)
     e = r / np.sqrt(s2)
-    rho, wt = _loss(e, robust, c)
+    rho, wt = robust_loss(e, robust, c)
     cost = float(np.sum(rho))
-    for i, m, sd in _priors(len(theta), gamma_prior, beta_prior):
+    for i, m, sd in prior_terms(len(theta), gamma_prior, beta_prior):
         cost += ((theta[i] - m) / sd) ** 2
     return cost, J.H_U[:, idx], r, e, s2, wt
 
@@ -229,7 +212,7 @@ def solve_from(
     c = robust_scale / sigma_range
     theta = np.asarray(theta0, float).copy()
     lam = 1e-4
-    priors = _priors(len(theta), gamma_prior, beta_prior)
+    priors = prior_terms(len(theta), gamma_prior, beta_prior)
     cost, Hu, r, e, s2, wt = ri_cost(w, theta, weighted, s2d, gamma_prior, robust, c, beta_prior)
     costs = [cost]
     iterations = 0
@@ -269,16 +252,6 @@ def solve_from(
 
 
 # ---------------------------------------------------------------------------------------------------------------
-def _psi_slope(e: np.ndarray, kind: str, c: float) -> np.ndarray:
-    """psi'(e) of the robust loss (psi = w e, `_loss` weight w): the curvature the estimate really has."""
-    a = np.abs(e)
-    if kind == "huber":
-        return (a <= c).astype(float)
-    if kind == "cauchy":
-        return (1.0 - (e / c) ** 2) / (1.0 + (e / c) ** 2) ** 2
-    raise ValueError(f"unknown robust loss {kind!r} (huber or cauchy)")
-
-
 def robust_noise_factor(e: np.ndarray, kind: str, c: float, quantile: float = 0.99) -> float:
     """Variance factor >= 1 of a robust fit's estimate: its M-estimator (sandwich) covariance relative to the
     IRLS covariance the fit reports.
@@ -293,7 +266,7 @@ def robust_noise_factor(e: np.ndarray, kind: str, c: float, quantile: float = 0.
     ``quantile`` (evidence of heavy tails; clean ranges keep 1)."""
     e = np.asarray(e, float)
     e = e[np.isfinite(e)]
-    _, w = _loss(e, kind, c)
+    _, w = robust_loss(e, kind, c)
     w2 = float(np.sum(w**2))
     if len(e) < 2 or w2 <= 0:
         return 1.0
@@ -301,7 +274,7 @@ def robust_noise_factor(e: np.ndarray, kind: str, c: float, quantile: float = 0.
     n_eff = max(round(w2**2 / float(np.sum(w**4))), 1)
     if f_psi <= chi2_ppf(quantile, n_eff) / n_eff:
         return 1.0
-    slope = float(np.sum(_psi_slope(e, kind, c)))
+    slope = float(np.sum(psi_slope(e, kind, c)))
     curv = (float(np.sum(w)) / slope) ** 2 if slope > 0 else 1.0
     return max(f_psi * curv, 1.0)
 
@@ -370,8 +343,7 @@ def initialize_anchor(
     )
     fits = _multi_start(w, kw, n_perturbed, seed)
     lbl_best, _, best = min(fits, key=lambda f: f[2].cost)
-    b0 = float(beta_prior[0]) if beta_prior is not None else 1.0
-    x = _x_u(best.theta, b0)
+    x = _x_u(best.theta, beta_prior)
     idx = _ABG if beta_prior is not None else _AG
     kappa = _inflation(w, best, kw, correlation_block_s)
     cov = _covariance(best, idx, kappa, gamma_prior, beta_prior, beta_sigma)
@@ -412,7 +384,7 @@ def _result(anchor, method, w, fits, lbl_best, best, est, robust, warns, verdict
         n_used=len(w) - (n_rej if robust else 0),
         n_rejected=n_rej,
         residual_rms=float(np.sqrt(np.mean(best.r**2))),
-        residual_robust_sigma=float(1.4826 * np.median(np.abs(best.r - np.median(best.r)))),
+        residual_robust_sigma=mad_sigma(best.r),
         warnings=warns,
         starts=starts,
         weights=best.weights if robust else np.ones(len(w)),
@@ -427,11 +399,10 @@ def _multi_start(w: InitWindow, kw: dict, n_perturbed: int, seed: int) -> list[t
     """(label, start, fit) of every start: the closed form and its mirror, the same with gamma at its prior
     mean, then ``n_perturbed`` starts around the best of those."""
     beta_prior, gamma_prior = kw["beta_prior"], kw["gamma_prior"]
-    b0 = float(beta_prior[0]) if beta_prior is not None else 1.0
 
     def full(th: np.ndarray) -> np.ndarray:
         """(p_a, gamma) start -> the solver's theta (with beta at its prior mean when it is estimated)."""
-        return np.r_[th[:3], b0, th[3]] if beta_prior is not None else th
+        return _x_u(th, beta_prior) if beta_prior is not None else th
 
     xyz = w.tag_xyz
     starts: list[tuple[str, np.ndarray]] = []
@@ -473,7 +444,7 @@ def _covariance(best: _Fit, idx, kappa: float, gamma_prior, beta_prior, beta_sig
     """(5, 5) covariance of x_U: the ranges' information shrunk by kappa, the priors' not; beta fixed: its
     prior variance."""
     prior_info = np.zeros(len(idx))
-    for i, _, sd in _priors(len(idx), gamma_prior, beta_prior):
+    for i, _, sd in prior_terms(len(idx), gamma_prior, beta_prior):
         prior_info[i] += 1.0 / sd**2
     cov = np.zeros((5, 5))
     try:

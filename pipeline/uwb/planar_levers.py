@@ -24,13 +24,14 @@ motion: unobservable anyway) and stays at the given arm's value.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
 from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR
-from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
+from uwbcal.pipeline.uwb.window import noise_inflation, plane_frame, subsample
 
 PLANAR_RATIO = 0.05  # out-of-plane extent (std) below this x the largest: the carrier moves in a plane
 MIN_TURN = 0.2  # circular variance 1 - |mean exp(i psi)| of the heading: the carrier turns enough
@@ -118,10 +119,7 @@ class PlanarLevers:
     def apply(self, windows: dict) -> dict:
         """The init windows with each range's body-frame arm from the estimated in-plane arms."""
         return {
-            a: InitWindow(w.d, self.body_arms(w.R, w.links()), w.R, w.p, w.P_pose, w.t_ns, w.link)
-            if len(w)
-            else w
-            for a, w in windows.items()
+            a: replace(w, p_T=self.body_arms(w.R, w.links())) if len(w) else w for a, w in windows.items()
         }
 
     def summary(self) -> dict:
@@ -236,8 +234,9 @@ def fit_planar_levers(
     B0 = np.asarray(B0, float)
     h0 = B0 @ n
     lam0 = np.asarray(lam0, float)
-    sw, lm = _prior_weight(lam_prior if estimate_lever else None, lam0, scale)
-    cols, mean, wts = _prior_rows(sw, lm, offset_prior, pres, nb)
+    # a prior residual of the arms' sigma weighs as one range residual of ``scale``
+    arms = None if lam_prior is None or not estimate_lever else (lam_prior[0], scale / float(lam_prior[1]))
+    cols, mean, wts = _prior_rows(arms, offset_prior, pres, nb)
 
     def unpack(x):
         B = x[: 2 * A].reshape(A, 2) @ basis + h0[:, None] * n
@@ -273,22 +272,24 @@ def fit_planar_levers(
     sol = least_squares(fun, x0, jac=jac, **opts)
     B, G, lam = unpack(sol.x)
     r = lever_residuals(data, B, G, lam, height, sense, e1, e2, n)[0]
-    c2 = scale**2
-    w = 1.0 / (1.0 + r**2 / c2)
+    rho, w = robust_loss(r, "cauchy", scale)
     J = jac(sol.x)[:N]
-    cost = float(np.sum(c2 * np.log1p(r**2 / c2)))
+    cost = float(np.sum(rho))
     return dict(B=B, G=G, lam=lam, cost=cost, r=r, w=w, info=(J * w[:, None]).T @ J, nb=nb, nfev=sol.nfev)
 
 
-def _prior_rows(sw: float, lam_mean: np.ndarray, offset_prior, seen: np.ndarray, nb: int):
-    """The priors as rows ``weight * (x[columns] - mean)``: the arms' (weight ``sw``, mean ``lam_mean``, after
-    the ``nb`` non-arm parameters) and the offsets' (``offset_prior`` = (mean per link, weight); ``seen``: the
-    (anchor, link) offsets in the parameter vector, after the anchors' in-plane positions)."""
-    A = seen.shape[0]
-    parts = [(nb + np.arange(lam_mean.size), lam_mean.ravel(), sw)] if sw else []
+def _prior_rows(arm_prior, offset_prior, seen: np.ndarray, nb: int):
+    """The priors, each (mean, weight of a prior residual against the ranges' metres) or None, as rows
+    ``weight * (x[columns] - mean)``: the arms' (mean (K, 2), after the ``nb`` non-arm parameters) and the
+    offsets' (mean per link; ``seen``: the (anchor, link) offsets in the parameter vector, after the anchors'
+    in-plane positions)."""
+    parts = []
+    if arm_prior is not None and arm_prior[1]:
+        mu = np.asarray(arm_prior[0], float).ravel()
+        parts.append((nb + np.arange(mu.size), mu, float(arm_prior[1])))
     if offset_prior is not None and offset_prior[1]:
         mu = np.broadcast_to(np.asarray(offset_prior[0], float), seen.shape)[seen]
-        parts.append((np.arange(2 * A, nb), mu, float(offset_prior[1])))
+        parts.append((np.arange(2 * seen.shape[0], nb), mu, float(offset_prior[1])))
     if not parts:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     cols, mean, w = zip(*parts, strict=True)
@@ -307,16 +308,6 @@ def _offset_layout(data: LeverData, A: int, K: int) -> tuple[np.ndarray, np.ndar
     gidx = -np.ones((A, K), np.int64)
     gidx[pres] = 2 * A + np.arange(int(pres.sum()))
     return pres, gidx, 2 * A + int(pres.sum())
-
-
-def _prior_weight(
-    lam_prior: tuple[np.ndarray, float] | None, lam0: np.ndarray, scale: float
-) -> tuple[float, np.ndarray]:
-    """The weight and mean of the arms' prior residuals: a prior residual of sigma weighs as one range residual of
-    ``scale`` (weight 0: no prior)."""
-    if lam_prior is None:
-        return 0.0, lam0
-    return scale / float(lam_prior[1]), np.asarray(lam_prior[0], float)
 
 
 def estimate_planar_levers(
@@ -340,14 +331,11 @@ def estimate_planar_levers(
     Returns None when the carrier does not move in a plane or does not turn enough to see the arms."""
     R = np.asarray(R, float).reshape(-1, 3, 3)
     p = np.asarray(p, float).reshape(-1, 3)
-    c, Vt, ext = plane_frame(p[subsample(len(p), 20000)])
-    if ext[0] <= 0 or ext[2] > PLANAR_RATIO * ext[0]:
+    _, Vt, head = _planar_carrier(R, p)
+    if head is None:
         return None
     n, e1 = Vt[2], Vt[0]
     e2 = np.cross(n, e1)
-    head = carrier_heading(R, n)
-    if head.turn < MIN_TURN:
-        return None
     keep_a = [a for a in starts if np.all(np.isfinite(starts[a][0]))]
     if not keep_a:
         return None
@@ -362,7 +350,7 @@ def estimate_planar_levers(
     data = _joint_data(keep_a, anchor, d, kk, p, head, R, t_ns)
     B0, G0 = _joint_start(starts, keep_a, links)
     fixed = fit_planar_levers(data, B0, G0, lam_given, height, 1, e1, e2, n, 0.5, estimate_lever=False)
-    scale = max(3.0 * _robust_sigma(fixed["r"]), 0.6 * sigma_range, 0.03)
+    scale = max(3.0 * mad_sigma(fixed["r"]), 0.6 * sigma_range, 0.03)
     fixed = fit_planar_levers(
         data, fixed["B"], fixed["G"], lam_given, height, 1, e1, e2, n, scale, estimate_lever=False
     )
@@ -372,13 +360,13 @@ def estimate_planar_levers(
         f = fit_planar_levers(data, B1, G1, lam_given, height, s, e1, e2, n, scale, lam_prior=prior)
         fits.append((f["cost"], s, f))
     _, sense, best = min(fits, key=lambda t: t[0])
-    sig = _robust_sigma(best["r"])
+    sig = mad_sigma(best["r"])
     kappa, lam_sigma = _arm_sigma(data, best, sig, K)
     whit = 1.0 / max(sig, 1e-6) ** 2
     dchi2 = float((fixed["cost"] - best["cost"]) * whit / kappa)
     info = {
         "residual_sigma_m": round(sig, 4),
-        "residual_sigma_given_m": round(_robust_sigma(fixed["r"]), 4),
+        "residual_sigma_given_m": round(mad_sigma(fixed["r"]), 4),
         "delta_chi2": round(dchi2, 1),
         "log_bayes_factor": round(_log_bayes(best, dchi2, whit / kappa, lam_given, prior_sigma_m), 1),
         "noise_inflation": round(float(kappa), 2),
@@ -397,7 +385,7 @@ def estimate_planar_levers(
 
 
 def _joint_data(keep_a, anchor, d, kk, p, head: CarrierHeading, R, t_ns) -> LeverData:
-    """Every kept anchor's ranges (evenly subsampled to `MAX_PER_ANCHOR`) as one `LeverData`."""
+    """Every kept anchor's finite ranges (evenly subsampled to `MAX_PER_ANCHOR`) as one `LeverData`."""
     sel, aidx = [], []
     for i, a in enumerate(keep_a):
         ii = np.flatnonzero((anchor == a) & np.isfinite(d))
@@ -405,6 +393,23 @@ def _joint_data(keep_a, anchor, d, kk, p, head: CarrierHeading, R, t_ns) -> Leve
         aidx.append(np.full(len(sel[-1]), i, np.int64))
     idx, aidx = np.concatenate(sel), np.concatenate(aidx)
     return LeverData(aidx, kk[idx], d[idx], p[idx], head.psi(R[idx]), None if t_ns is None else t_ns[idx])
+
+
+def _stacked(windows: dict) -> dict:
+    """The ranges of the non-empty ``windows`` (anchor -> InitWindow) stacked as `estimate_planar_levers` takes
+    them: poses, ranges, anchor ids, link ids, lever arms and stamps (None unless every window has them)."""
+    ws = {a: w for a, w in windows.items() if len(w)}
+    cat = lambda f: np.concatenate([f(w) for w in ws.values()])  # noqa: E731
+    stamped = all(w.t_ns is not None for w in ws.values())
+    return dict(
+        R=cat(lambda w: w.R),
+        p=cat(lambda w: w.p),
+        d=cat(lambda w: w.d),
+        anchor=np.concatenate([np.full(len(w), a, object) for a, w in ws.items()]),
+        link=cat(lambda w: w.links()),
+        given_arms=cat(lambda w: w.p_T),
+        t_ns=cat(lambda w: w.t_ns) if stamped else None,
+    )
 
 
 def _joint_start(starts: dict, keep_a: list, links: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -446,10 +451,6 @@ def _log_bayes(fit: dict, dchi2: float, whit: float, lam_given: np.ndarray, prio
     return 0.5 * dchi2 - 0.5 * penalty - 0.5 * float(occam)
 
 
-def _robust_sigma(r: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(r - np.median(r)))) if len(r) else float("nan")
-
-
 def choose_lever_arms(R: np.ndarray, p: np.ndarray, n_antennas: int = 2) -> tuple[str, str]:
     """``uwb.lever_arms = "auto"``: planar when the carrier carries several antennas (``n_antennas``), moves in a
     plane and turns (its arms are then seen apart from the anchors), else given. Returns (choice, why)."""
@@ -458,19 +459,21 @@ def choose_lever_arms(R: np.ndarray, p: np.ndarray, n_antennas: int = 2) -> tupl
     p = np.asarray(p, float).reshape(-1, 3)
     if len(p) < 10:
         return "given", "too few poses"
+    why, _, head = _planar_carrier(R, p)
+    return "given" if head is None else "planar", why
+
+
+def _planar_carrier(R: np.ndarray, p: np.ndarray) -> tuple[str, np.ndarray, CarrierHeading | None]:
+    """Whether the carrier's arms are seen apart from the anchors, and why: the principal axes of its positions
+    ``p`` (N, 3) (rows, the last the plane's normal) and its heading, None unless it moves in a plane and turns."""
     _, Vt, ext = plane_frame(p[subsample(len(p), 20000)])
     if ext[0] <= 0 or ext[2] > PLANAR_RATIO * ext[0]:
-        return "given", f"the carrier does not move in a plane (extents {ext.round(2).tolist()} m)"
-    head = carrier_heading(np.asarray(R, float).reshape(-1, 3, 3), Vt[2])
+        return f"the carrier does not move in a plane (extents {ext.round(2).tolist()} m)", Vt, None
+    head = carrier_heading(R, Vt[2])
+    turn = f"heading circular variance {head.turn:.2f}"
     if head.turn < MIN_TURN:
-        return (
-            "given",
-            f"planar carrier that barely turns (heading circular variance {head.turn:.2f} < {MIN_TURN})",
-        )
-    return (
-        "planar",
-        f"planar carrier that turns (heading circular variance {head.turn:.2f}): in-plane arms estimated",
-    )
+        return f"planar carrier that barely turns ({turn} < {MIN_TURN})", Vt, None
+    return f"planar carrier that turns ({turn}): in-plane arms estimated", Vt, head
 
 
 def planar_windows(
@@ -485,28 +488,12 @@ def planar_windows(
     for a, w in windows.items():
         if len(w) == 0:
             continue
-        keep = np.zeros(len(w), bool)
-        keep[subsample(len(w), max_search)] = True
-        sr = search(w.subset(keep))
+        sr = search(w.subset(subsample(len(w), max_search)))
         if sr.ok:
             starts[a] = (sr.p, {int(lk): float(g) for lk, g in zip(sr.links, sr.gamma, strict=True)})
     if not starts:
         return windows, None
-    ws = [w for w in windows.values() if len(w)]
-    cat = lambda f: np.concatenate([f(w) for w in ws])  # noqa: E731
-    anchor = np.concatenate([np.full(len(w), a, object) for a, w in windows.items() if len(w)])
-    t = None if any(w.t_ns is None for w in ws) else cat(lambda w: w.t_ns)
-    pl = estimate_planar_levers(
-        cat(lambda w: w.R),
-        cat(lambda w: w.p),
-        cat(lambda w: w.d),
-        anchor,
-        cat(lambda w: w.links()),
-        cat(lambda w: w.p_T),
-        starts,
-        t_ns=t,
-        sigma_range=sigma_range,
-    )
+    pl = estimate_planar_levers(**_stacked(windows), starts=starts, sigma_range=sigma_range)
     if pl is None or pl.info["log_bayes_factor"] <= np.log(
         BAYES_FACTOR
     ):  # the arms enter by the evidence rule
@@ -525,7 +512,7 @@ def shared_offsets(G: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, float] 
     Gm = np.where(seen, G, np.nan)
     mu = np.nanmedian(Gm, axis=0)
     dev = (Gm - mu)[seen]
-    return mu, max(_robust_sigma(dev), MIN_OFFSET_SPREAD)
+    return mu, max(mad_sigma(dev), MIN_OFFSET_SPREAD)
 
 
 def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_range: float) -> dict:
@@ -541,25 +528,14 @@ def refit_searches(levers: PlanarLevers, windows: dict, searches: dict, sigma_ra
     ok = {a: s for a, s in searches.items() if s is not None and s.ok and len(windows[a])}
     if not ok:
         return searches
-    ws = {a: windows[a] for a in ok}
-    keep_a = list(ok)
-    links = levers.links
-    sel_d, sel_a, sel_k, sel_p, sel_psi = [], [], [], [], []
-    for i, a in enumerate(keep_a):
-        w = ws[a]
-        j = subsample(len(w), MAX_PER_ANCHOR)
-        fin = np.isfinite(w.d[j])
-        j = j[fin]
-        sel_d.append(w.d[j])
-        sel_a.append(np.full(len(j), i, np.int64))
-        sel_k.append(np.searchsorted(links, w.links()[j]).clip(0, len(links) - 1))
-        sel_p.append(w.p[j])
-        sel_psi.append(levers.heading.psi(w.R[j]))
-    data = LeverData(*(np.concatenate(x) for x in (sel_a, sel_k, sel_d, sel_p, sel_psi)))
+    keep_a, links = list(ok), levers.links
+    s = _stacked({a: windows[a] for a in keep_a})
+    kk = np.searchsorted(links, s["link"]).clip(0, len(links) - 1)
+    data = _joint_data(keep_a, s["anchor"], s["d"], kk, s["p"], levers.heading, s["R"], None)
     B0 = np.stack([ok[a].p for a in keep_a])
     G0 = np.stack([[ok[a].gamma_of(np.array([lk]))[0] for lk in links] for a in keep_a])
     args = (levers.height, levers.sense, levers.e1, levers.e2, levers.heading.normal)
-    s0 = _robust_sigma(lever_residuals(data, B0, G0, levers.lam, *args)[0])
+    s0 = mad_sigma(lever_residuals(data, B0, G0, levers.lam, *args)[0])
     scale = max(3.0 * s0, 0.6 * sigma_range, 0.03)
     f = fit_planar_levers(data, B0, G0, levers.lam, *args, scale, estimate_lever=False)
     shared = shared_offsets(f["G"], _offset_layout(data, len(keep_a), len(links))[0])

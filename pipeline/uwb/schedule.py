@@ -21,8 +21,6 @@ import numpy as np
 from uwbcal.pipeline.uwb.evidence import AnchorFit
 from uwbcal.pipeline.uwb.window import InitWindow
 
-SCHEDULES = ("windows", "per-anchor")
-
 
 def choose_schedule(
     t_ns: np.ndarray,
@@ -91,18 +89,13 @@ def join_time(
     the anchor's Jacobians at its first estimate (FEJ), whose direction error is sigma / range."""
     assert window.t_ns is not None, "join_time needs time-stamped ranges"
     ends = candidate_ends(window.t_ns, init_end_ns, steps) if per_anchor else [int(init_end_ns)]
-    last: Join | None = None
-    for te in ends:
+    for te in ends:  # the last end is never passed over: it ends the search
         m = window.t_ns < te
         if int(m.sum()) < min_ranges and te != ends[-1]:
             continue
         sub = window.subset(m)
         sr = search(sub)
-        last = Join(te if sr.ok else None, sub, sr)
         bar = None if join_sigma is None else min(join_sigma, join_ratio * float(np.median(sub.d)))
-        if sr.ok and (bar is None or te == ends[-1] or sr.sigma_horizontal <= bar):
-            return last
-    if last is None:  # no prefix at all
-        sub = window.subset(window.t_ns < ends[-1])
-        last = Join(None, sub, search(sub))
-    return last
+        if te == ends[-1] or (sr.ok and (bar is None or sr.sigma_horizontal <= bar)):
+            break
+    return Join(te if sr.ok else None, sub, sr)

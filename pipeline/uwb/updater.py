@@ -18,7 +18,7 @@ import numpy as np
 
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import quat_slerp, quat_to_rot
-from uwbcal.pipeline.core.series import sliding_mean
+from uwbcal.pipeline.core.series import bracket, sliding_mean
 from uwbcal.pipeline.core.state import (
     Kind,
     State,
@@ -26,6 +26,7 @@ from uwbcal.pipeline.core.state import (
     Vec,
     chi2_ppf,
     ekf_update,
+    nearest_psd,
     remove_probes,
     schmidt_update,
 )
@@ -38,7 +39,7 @@ from uwbcal.pipeline.uwb.evidence import (
     init_result,
     not_determined,
 )
-from uwbcal.pipeline.uwb.initializer import InitResult, initialize_anchor
+from uwbcal.pipeline.uwb.initializer import InitResult, initialize_anchor, prior_terms
 from uwbcal.pipeline.uwb.model import jacobians, range_model, range_variance
 from uwbcal.pipeline.uwb.window import InitWindow
 
@@ -104,19 +105,12 @@ def range_lever_arms(calibration: Mapping, tag: np.ndarray, antenna: np.ndarray)
 
 # -----------------------------------------------------------------------------------------------------------------
 def interpolate_poses(traj: Mapping[str, np.ndarray], t_ns: np.ndarray):
-    """Pose (R, p) and 6x6 covariance linearly interpolated (slerp for R) at ``t_ns``; mask of stamps inside."""
+    """Pose (R, p) and 6x6 covariance linearly interpolated (slerp for R) at the stamps ``t_ns`` inside the
+    trajectory's span (`series.bracket`); mask of those."""
     tt = np.asarray(traj["t_ns"], np.int64)
     t_ns = np.asarray(t_ns, np.int64)
-    inside = (t_ns >= tt[0]) & (t_ns <= tt[-1]) if len(tt) else np.zeros(len(t_ns), bool)
-    t = t_ns[inside]
-    i1 = (
-        np.clip(np.searchsorted(tt, t, side="right"), 1, len(tt) - 1)
-        if len(tt) > 1
-        else np.zeros(len(t), int)
-    )
-    i0 = np.maximum(i1 - 1, 0)
-    dt = (tt[i1] - tt[i0]).astype(float)
-    s = np.where(dt > 0, (t - tt[i0]) / np.where(dt > 0, dt, 1.0), 0.0)
+    inside = (t_ns >= tt[0]) & (t_ns <= tt[-1]) if len(tt) > 1 else np.zeros(len(t_ns), bool)
+    i0, i1, s = bracket(tt, t_ns[inside])
     p = traj["p"][i0] + s[:, None] * (traj["p"][i1] - traj["p"][i0])
     q = quat_slerp(traj["q_xyzw"][i0], traj["q_xyzw"][i1], s)
     cov = traj["cov"][i0] + s[:, None, None] * (traj["cov"][i1] - traj["cov"][i0])
@@ -168,10 +162,6 @@ def auto_init_method(dataset: str | None) -> str:
     return "ri" if str(dataset or "simulation").lower() == "simulation" else "ri-robust"
 
 
-def _method(m: str) -> str:
-    return auto_init_method(None) if m == "auto" else m
-
-
 def initialize_anchors(
     windows: Mapping[Any, InitWindow],
     config: UwbConfig,
@@ -186,7 +176,8 @@ def initialize_anchors(
     multi-start (`initializer.initialize_anchor`). ``cheap``: the evidence fit's model-mixture covariance only (an
     initialiser run for comparison)."""
     sigma = config.sigma(calibration) * config.sigma_scale
-    method = _method(method or config.init_method)
+    method = method or config.init_method
+    method = auto_init_method(None) if method == "auto" else method
     out = {}
     searches = searches if searches is not None else {}
     for a, w in windows.items():
@@ -237,24 +228,6 @@ def evidence_spec(config: UwbConfig, sigma: float, calibration: Mapping | None, 
     )
 
 
-def _evidence_fit(
-    w: InitWindow,
-    config: UwbConfig,
-    sigma: float,
-    calibration: Mapping | None,
-    method: str,
-    cheap: bool = False,
-) -> AnchorFit:
-    """`evidence.fit_anchor` on an init window: the robust position fit, the range model the evidence chooses,
-    the anchor's weak directions (or "not determined" with the reason); RI and RI-robust weigh each range by the
-    pose's uncertainty along its line of sight, LSI does not."""
-    spec = replace(evidence_spec(config, sigma, calibration, method), refine_cov=not cheap)
-    pos_cov = None
-    if method != "lsi":
-        pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
-    return fit_anchor(w.tag_xyz, w.d, w.links(), t_ns=w.t_ns, pos_cov=pos_cov, spec=spec)
-
-
 def search_window(
     w: InitWindow,
     config: UwbConfig,
@@ -263,8 +236,10 @@ def search_window(
     method: str = "ri-robust",
     cheap: bool = False,
 ) -> AnchorFit:
-    """The evidence fit of an init window (`evidence.fit_anchor`; ``cheap``: its model-mixture covariance only,
-    for a start), or "not determined" when the anchor was ranged for less than ``min_duration_s``."""
+    """The evidence fit of an init window (`evidence.fit_anchor`): the robust position fit, the range model the
+    evidence chooses, the anchor's weak directions (``cheap``: its model-mixture covariance only, for a start), or
+    "not determined" with the reason (also when the anchor was ranged for less than ``min_duration_s``); RI and
+    RI-robust weigh each range by the pose's uncertainty along its line of sight, LSI does not."""
     if len(w) == 0:
         return not_determined("no ranges", 0, np.zeros(0, np.int64))
     if w.t_ns is not None and (w.t_ns.max() - w.t_ns.min()) * 1e-9 < config.min_duration_s:
@@ -272,16 +247,14 @@ def search_window(
         return not_determined(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
-    return _evidence_fit(w, config, sigma, calibration, method, cheap)
+    spec = replace(evidence_spec(config, sigma, calibration, method), refine_cov=not cheap)
+    pos_cov = None
+    if method != "lsi":
+        pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2
+    return fit_anchor(w.tag_xyz, w.d, w.links(), t_ns=w.t_ns, pos_cov=pos_cov, spec=spec)
 
 
 # -----------------------------------------------------------------------------------------------------------------
-def _psd(A: np.ndarray) -> np.ndarray:
-    A = 0.5 * (A + np.swapaxes(A, -1, -2))
-    w, V = np.linalg.eigh(A)
-    return (V * np.maximum(w, 0.0)[..., None, :]) @ np.swapaxes(V, -1, -2)
-
-
 def anchor_init_covariance(
     result: InitResult,
     state: State,
@@ -336,12 +309,9 @@ def anchor_init_covariance(
     pr = state.probes
     if pr and w.t_ns is not None:
         Jd, cov = _probe_map(state, B, np.asarray(t_k, np.int64), pr)
-    elif pose_correlation_s is not None and w.t_ns is not None:
-        Jd, cov = _gauss_markov_map(
-            state, B, w, np.asarray(t_k, np.int64), pose_var or state.nav, pose_correlation_s
-        )
-    else:
-        Jd, cov = _random_walk_map(state, B, w, t_k, pose_var or state.nav)
+    else:  # bounded pose errors (a correlation time) need stamps
+        tau = pose_correlation_s if w.t_ns is not None else None
+        Jd, cov = _pose_error_map(state, B, w, np.asarray(t_k, np.int64), pose_var or state.nav, tau)
     # range noise (robust weights are inside a_k), inflated by kappa for time-correlated errors
     cov += result.noise_inflation * sigma_range**2 * (La.T @ La)
     if links is not None and result.link_offsets:
@@ -351,16 +321,16 @@ def anchor_init_covariance(
         g_beta[3] = 1.0
         g_beta -= L @ (a.T @ J.rho)
         cov += np.outer(g_beta, g_beta) * beta_sigma**2
-    for i, sd in priors:  # the error of each prior mean, N(0, sd^2), enters through G^-1 e_i / sd^2
+    for i, _, sd in priors:  # the error of each prior mean, N(0, sd^2), enters through G^-1 e_i / sd^2
         gp = L @ Ginv[:, i] / sd
         cov += np.outer(gp, gp)
-    return Jd, _psd(cov)
+    return Jd, nearest_psd(cov)
 
 
 def _estimator_gain(result: InitResult, sigma_range: float, gamma_prior, beta_sigma: float):
     """The initialiser's linearised error map over its window: the Jacobians J, the selection L (5,na) of the
     estimated parameters, G^-1 of the weighted normal equations with the priors, the gains a_k = G^-1 H_Bk^T w_k
-    (n,na) and the priors as (column, sigma)."""
+    (n,na) and the priors (`initializer.prior_terms`)."""
     w, x = result.window, result.x
     J = jacobians(w.R, w.p, w.p_T, x)
     ag = list(result.params)
@@ -372,10 +342,8 @@ def _estimator_gain(result: InitResult, sigma_range: float, gamma_prior, beta_si
         s2, _ = range_variance(w.R, w.p, w.p_T, x, w.P_pose, sigma_range**2)
     wk = (result.weights if result.weights is not None else np.ones(len(w))) / s2
     G = (HB * wk[:, None]).T @ HB
-    priors = [(na - 1, float(gamma_prior[1]))] if gamma_prior is not None else []
-    if 3 in ag:
-        priors.append((3, beta_sigma))
-    for i, sd in priors:
+    priors = prior_terms(na, gamma_prior, (1.0, beta_sigma))
+    for i, _, sd in priors:
         G[i, i] += 1.0 / sd**2
     Ginv = np.linalg.inv(G)
     L = np.zeros((5, na))
@@ -412,69 +380,54 @@ def _probe_map(
     return Jd, np.zeros((5, 5))
 
 
-def _gauss_markov_map(
-    state: State, B: np.ndarray, w: InitWindow, t_ns: np.ndarray, pose_var: str, tau_s: float
+def _pose_error_map(
+    state: State, B: np.ndarray, w: InitWindow, t_ns: np.ndarray, pose_var: str, tau_s: float | None
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Bounded pose errors (no probes): world-frame errors stationary with correlation exp(-|dt| / tau), the
-    pose source's bounded model. The ranges are pooled in bins of tau / 10 (B summed, the covariance averaged);
-    Cov(e_i, e_j) = rho_ij (P_i + P_j) / 2, Cov(e_i, e_now) = rho_i,now P_i with "now" the window's last stamp;
-    the part correlated with the current pose enters J[pose_var], the rest Q."""
+    """No probes: the window's world-frame pose errors modelled from their marginal covariances, the part
+    correlated with the current pose in J[pose_var], the rest in Q. ``tau_s`` None: the random walk of
+    `anchor_init_covariance`; else bounded errors (the pose source's model), stationary with correlation
+    exp(-|dt| / tau): the ranges pooled in bins of tau / 10 (B summed, the covariance averaged),
+    Cov(e_i, e_j) = rho_ij (P_i + P_j) / 2, Cov(e_i, e_now) = rho_i,now P_i with "now" the window's last stamp,
+    Q clipped to PSD."""
     T = np.zeros((len(B), 6, 6))
     T[:, 0:3, 0:3] = w.R
     T[:, 3:6, 3:6] = np.eye(3)
     PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
-    t = (t_ns - t_ns.min()) * 1e-9
-    h = max(tau_s / 10.0, 1e-3)
-    b = np.floor(t / h).astype(np.int64)
-    ub, inv = np.unique(b, return_inverse=True)
-    nb = len(ub)
-    Bb = np.zeros((nb, 5, 6))
-    np.add.at(Bb, inv, B)
-    cnt = np.bincount(inv, minlength=nb).astype(float)
-    Pb = np.zeros((nb, 6, 6))
-    np.add.at(Pb, inv, PW)
-    Pb /= cnt[:, None, None]
-    tb = np.bincount(inv, weights=t, minlength=nb) / cnt
-    rho = np.exp(-np.abs(tb[:, None] - tb[None, :]) / tau_s)
-    BP = np.einsum("bij,bjk->bik", Bb, Pb)  # B_b P_b
-    # sum_ij rho_ij B_i (P_i + P_j)/2 B_j^T
-    cov_pose = 0.5 * (np.einsum("ab,aij,bkj->ik", rho, BP, Bb) + np.einsum("ab,aij,bkj->ik", rho, Bb, BP))
-    rn = np.exp(-(t.max() - tb) / tau_s)
+    if tau_s is None:
+        order = np.argsort(t_ns, kind="stable")
+        Bo = B[order]
+        dP = nearest_psd(np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6))))
+        S = np.cumsum(Bo[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
+        cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
+        C = np.einsum("nij,njk->ik", Bo, np.cumsum(dP, axis=0))  # with the P_k the random walk implies
+    else:
+        t = (t_ns - t_ns.min()) * 1e-9
+        h = max(tau_s / 10.0, 1e-3)
+        b = np.floor(t / h).astype(np.int64)
+        ub, inv = np.unique(b, return_inverse=True)
+        nb = len(ub)
+        Bb = np.zeros((nb, 5, 6))
+        np.add.at(Bb, inv, B)
+        cnt = np.bincount(inv, minlength=nb).astype(float)
+        Pb = np.zeros((nb, 6, 6))
+        np.add.at(Pb, inv, PW)
+        Pb /= cnt[:, None, None]
+        tb = np.bincount(inv, weights=t, minlength=nb) / cnt
+        rho = np.exp(-np.abs(tb[:, None] - tb[None, :]) / tau_s)
+        BP = np.einsum("bij,bjk->bik", Bb, Pb)  # B_b P_b
+        # sum_ij rho_ij B_i (P_i + P_j)/2 B_j^T
+        cov_pose = 0.5 * (np.einsum("ab,aij,bkj->ik", rho, BP, Bb) + np.einsum("ab,aij,bkj->ik", rho, Bb, BP))
+        C = np.einsum("b,bij->ij", np.exp(-(t.max() - tb) / tau_s), BP)
     Tn = np.eye(6)
     Tn[0:3, 0:3] = state.value(pose_var).R
-    C = np.einsum("b,bij->ij", rn, BP) @ Tn
+    C = C @ Tn  # Cov(x~_U, e_now (body))
     P_now = state.cov(pose_var)[0:6, 0:6]
     P_now = 0.5 * (P_now + P_now.T)
     Jn = np.linalg.solve(P_now.T, C.T).T
     Jfull = np.zeros((5, state.dim(pose_var)))
     Jfull[:, 0:6] = Jn
-    return {pose_var: Jfull}, _psd(cov_pose - Jn @ P_now @ Jn.T)
-
-
-def _random_walk_map(
-    state: State, B: np.ndarray, w: InitWindow, t_k: np.ndarray, pose_var: str
-) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """The random-walk model of `anchor_init_covariance` (no probes): J on the current pose, the rest in Q."""
-    n = len(B)
-    T = np.zeros((n, 6, 6))
-    T[:, 0:3, 0:3] = w.R
-    T[:, 3:6, 3:6] = np.eye(3)
-    PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
-    order = np.argsort(t_k, kind="stable")
-    Bo = B[order]
-    dP = _psd(np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6))))
-    S = np.cumsum(Bo[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
-    cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
-    Pk = np.cumsum(dP, axis=0)  # implied P_k under the random-walk model
-    Tn = np.eye(6)
-    Tn[0:3, 0:3] = state.value(pose_var).R
-    C = np.einsum("nij,njk->ik", Bo, Pk) @ Tn  # Cov(x~_U, e_now (body))
-    P_now = state.cov(pose_var)[0:6, 0:6]
-    P_now = 0.5 * (P_now + P_now.T)
-    Jn = np.linalg.solve(P_now.T, C.T).T
-    Jfull = np.zeros((5, state.dim(pose_var)))
-    Jfull[:, 0:6] = Jn
-    return {pose_var: Jfull}, cov_pose - Jn @ P_now @ Jn.T
+    Q = cov_pose - Jn @ P_now @ Jn.T
+    return {pose_var: Jfull}, Q if tau_s is None else nearest_psd(Q)
 
 
 def add_anchor_to_state(
@@ -506,7 +459,7 @@ def add_anchor_to_state(
     if result.link_offsets and result.link_cov is not None:
         links = link_var(anchor)
         offsets = np.array(list(result.link_offsets.values()), float)
-        Q_links = _psd(np.asarray(result.link_cov, float))
+        Q_links = nearest_psd(np.asarray(result.link_cov, float))
         state.augment(links, Vec(offsets), {}, Q=Q_links, kind=Kind.LINK, key=anchor)
     J, Q = anchor_init_covariance(
         result,
@@ -723,61 +676,8 @@ class UwbUpdater:
         return self.update_epoch(estimator.state, batch)
 
     def update(self, state: State, meas: RangeMeasurement) -> UpdateResult | None:
-        name = anchor_var(meas.anchor)
-        in_state = name in state or (bool(self.pending) and self._join(state, meas))
-        if self.mode == "frozen" and meas.anchor in self.frozen:
-            x_cur = x_lin = self.frozen[meas.anchor]
-        elif in_state:
-            x_cur = state.value(name).x
-            x_lin = state.fej(name).x
-        else:
-            self.counts["skipped"] += 1
-            return None
-        pose_var = self.pose_var or state.nav
-        pose = state.value(pose_var)
-        # Jacobians at the first estimates of pose and anchor (FEJ: a range at a camera stamp comes after that
-        # frame's update, when the pose estimate already differs from its propagated first estimate)
-        pose_lin = state.fej(pose_var)
-        p_T = self._arms(pose_lin.R, [meas])[0]
-        J = jacobians(pose_lin.R, pose_lin.p, p_T, x_lin)
-        same = (
-            pose_lin is pose or (np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R))
-        ) and (x_lin is x_cur or np.array_equal(x_lin, x_cur))
-        h = J.h[0] if same else range_model(pose.R, pose.p, p_T, x_cur)[0]
-        d = meas.distance
-        lvar, lcol = None, -1
-        if self.link_offsets:
-            off, lvar, lcol = self._offset(state, meas)
-            d -= off
-        r = float(d - h)
-        R0 = (self.sigma * x_cur[3]) ** 2
-        R = self.inflation.get(meas.anchor, 1.0) * R0
-        robust = None
-        if self.robust is not None:  # scale in sigmas of the per-sample noise, as at init
-            robust = (self.robust[0], self.robust[1] / (self.sigma * x_cur[3]))
-        if meas.anchor in self.fixed_height:
-            J.H_U[:, 2] = 0.0
-        H_imu = np.zeros((1, state.dim(pose_var)))
-        H_imu[:, 0:6] = J.H_I
-        H = {pose_var: H_imu}
-        if in_state:  # a frozen anchor outside the state has no covariance to consider
-            H[name] = J.H_U
-            if lvar is not None:
-                H[lvar] = np.zeros((1, state.dim(lvar)))
-                H[lvar][0, lcol] = 1.0
-        if self.mode == "none":  # record only: NIS of the would-be joint update
-            S = R + sum(
-                float((Ha @ state.cov(a, b) @ Hb.T).squeeze()) for a, Ha in H.items() for b, Hb in H.items()
-            )
-            res = UpdateResult(True, r * r / S, 1, None)
-            self.counts["recorded"] += 1
-        else:
-            options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0}
-            res = self._apply(state, H, np.array([r]), R, options)
-            self.counts["accepted" if res.accepted else "rejected"] += 1
-        x, P = (state.value(name).x.copy(), state.cov(name).copy()) if in_state else (x_cur, None)
-        self._record(meas, x, P, r, res.nis, not res.accepted)
-        return res
+        """One range: the epoch of it alone (`update_epoch`)."""
+        return self.update_epoch(state, [meas])
 
     def _apply(self, state: State, H: dict, r: np.ndarray, R, options: dict) -> UpdateResult:
         """One update in the updater's mode: ``frozen`` considers the anchors (the ranges correct the pose only),
@@ -802,21 +702,46 @@ class UwbUpdater:
     def update_epoch(self, state: State, batch: Sequence[RangeMeasurement]) -> UpdateResult | None:
         """All ranges of one epoch (the same stamp, hence the same pose) in one stacked `ekf_update`: block
         Jacobians (the pose block of every row, each anchor's block on its rows), per-row gate / robust weight
-        on the marginal innovation variance (``per_row``), one covariance update. One range: exactly `update`.
-        Mode ``none`` records each range as `update` does. The records get the anchor state after the epoch."""
-        if len(batch) == 1 or self.mode == "none":
-            res = None
-            for meas in batch:
-                res = self.update(state, meas)
-            return res
+        on the marginal innovation variance (``per_row``; one range: the scalar update), one covariance update.
+        Mode ``none`` only records each range's NIS of the would-be update. The records get the anchor state
+        after the epoch."""
         rows, names, xs_cur, xs_lin = self._epoch_rows(state, batch)
-        if len(rows) <= 1:
-            return self.update(state, rows[0]) if rows else None
+        if not rows:
+            return None
+        k = len(rows)
+        H, r, R, sig = self._epoch_model(state, rows, names, np.stack(xs_cur), np.stack(xs_lin))
+        if self.mode == "none":  # record only: each range's NIS of the would-be joint update
+            S = R[0] + np.diag(sum(Ha @ state.cov(a, b) @ Hb.T for a, Ha in H.items() for b, Hb in H.items()))
+            nis, ok = r * r / S, np.ones(k, bool)
+            res = UpdateResult(True, float(np.sum(nis)), k, None, nis, ok)
+            self.counts["recorded"] += k
+        else:  # the robust scale in sigmas of the per-sample noise, as at init
+            robust = None if self.robust is None else (self.robust[0], self.robust[1] / sig)
+            options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": sig**2, "per_row": True}
+            res = self._apply(state, H, r, R, options)
+            one = res.row_accepted is None  # one row: the scalar update
+            ok = np.array([res.accepted]) if one else res.row_accepted
+            nis = np.array([res.nis]) if one else res.row_nis
+            self.counts["accepted"] += int(ok.sum())
+            self.counts["rejected"] += int(k - ok.sum())
+        after = {n: (state.value(n).x.copy(), state.cov(n).copy()) for n in set(names) if n in state}
+        for i, (meas, name) in enumerate(zip(rows, names, strict=True)):
+            x, P = after.get(name, (xs_cur[i], None))
+            self._record(meas, x, P, r[i], nis[i], not ok[i])
+        return res
+
+    def _epoch_model(
+        self, state: State, rows: list, names: list, X_cur: np.ndarray, X_lin: np.ndarray
+    ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+        """The stacked model of an epoch's judged ranges ``rows`` (anchor variables ``names``, their current and
+        first estimates): the Jacobian blocks, the residuals (the links' offsets taken off), the noise variances
+        (1, k) (inflated per anchor) and the per-sample sigmas."""
         k = len(rows)
         pose_var = self.pose_var or state.nav
+        # Jacobians at the first estimates of pose and anchor (FEJ: a range at a camera stamp comes after that
+        # frame's update, when the pose estimate already differs from its propagated first estimate)
         pose, pose_lin = state.value(pose_var), state.fej(pose_var)
         p_T = self._arms(pose_lin.R, rows)
-        X_cur, X_lin = np.stack(xs_cur), np.stack(xs_lin)
         J = jacobians(pose_lin.R, pose_lin.p, p_T, X_lin)
         same_pose = pose_lin is pose or (
             np.array_equal(pose_lin.p, pose.p) and np.array_equal(pose_lin.R, pose.R)
@@ -830,15 +755,11 @@ class UwbUpdater:
                 d[i] -= off
                 if lvar is not None:
                     link_rows.append((i, lvar, lcol))
-        r = d - h
         sig = self.sigma * X_cur[:, 3]
-        R0 = sig**2
-        R = (np.array([self.inflation.get(m.anchor, 1.0) for m in rows]) * R0)[None, :]
-        robust = None if self.robust is None else (self.robust[0], self.robust[1] / sig)
+        R = (np.array([self.inflation.get(m.anchor, 1.0) for m in rows]) * sig**2)[None, :]
         H_imu = np.zeros((k, state.dim(pose_var)))
         H_imu[:, 0:6] = J.H_I
         H: dict[str, np.ndarray] = {pose_var: H_imu}
-        options = {"chi2_gate": self.chi2_quantile, "robust": robust, "robust_R": R0, "per_row": True}
         for i, name in enumerate(names):
             if name in state:  # frozen: only the anchors of the state have a covariance to consider
                 H.setdefault(name, np.zeros((k, 5)))[i] = J.H_U[i]
@@ -846,15 +767,7 @@ class UwbUpdater:
                     H[name][i, 2] = 0.0
         for i, lvar, lcol in link_rows:
             H.setdefault(lvar, np.zeros((k, state.dim(lvar))))[i, lcol] = 1.0
-        res = self._apply(state, H, r, R, options)
-        ok = res.row_accepted
-        self.counts["accepted"] += int(ok.sum())
-        self.counts["rejected"] += int(k - ok.sum())
-        after = {n: (state.value(n).x.copy(), state.cov(n).copy()) for n in set(names) if n in state}
-        for i, (meas, name) in enumerate(zip(rows, names, strict=True)):
-            x, P = after.get(name, (xs_cur[i], None))
-            self._record(meas, x, P, r[i], res.row_nis[i], not ok[i])
-        return res
+        return H, d - h, R, sig
 
     def _epoch_rows(self, state: State, batch: Sequence[RangeMeasurement]) -> tuple[list, list, list, list]:
         """The epoch's ranges the updater judges (an anchor in the state, joining it, or frozen) with their anchor

@@ -39,6 +39,7 @@ class InitWindow:
         return self.d.shape[0]
 
     def subset(self, mask: np.ndarray) -> InitWindow:
+        """The ranges ``mask`` selects (a boolean mask or indices)."""
         t = None if self.t_ns is None else self.t_ns[mask]
         lk = None if self.link is None else self.link[mask]
         return InitWindow(self.d[mask], self.p_T[mask], self.R[mask], self.p[mask], self.P_pose[mask], t, lk)
