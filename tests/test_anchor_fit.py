@@ -94,7 +94,7 @@ def test_the_basins_evidence_sums_over_the_range_models():
             1e4 * np.eye(k),
             np.zeros(1),
             np.ones(1),
-            z,
+            log_evidence=z,
         )
 
     models = [
