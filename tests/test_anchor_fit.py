@@ -170,6 +170,21 @@ def test_range_scale_on_a_one_sided_arc():
     assert kept == 3
 
 
+def test_the_pose_sigma_floor_is_added_once():
+    """The evidence fit an initialisation makes itself is the one the stage makes and hands it."""
+    rng = np.random.default_rng(6)
+    t = np.linspace(0, 120, 1200)
+    xyz = np.c_[5 * np.cos(t / 9), 4 * np.sin(t / 7), 1.0 + 0.8 * np.sin(t / 5)]
+    w = _window(xyz, _ranges(xyz, np.array([3.0, -2.0, 2.0]), 0.0, 0.1, rng), t)
+    cfg = UwbConfig(pose_sigma_floor_m=0.3)
+    own = initialize_anchors({0: w}, cfg, None, method="ri")[0]
+    handed = initialize_anchors(
+        {0: w}, cfg, None, method="ri", searches={0: search_window(w, cfg, 0.1, None, "ri")}
+    )[0]
+    np.testing.assert_allclose(own.x, handed.x, atol=1e-9)
+    np.testing.assert_allclose(own.cov, handed.cov, rtol=1e-9, atol=1e-12)
+
+
 def test_too_few_or_too_short_never_enters_the_filter():
     rng = np.random.default_rng(5)
     t = np.linspace(0, 2.0, 20)  # 20 ranges over 2 s

@@ -180,12 +180,14 @@ def initialize_anchors(
     method = auto_init_method(None) if method == "auto" else method
     out = {}
     searches = searches if searches is not None else {}
-    for a, w in windows.items():
+    for a, raw in windows.items():
+        w = raw
         if config.pose_sigma_floor_m > 0:
             w = InitWindow(w.d, w.p_T, w.R, w.p, w.P_pose.copy(), w.t_ns, w.link)
             w.P_pose[:, 3:6, 3:6] += np.eye(3) * config.pose_sigma_floor_m**2
         if config.search:
-            sr = searches.get(a) or search_window(w, config, sigma, calibration, method, cheap)
+            # search_window adds the floor itself
+            sr = searches.get(a) or search_window(raw, config, sigma, calibration, method, cheap)
             out[a] = init_result(w, sr, method, str(a), evidence_spec(config, sigma, calibration, method))
             continue
         out[a] = initialize_anchor(
