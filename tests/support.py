@@ -157,3 +157,22 @@ def naive_anchor(xyz, d):
 
     s = np.linalg.lstsq(np.c_[-2 * xyz, np.ones(len(d))], d**2 - np.sum(xyz**2, axis=1), rcond=None)[0]
     return least_squares(lambda p: np.linalg.norm(xyz - p, axis=1) - d, s[:3], loss="soft_l1", f_scale=0.1).x
+
+
+def surveyed_half(folder, half: int, out):
+    """The first (``half`` 0) or second (1) half in time of a surveyed folder, written to ``out`` as a folder of
+    the same layout: a recording of the same setup that the development never saw whole."""
+    import shutil
+
+    P = np.loadtxt(folder / "poses.tum", ndmin=2)
+    t0, t1 = P[0, 0], P[-1, 0]
+    lo, hi = t0 + half * (t1 - t0) / 2, t0 + (half + 1) * (t1 - t0) / 2
+    out.mkdir(parents=True, exist_ok=True)
+    keep = (P[:, 0] >= lo) & (P[:, 0] <= hi)
+    np.savetxt(out / "poses.tum", P[keep], fmt=["%.9f"] + ["%.9f"] * 7)
+    lines = (folder / "ranges.csv").read_text().splitlines()
+    rows = [r for r in lines[1:] if r and lo <= int(r.split(",")[0]) * 1e-9 <= hi]
+    (out / "ranges.csv").write_text("\n".join([lines[0], *rows]) + "\n")
+    for f in ("antennas.yaml", "anchors_truth.csv"):
+        shutil.copy(folder / f, out / f)
+    return out

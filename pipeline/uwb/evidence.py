@@ -253,14 +253,18 @@ def _irls(evaluate, theta, mu, Lam, f, sd, max_iter: int = 60):
     return theta, res
 
 
-def log_evidence(m: Model, spec: FitSpec, reach: float) -> float:
-    """Laplace log marginal likelihood of a fit, up to the constant every family of the anchor shares: the
-    deflated cost, the Occam factor of the information against the priors (the position's prior keeps the anchor
-    within ``reach`` of the tags)."""
-    _, prec = _prior(m.name, len(m.g), spec)
+def posterior_info(m: Model, reach: float) -> np.ndarray:
+    """The fit's information with the position's prior: the anchor within ``reach`` of the tags (N(., reach^2 I))."""
     A = m.info.copy()
     A[:3, :3] += np.eye(3) / reach**2
-    logdet = np.linalg.slogdet(A)[1]
+    return A
+
+
+def log_evidence(m: Model, spec: FitSpec, reach: float) -> float:
+    """Laplace log marginal likelihood of a fit, up to the constant every family of the anchor shares: the
+    deflated cost, the Occam factor of the information against the priors (`posterior_info`)."""
+    _, prec = _prior(m.name, len(m.g), spec)
+    logdet = np.linalg.slogdet(posterior_info(m, reach))[1]
     return float(-0.5 * m.cost - 0.5 * logdet + 0.5 * np.sum(np.log(prec[3:])) + 1.5 * np.log(reach**-2))
 
 
@@ -388,9 +392,7 @@ def mixture_cov(
     as the ranges allow it. Returns the covariance and that widening alone (3x3, PSD)."""
 
     def pos_cov(m: Model) -> np.ndarray:
-        A = m.info.copy()
-        A[:3, :3] += np.eye(3) / reach**2
-        return np.linalg.inv(A)
+        return np.linalg.inv(posterior_info(m, reach))
 
     C = pos_cov(chosen)
     every = list(models) + list(alternatives)
@@ -556,9 +558,8 @@ def pattern_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> np.ndarra
     diff = m.p - xyz
     u = -diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]  # anchor to tag
     sd = np.sqrt(s2)
-    A = m.info.copy()
-    A[:3, :3] += np.eye(3) / reach**2
-    G = np.linalg.solve(A, (m.J * (m.w / spec.deflate)[:, None]).T)[:3]  # (3, N): whitened ranges -> position
+    whitened = (m.J * (m.w / spec.deflate)[:, None]).T
+    G = np.linalg.solve(posterior_info(m, reach), whitened)[:3]  # (3, N): whitened ranges -> position
     M = G @ (u / sd[:, None])
     return spec.pattern_sigma**2 * M @ M.T
 
