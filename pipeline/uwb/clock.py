@@ -3,8 +3,8 @@ poses they belong to (a driver's filter, a radio link), and a range compared wit
 errs by the carrier's speed times that latency.
 
 `estimate_clock` scans the offset tau (ranges re-stamped t + tau) over ``[-max_s, max_s]``: at each tau every
-determined anchor's position is refitted (the base family of `evidence.fit_family`, each anchor's deflation kept)
-and their deflated robust costs summed; a parabola through the best grid point and its neighbours refines tau, its
+determined anchor is refitted in the family its evidence chose, with its range offset free in any case (each
+anchor's deflation kept), and their deflated robust costs summed; a parabola through the best grid point and its neighbours refines tau, its
 curvature gives sigma. The offset enters by the evidence rule of the anchors' optional parameters: its log evidence
 (prior N(0, ``prior_s^2``)) must beat no offset by the Bayes factor `evidence.BAYES_FACTOR`.
 """
@@ -73,7 +73,7 @@ class _Anchor:
     keep: np.ndarray  # indices of the scanned ranges in the anchor's window
     links: np.ndarray  # the fit's link ids
     spec: FitSpec  # with the anchor's deflation
-    fit: Model  # its chosen family at tau = 0
+    fit: Model  # its chosen family (its offset free) at tau = 0
     block: np.ndarray  # the time block of each scanned range (blocks common to every anchor)
 
 
@@ -125,8 +125,8 @@ def estimate_clock(
     blocks: int = 10,
 ) -> ClockOffset:
     """The clock offset from ``windows_at(tau)``: each anchor's ranges re-stamped by tau (the same ranges at every
-    tau). Only anchors the evidence fit determines at tau = 0 take part, each with its chosen family and its
-    deflation. The offset's own deflation is measured by a block jackknife over time (the anchors share the pose's
+    tau). Only anchors the evidence fit determines at tau = 0 take part, each with its chosen family (its offset
+    free) and its deflation. The offset's own deflation is measured by a block jackknife over time (the anchors share the pose's
     error, so their evidence is not independent): the scatter of the offsets with each time block left out over
     the curvature's variance. ``shift``: each anchor's position change per second of offset (central difference
     over +-sigma), what the offset's error does to the anchors."""
