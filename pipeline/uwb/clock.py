@@ -4,8 +4,9 @@ errs by the carrier's speed times that latency.
 
 `estimate_clock` scans the offset tau (ranges re-stamped t + tau) over ``[-max_s, max_s]``: at each tau every
 determined anchor is refitted in the family its evidence chose, with its range offset free in any case (each
-anchor's deflation kept), and their deflated robust costs summed; a parabola through the best grid point and its neighbours refines tau, its
-curvature gives sigma. The offset enters by the evidence rule of the anchors' optional parameters: its log evidence
+anchor's deflation kept), and their deflated robust costs summed; a parabola through the best grid point and its
+neighbours refines tau. A second scan about that offset takes each anchor's model and deflation there. Sigma is
+the sandwich of the offset's score series, correlated in time and across anchors as it is. The offset enters by the evidence rule of the anchors' optional parameters: its log evidence
 (prior N(0, ``prior_s^2``)) must beat no offset by the Bayes factor `evidence.BAYES_FACTOR`.
 """
 
@@ -16,10 +17,19 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR, FitSpec, Model, fit_anchor, fit_family, range_losses
+from uwbcal.pipeline.uwb.evidence import (
+    BAYES_FACTOR,
+    FitSpec,
+    Model,
+    autocorrelation_time,
+    fit_anchor,
+    fit_family,
+    range_losses,
+)
 from uwbcal.pipeline.uwb.window import InitWindow, subsample
 
 PRIOR_S = 0.2  # prior sigma of a UWB message path's latency [s]
+NEAR_S = 0.1  # [s] the second pass scans this far about the first pass's offset
 
 
 @dataclass(frozen=True)
@@ -73,34 +83,85 @@ class _Anchor:
     keep: np.ndarray  # indices of the scanned ranges in the anchor's window
     links: np.ndarray  # the fit's link ids
     spec: FitSpec  # with the anchor's deflation
-    fit: Model  # its chosen family (its offset free) at tau = 0
-    block: np.ndarray  # the time block of each scanned range (blocks common to every anchor)
+    fit: Model  # its chosen family, its offset free, where the scan measured it (`_scan_anchors`)
+    chosen: Model  # its chosen family there (what its reported position moves by)
 
 
-def _block_costs(windows_at, anchors: Mapping, grid: np.ndarray, blocks: int) -> np.ndarray:
-    """(len(grid), blocks): the deflated robust cost of each time block's ranges (over every anchor) with each
-    anchor's chosen family refitted (from its fit at tau = 0) at each offset of ``grid``."""
-    out = np.zeros((len(grid), blocks))
+def _costs(windows_at, anchors: Mapping, grid: np.ndarray) -> np.ndarray:
+    """(len(grid),): the deflated robust cost of every anchor's ranges with its scan family refitted (from its fit
+    where the scan measured it) at each offset of ``grid``."""
+    out = np.zeros(len(grid))
     for i, tau in enumerate(grid):
         ws = windows_at(float(tau))
         for a, an in anchors.items():
             m, s2 = _refit(ws[a], an)
-            out[i] += np.bincount(an.block, range_losses(m, s2, an.spec), minlength=blocks)
+            out[i] += float(np.sum(range_losses(m, s2, an.spec)))
     return out
 
 
-def _refit(window: InitWindow, an: _Anchor) -> tuple[Model, np.ndarray]:
-    """The anchor's family refitted from its fit on its ranges of ``window``; and the ranges' variances."""
+def _offset_variance(windows_at, anchors: Mapping, tau: float, h: float, pose_tau_s: float | None) -> float:
+    """The variance of the offset estimate: what the ranges show (the sandwich of its score series, each range's
+    weighted residual times the residual's derivative in the offset with the anchors refitted at tau +- h, over
+    every anchor's ranges in time order, its long-run variance by the series' integrated autocorrelation time),
+    plus what the poses' declared error does to it (`_pose_variance`). A pose error that differs between a leg
+    driven away from the anchors and one driven back is the offset's own signature: the fit takes it, the
+    residuals do not show it."""
+    at, hi, lo = (windows_at(float(x)) for x in (tau, tau + h, tau - h))
+    stamps, scores, gains, sig2, info = [], [], [], [], 0.0
+    for a, an in anchors.items():
+        m, s2 = _refit(at[a], an)
+        w = at[a].subset(an.keep)
+        dr = (_refit(hi[a], an)[0].r - _refit(lo[a], an)[0].r) / (2.0 * h)
+        g = m.w * dr / s2
+        u = (w.tag_xyz - m.p) / np.maximum(np.linalg.norm(w.tag_xyz - m.p, axis=1), 1e-9)[:, None]
+        scores.append(g * m.r)
+        gains.append(g[:, None] * u)  # the offset's response to each tag position error, times info
+        sig2.append(np.trace(w.P_pose[:, 3:6, 3:6], axis1=1, axis2=2) / 3.0)
+        info += float(np.sum(g * dr))
+        stamps.append(w.t_ns)
+    if info <= 0:
+        return float("inf")
+    order = np.argsort(np.concatenate(stamps), kind="stable")
+    s = np.concatenate(scores)[order]
+    t = np.concatenate(stamps)[order] * 1e-9
+    pose = _pose_variance(np.concatenate(gains)[order], np.concatenate(sig2)[order], t, pose_tau_s)
+    return (autocorrelation_time(s) * float(np.sum(s**2)) + pose) / info**2
+
+
+def _pose_variance(v: np.ndarray, var: np.ndarray, t: np.ndarray, tau_s: float | None) -> float:
+    """sum_kl v_k . v_l Cov(tag position errors k, l) in time order (isotropic, variance ``var`` (N,)): bounded
+    errors stationary with correlation exp(-|dt| / ``tau_s``) (a recursion over the stamps); ``tau_s`` None: a
+    random walk, the covariance of two errors that of the earlier one."""
+    if not np.any(var > 0):
+        return 0.0
+    if tau_s is None:
+        dP = np.maximum(np.diff(var, prepend=0.0), 0.0)
+        S = np.cumsum(v[::-1], axis=0)[::-1]  # S_j = sum_{k>=j} v_k
+        return float(np.sum(dP * np.sum(S**2, axis=1)))
+    a = np.sqrt(var)[:, None] * v
+    decay = np.exp(-np.diff(t, prepend=t[0]) / tau_s)
+    m, cross = np.zeros(3), 0.0
+    for k in range(len(a)):  # m_k = sum_{l<k} rho_kl a_l
+        m = decay[k] * m
+        cross += float(a[k] @ m)
+        m = m + a[k]
+    return float(np.sum(a**2)) + 2.0 * cross
+
+
+def _refit(window: InitWindow, an: _Anchor, fit: Model | None = None) -> tuple[Model, np.ndarray]:
+    """The anchor's scan family (or the family of ``fit``) refitted from its fit on its ranges of ``window``; and
+    the ranges' variances."""
     w = window.subset(an.keep)
     li = np.searchsorted(an.links, w.links()).clip(0, len(an.links) - 1)
     s2 = np.full(len(w), an.spec.sigma_range**2)
-    return fit_family(w.tag_xyz, w.d, li, len(an.links), s2, an.fit.name, an.fit.p, an.spec, warm=an.fit), s2
+    m = fit or an.fit
+    return fit_family(w.tag_xyz, w.d, li, len(an.links), s2, m.name, m.p, an.spec, warm=m), s2
 
 
 def _positions(windows_at, anchors: Mapping, tau: float) -> dict:
-    """Each anchor's position refitted (its family, from its fit) with the ranges re-stamped by ``tau``."""
+    """Each anchor's position in its chosen family, refitted with the ranges re-stamped by ``tau``."""
     ws = windows_at(float(tau))
-    return {a: _refit(ws[a], an)[0].p for a, an in anchors.items()}
+    return {a: _refit(ws[a], an, an.chosen)[0].p for a, an in anchors.items()}
 
 
 def _vertex(grid: np.ndarray, c: np.ndarray) -> tuple[float, float]:
@@ -114,6 +175,28 @@ def _vertex(grid: np.ndarray, c: np.ndarray) -> tuple[float, float]:
     return float(np.clip(grid[k] - (c[k + 1] - c[k - 1]) / (2 * a2 * step), grid[0], grid[-1])), float(a2)
 
 
+def _scan_anchors(windows_at, at: float, spec: FitSpec, max_ranges: int) -> dict:
+    """The anchors the evidence fit determines on their ranges re-stamped by ``at``: each with the family it chose
+    there, its offset free in any case (held at its mean, an offset the model leaves out trades against the clock:
+    on a leg driven straight away from the anchor a late range and a long one look alike), and its deflation."""
+    anchors = {}
+    for a, w in windows_at(at).items():
+        keep = subsample(len(w), max_ranges)
+        sub = w.subset(keep)
+        fit_spec = replace(spec, max_ranges=max_ranges, refine_cov=False)
+        sr = fit_anchor(sub.tag_xyz, sub.d, sub.links(), t_ns=sub.t_ns, spec=fit_spec)
+        if not sr.ok:
+            continue
+        sa = replace(spec, deflate=float(sr.costs.get("kappa", 1.0)))
+        li = np.searchsorted(sr.links, sub.links()).clip(0, len(sr.links) - 1)
+        s2 = np.full(len(sub), spec.sigma_range**2)
+        data = (sub.tag_xyz, sub.d, li, len(sr.links), s2)
+        chosen = fit_family(*data, sr.costs["evidence"]["model"], sr.p, sa)
+        fit = fit_family(*data, "gamma", sr.p, sa) if chosen.name == "position" else chosen
+        anchors[a] = _Anchor(keep, sr.links, sa, fit, chosen)
+    return anchors
+
+
 def estimate_clock(
     windows_at: Callable[[float], Mapping[int, InitWindow]],
     spec: FitSpec,
@@ -122,51 +205,32 @@ def estimate_clock(
     step_s: float = 0.02,
     prior_s: float = PRIOR_S,
     max_ranges: int = 500,
-    blocks: int = 10,
+    pose_tau_s: float | None = None,
 ) -> ClockOffset:
     """The clock offset from ``windows_at(tau)``: each anchor's ranges re-stamped by tau (the same ranges at every
-    tau). Only anchors the evidence fit determines at tau = 0 take part, each with its chosen family (its offset
-    free) and its deflation. The offset's own deflation is measured by a block jackknife over time (the anchors share the pose's
-    error, so their evidence is not independent): the scatter of the offsets with each time block left out over
-    the curvature's variance. ``shift``: each anchor's position change per second of offset (central difference
-    over +-sigma), what the offset's error does to the anchors."""
-    anchors = {}
-    base = windows_at(0.0)
-    stamps = np.concatenate([w.t_ns for w in base.values()]) if base else np.zeros(0, np.int64)
-    edges = np.quantile(stamps, np.linspace(0.0, 1.0, blocks + 1)[1:-1]) if len(stamps) else np.zeros(0)
-    for a, w in base.items():
-        keep = subsample(len(w), max_ranges)
-        sub = w.subset(keep)
-        sr = fit_anchor(
-            sub.tag_xyz,
-            sub.d,
-            sub.links(),
-            t_ns=sub.t_ns,
-            spec=replace(spec, max_ranges=max_ranges, refine_cov=False),
-        )
-        if not sr.ok:
-            continue
-        sa = replace(spec, deflate=float(sr.costs.get("kappa", 1.0)))
-        li = np.searchsorted(sr.links, sub.links()).clip(0, len(sr.links) - 1)
-        s2 = np.full(len(sub), spec.sigma_range**2)
-        # the offset is a nuisance of the scan: held at its mean, an offset the anchor's model leaves out trades
-        # against the clock (on a leg driven straight away from the anchor a late range and a long one look alike)
-        name = sr.costs["evidence"]["model"]
-        name = "gamma" if name == "position" else name
-        fit = fit_family(sub.tag_xyz, sub.d, li, len(sr.links), s2, name, sr.p, sa)
-        anchors[a] = _Anchor(keep, sr.links, sa, fit, np.searchsorted(edges, sub.t_ns))
-    if not anchors:
-        return NO_OFFSET
+    tau). Only anchors the evidence fit determines take part, each with its chosen family (its offset free) and
+    its deflation, measured at 0 and again at the first scan's offset (`_scan_anchors`), whose neighbourhood a
+    second scan refines. The offset's own deflation is the variance of its score series over the curvature's
+    (`_offset_variance`: the anchors share the pose's error, so their evidence is not independent). ``shift``: each
+    anchor's position change per second of offset (central difference over +-sigma), what the offset's error does
+    to the anchors. ``pose_tau_s``: the correlation time of the poses' errors (None: they drift, a random walk).
+    """
     grid = np.arange(-max_s, max_s + 0.5 * step_s, step_s)
-    C = _block_costs(windows_at, anchors, grid, blocks)
-    tau, a2 = _vertex(grid, C.sum(axis=1))
-    if not np.isfinite(a2):
-        return NO_OFFSET
-    loo = np.array([_vertex(grid, C.sum(axis=1) - C[:, b])[0] for b in range(blocks)])
-    var_jk = (blocks - 1) / blocks * float(np.sum((loo - loo.mean()) ** 2))
+    tau = 0.0
+    for near in (None, NEAR_S):
+        # the second pass takes each anchor's model and deflation at the first pass's offset: at 0 they are those
+        # of ranges compared with the wrong poses (a deflation of 1000 on a late drive, and the model it leaves)
+        anchors = _scan_anchors(windows_at, tau, spec, max_ranges)
+        if not anchors:
+            return NO_OFFSET
+        if near is not None:
+            grid = grid[np.abs(grid - tau) <= near + 1e-9]
+        tau, a2 = _vertex(grid, _costs(windows_at, anchors, grid))
+        if not np.isfinite(a2):
+            return NO_OFFSET
     info = 0.5 * a2  # -log likelihood = cost / 2
-    deflate = max(var_jk * info, 1.0)
-    c_tau, c0 = _block_costs(windows_at, anchors, np.array([tau, 0.0]), blocks).sum(axis=1)
+    deflate = max(_offset_variance(windows_at, anchors, tau, step_s, pose_tau_s) * info, 1.0)
+    c_tau, c0 = _costs(windows_at, anchors, np.array([tau, 0.0]))
     info /= deflate
     log_bf = 0.5 * (c0 - c_tau) / deflate - 0.5 * tau**2 / prior_s**2 - 0.5 * np.log(1.0 + info * prior_s**2)
     used = bool(log_bf > np.log(BAYES_FACTOR))

@@ -20,6 +20,7 @@ from uwbcal.pipeline.uwb.updater import (
     windows_from_trajectory,
 )
 from uwbcal.pipeline.uwb.window import InitWindow, subsample
+from uwbcal.pipeline.vio.odometry_filter import resolve_error_model
 from uwbcal.pipeline.viz import runlog as rl
 from uwbcal.pipeline.viz.runlog import RunLog
 
@@ -128,7 +129,10 @@ def _range_clock(ctx: StageContext, vio, rng: dict, start_ns: int, end_ns: int, 
 
     sigma = cfg.sigma(cal) * cfg.sigma_scale
     spec = evidence_spec(cfg, sigma, cal, cfg.init_method)
-    clock = estimate_clock(windows_at, spec, max_s=cfg.clock_scan_s, max_ranges=CLOCK_RANGES)
+    pose_tau = resolve_error_model(ctx.config.odometry, cal)[1] if ctx.bounded_poses() else None
+    clock = estimate_clock(
+        windows_at, spec, max_s=cfg.clock_scan_s, max_ranges=CLOCK_RANGES, pose_tau_s=pose_tau
+    )
     ctx.reader.range_shift_ns = round(clock.applied_s * 1e9)
     return clock
 
