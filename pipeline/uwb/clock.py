@@ -6,8 +6,9 @@ errs by the carrier's speed times that latency.
 determined anchor is refitted in the family its evidence chose, with its range offset free in any case (each
 anchor's deflation kept), and their deflated robust costs summed; a parabola through the best grid point and its
 neighbours refines tau. A second scan about that offset takes each anchor's model and deflation there. Sigma is
-the sandwich of the offset's score series, correlated in time and across anchors as it is. The offset enters by the evidence rule of the anchors' optional parameters: its log evidence
-(prior N(0, ``prior_s^2``)) must beat no offset by the Bayes factor `evidence.BAYES_FACTOR`.
+the sandwich of the offset's score series (correlated in time and across anchors as it is) plus what the poses'
+declared error does to it. The offset enters by the evidence rule of the anchors' optional parameters: its log
+evidence (prior N(0, ``prior_s^2``)) must beat no offset by the Bayes factor `evidence.BAYES_FACTOR`.
 """
 
 from __future__ import annotations
