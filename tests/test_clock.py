@@ -6,7 +6,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from uwbcal.pipeline.uwb.clock import _pose_variance, estimate_clock
+from uwbcal.pipeline.core.series import correlated_errors_variance
+from uwbcal.pipeline.uwb.clock import estimate_clock
 from uwbcal.pipeline.uwb.evidence import FitSpec, fit_anchor
 from uwbcal.pipeline.uwb.window import InitWindow
 
@@ -116,8 +117,8 @@ def test_a_late_far_field_drive_with_range_offsets(seed):
 
 
 @pytest.mark.parametrize("tau_s", [2.0, None])
-def test_pose_variance_is_the_quadratic_form_of_the_declared_pose_errors(tau_s):
-    """`_pose_variance` against the N x N covariance written out: Gauss-Markov exp(-|dt| / tau) sigma_k sigma_l
+def testcorrelated_errors_variance_is_the_quadratic_form_of_the_declared_pose_errors(tau_s):
+    """`correlated_errors_variance` against the N x N covariance written out: Gauss-Markov exp(-|dt| / tau) sigma_k sigma_l
     (bounded errors), or the earlier error's variance (a random walk of growing variance)."""
     rng = np.random.default_rng(3)
     n = 60
@@ -128,4 +129,6 @@ def test_pose_variance_is_the_quadratic_form_of_the_declared_pose_errors(tau_s):
         K = np.exp(-np.abs(t[:, None] - t[None, :]) / tau_s) * np.sqrt(np.outer(var, var))
     else:
         K = var[np.minimum.outer(np.arange(n), np.arange(n))]
-    np.testing.assert_allclose(_pose_variance(v, var, t, tau_s), np.sum(K * (v @ v.T)), rtol=1e-10)
+    np.testing.assert_allclose(
+        correlated_errors_variance(v, var, t, tau_s), np.sum(K * (v @ v.T)), rtol=1e-10
+    )

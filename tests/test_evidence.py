@@ -148,7 +148,7 @@ def test_deflation_of_white_residuals_is_one():
 
 def test_autocorrelation_time_closed_form():
     """White noise: 1; an AR(1) series with coefficient phi: (1 + phi) / (1 - phi)."""
-    from uwbcal.pipeline.uwb.evidence import autocorrelation_time
+    from uwbcal.pipeline.core.series import autocorrelation_time
 
     rng = np.random.default_rng(4)
     assert autocorrelation_time(rng.normal(size=20000)) == pytest.approx(1.0, abs=0.1)

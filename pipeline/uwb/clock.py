@@ -18,11 +18,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from uwbcal.pipeline.core.series import autocorrelation_time, correlated_errors_variance
 from uwbcal.pipeline.uwb.evidence import (
     BAYES_FACTOR,
     FitSpec,
     Model,
-    autocorrelation_time,
     fit_anchor,
     fit_family,
     range_losses,
@@ -104,7 +104,7 @@ def _offset_variance(windows_at, anchors: Mapping, tau: float, h: float, pose_ta
     """The variance of the offset estimate: what the ranges show (the sandwich of its score series, each range's
     weighted residual times the residual's derivative in the offset with the anchors refitted at tau +- h, over
     every anchor's ranges in time order, its long-run variance by the series' integrated autocorrelation time),
-    plus what the poses' declared error does to it (`_pose_variance`). A pose error that differs between a leg
+    plus what the poses' declared error does to it (`core.series.correlated_errors_variance`). A pose error that differs between a leg
     driven away from the anchors and one driven back is the offset's own signature: the fit takes it, the
     residuals do not show it."""
     at, hi, lo = (windows_at(float(x)) for x in (tau, tau + h, tau - h))
@@ -125,28 +125,10 @@ def _offset_variance(windows_at, anchors: Mapping, tau: float, h: float, pose_ta
     order = np.argsort(np.concatenate(stamps), kind="stable")
     s = np.concatenate(scores)[order]
     t = np.concatenate(stamps)[order] * 1e-9
-    pose = _pose_variance(np.concatenate(gains)[order], np.concatenate(sig2)[order], t, pose_tau_s)
+    pose = correlated_errors_variance(
+        np.concatenate(gains)[order], np.concatenate(sig2)[order], t, pose_tau_s
+    )
     return (autocorrelation_time(s) * float(np.sum(s**2)) + pose) / info**2
-
-
-def _pose_variance(v: np.ndarray, var: np.ndarray, t: np.ndarray, tau_s: float | None) -> float:
-    """sum_kl v_k . v_l Cov(tag position errors k, l) in time order (isotropic, variance ``var`` (N,)): bounded
-    errors stationary with correlation exp(-|dt| / ``tau_s``) (a recursion over the stamps); ``tau_s`` None: a
-    random walk, the covariance of two errors that of the earlier one."""
-    if not np.any(var > 0):
-        return 0.0
-    if tau_s is None:
-        dP = np.maximum(np.diff(var, prepend=0.0), 0.0)
-        S = np.cumsum(v[::-1], axis=0)[::-1]  # S_j = sum_{k>=j} v_k
-        return float(np.sum(dP * np.sum(S**2, axis=1)))
-    a = np.sqrt(var)[:, None] * v
-    decay = np.exp(-np.diff(t, prepend=t[0]) / tau_s)
-    m, cross = np.zeros(3), 0.0
-    for k in range(len(a)):  # m_k = sum_{l<k} rho_kl a_l
-        m = decay[k] * m
-        cross += float(a[k] @ m)
-        m = m + a[k]
-    return float(np.sum(a**2)) + 2.0 * cross
 
 
 def _refit(window: InitWindow, an: _Anchor, fit: Model | None = None) -> tuple[Model, np.ndarray]:

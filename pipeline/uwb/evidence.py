@@ -33,11 +33,12 @@ from scipy.cluster.vq import kmeans2
 from scipy.special import logsumexp
 
 from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
+from uwbcal.pipeline.core.series import autocorrelation_time, noise_inflation
 from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.core.state import nearest_psd as _psd
 from uwbcal.pipeline.uwb.fim import assess_observability
 from uwbcal.pipeline.uwb.initializer import InitResult
-from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame, subsample
+from uwbcal.pipeline.uwb.window import InitWindow, plane_frame, subsample
 
 FAMILIES = ("position", "gamma", "gamma+beta", "link", "link+beta")
 BAYES_FACTOR = 3.0  # Jeffreys' "substantial" evidence: a richer model must beat a simpler one by this factor
@@ -342,22 +343,6 @@ def deflation(
         order = np.argsort(t_ns, kind="stable")
         kt = max(noise_inflation(t_ns, ec, block_s=spec.block_s), autocorrelation_time(ec[order]))
     return max(spread, 1.0) ** 2 * max(kt, _group_inflation(ec, direction_cells(u)))
-
-
-def autocorrelation_time(e: np.ndarray) -> float:
-    """The integrated autocorrelation time of a series (Geyer's initial positive sequence: 1 + 2 sum of the
-    autocorrelations, summed in pairs while a pair is positive), >= 1: how many of its samples carry the
-    information of one independent sample. Sharper than batch means where few blocks fit in the series."""
-    e = np.asarray(e, float) - np.mean(e)
-    n = len(e)
-    if n < 8 or not np.any(e):
-        return 1.0
-    f = np.fft.rfft(e, 2 * n)
-    acf = np.fft.irfft(f * np.conj(f))[:n] / (np.dot(e, e))
-    pairs = acf[: n - n % 2].reshape(-1, 2).sum(axis=1)
-    stop = np.flatnonzero(pairs <= 0)
-    m = int(stop[0]) if len(stop) else len(pairs)
-    return max(2.0 * float(np.sum(pairs[:m])) - 1.0, 1.0)
 
 
 def _linear_start(xyz: np.ndarray, d: np.ndarray) -> np.ndarray:

@@ -23,10 +23,11 @@ import numpy as np
 
 from uwbcal.pipeline.core.names import INIT_METHODS
 from uwbcal.pipeline.core.robust import mad_sigma, psi_slope, robust_loss
+from uwbcal.pipeline.core.series import noise_inflation
 from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.uwb.fim import FimReport, assess_observability
 from uwbcal.pipeline.uwb.model import jacobians, range_variance
-from uwbcal.pipeline.uwb.window import InitWindow, noise_inflation, plane_frame
+from uwbcal.pipeline.uwb.window import InitWindow, plane_frame
 
 _AG = [0, 1, 2, 4]  # indices of (p_a, gamma) in x_U
 _ABG = [0, 1, 2, 3, 4]  # (p_a, beta, gamma)

@@ -30,8 +30,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
+from uwbcal.pipeline.core.series import noise_inflation
 from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR
-from uwbcal.pipeline.uwb.window import noise_inflation, plane_frame, subsample
+from uwbcal.pipeline.uwb.window import plane_frame, subsample
 
 PLANAR_RATIO = 0.05  # out-of-plane extent (std) below this x the largest: the carrier moves in a plane
 MIN_TURN = 0.2  # circular variance 1 - |mean exp(i psi)| of the heading: the carrier turns enough

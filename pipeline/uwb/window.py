@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.uwb.model import tag_positions
 
 
@@ -69,44 +68,3 @@ def subsample(n: int, max_n: int) -> np.ndarray:
     if n <= max_n:
         return np.arange(n)
     return np.unique(np.linspace(0, n - 1, max_n).round().astype(np.int64))
-
-
-def noise_inflation(
-    t_ns: np.ndarray | None,
-    e: np.ndarray,
-    weights: np.ndarray | None = None,
-    *,
-    block_s: float = 10.0,
-    min_blocks: int = 4,
-    quantile: float = 0.99,
-) -> float:
-    """Variance inflation kappa >= 1 for time-correlated range errors, from the post-fit whitened residuals.
-
-    The estimator treats the ranges as independent. Real UWB errors are not: multipath and the antenna pattern
-    make them vary slowly with the geometry (NTU-VIRAL: per-anchor residuals keep correlating over tens of
-    seconds), so N ranges carry far less than N independent ranges' information and the inverse information
-    is over-confident by a factor kappa (docs/results/measurements.md). Batch means:
-    with blocks of ``block_s`` seconds holding n_b inlier residuals, kappa = mean(n_b mean_b^2) / mean(e^2),
-    which is chi2(B)/B-distributed around 1 for white errors; it is used only when it exceeds that
-    distribution's ``quantile`` (white noise, as in the simulator, keeps kappa = 1).
-    """
-    e = np.asarray(e, float)
-    if t_ns is None or len(e) < 2 * min_blocks:
-        return 1.0
-    ok = np.isfinite(e)
-    if weights is not None:
-        ok &= np.asarray(weights, float) > 0.5
-    e = e[ok]
-    t = (np.asarray(t_ns, np.int64)[ok] - int(np.min(t_ns))) * 1e-9
-    if len(e) < 2 * min_blocks:
-        return 1.0
-    e = e - e.mean()
-    b = np.floor(t / block_s).astype(np.int64)
-    cnt = np.bincount(b)
-    tot = np.bincount(b, e)
-    m = cnt >= 3
-    nb = int(m.sum())
-    if nb < min_blocks:
-        return 1.0
-    kappa = float(np.sum(tot[m] ** 2 / cnt[m]) / nb / np.mean(e**2))
-    return kappa if kappa > chi2_ppf(quantile, nb) / nb else 1.0
