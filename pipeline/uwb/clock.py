@@ -27,6 +27,7 @@ from uwbcal.pipeline.uwb.evidence import (
     fit_family,
     range_losses,
 )
+from uwbcal.pipeline.uwb.model import lines_of_sight
 from uwbcal.pipeline.uwb.window import InitWindow, subsample
 
 PRIOR_S = 0.2  # prior sigma of a UWB message path's latency [s]
@@ -114,7 +115,7 @@ def _offset_variance(windows_at, anchors: Mapping, tau: float, h: float, pose_ta
         w = at[a].subset(an.keep)
         dr = (_refit(hi[a], an)[0].r - _refit(lo[a], an)[0].r) / (2.0 * h)
         g = m.w * dr / s2
-        u = (w.tag_xyz - m.p) / np.maximum(np.linalg.norm(w.tag_xyz - m.p, axis=1), 1e-9)[:, None]
+        u = lines_of_sight(m.p, w.tag_xyz)
         scores.append(g * m.r)
         gains.append(g[:, None] * u)  # the offset's response to each tag position error, times info
         sig2.append(np.trace(w.P_pose[:, 3:6, 3:6], axis1=1, axis2=2) / 3.0)

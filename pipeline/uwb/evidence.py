@@ -38,6 +38,7 @@ from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.core.state import nearest_psd as _psd
 from uwbcal.pipeline.uwb.fim import assess_observability
 from uwbcal.pipeline.uwb.initializer import InitResult
+from uwbcal.pipeline.uwb.model import lines_of_sight
 from uwbcal.pipeline.uwb.window import InitWindow, plane_frame, subsample
 
 FAMILIES = ("position", "gamma", "gamma+beta", "link", "link+beta")
@@ -336,8 +337,7 @@ def deflation(
             e[li == k] -= np.median(e[li == k])
     spread = mad_sigma(e)
     ec = np.clip(e / max(spread, 1e-6), -3.0, 3.0)
-    u = xyz - m.p
-    u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
+    u = lines_of_sight(m.p, xyz)
     kt = 1.0
     if t_ns is not None:
         order = np.argsort(t_ns, kind="stable")
@@ -436,7 +436,7 @@ def fit_anchor(
     s2 = np.full(len(dd), spec.sigma_range**2)
     p0 = _linear_start(x, dd - spec.gamma_mean)
     if pos_cov is not None:  # the pose's uncertainty along the line of sight (RI)
-        u = (p0 - x) / np.maximum(np.linalg.norm(p0 - x, axis=1), 1e-9)[:, None]
+        u = lines_of_sight(p0, x)
         s2 = s2 + np.maximum(np.einsum("ni,nij,nj->n", u, np.asarray(pos_cov, float)[sel], u), 0.0)
     n = Vt[2]
     starts = (p0, p0 - 2.0 * n * float(n @ (p0 - c)))
@@ -540,8 +540,7 @@ def pattern_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> np.ndarra
     if spec.pattern_sigma <= 0:
         return np.zeros((3, 3))
     xyz, _, _, s2 = data
-    diff = m.p - xyz
-    u = -diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]  # anchor to tag
+    u = lines_of_sight(m.p, xyz)
     sd = np.sqrt(s2)
     whitened = (m.J * (m.w / spec.deflate)[:, None]).T
     G = np.linalg.solve(posterior_info(m, reach), whitened)[:3]  # (3, N): whitened ranges -> position
@@ -570,8 +569,7 @@ def jackknife_cov(m: Model, data: tuple, spec: FitSpec, blocks: int = JACKKNIFE_
     xyz, d, li, s2, t = data
     if t is None or len(d) < 3 * blocks:
         return np.zeros((3, 3))
-    u = xyz - m.p
-    u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
+    u = lines_of_sight(m.p, xyz)
     groupings = (
         np.minimum(np.argsort(np.argsort(t, kind="stable")) * blocks // len(d), blocks - 1),
         direction_cells(u),

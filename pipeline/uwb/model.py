@@ -50,6 +50,13 @@ def _tag(R: np.ndarray, p: np.ndarray, p_T: np.ndarray) -> np.ndarray:
     return p + np.einsum("nij,nj->ni", R, p_T)
 
 
+def lines_of_sight(p: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """(N, 3) unit vectors from the anchor ``p`` to the tag positions ``xyz``: a range's change per unit tag
+    displacement."""
+    diff = np.asarray(xyz, float) - p
+    return diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-9)[:, None]
+
+
 def range_model(R: np.ndarray, p: np.ndarray, p_T: np.ndarray, x_U: np.ndarray) -> np.ndarray:
     """The paper's range model, noise-free: h = beta |p + R p_T - p_a| + gamma for x_U = [p_a, beta, gamma];
     (N,) ranges."""
