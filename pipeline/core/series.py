@@ -104,8 +104,9 @@ def autocorrelation_time(e: np.ndarray) -> float:
 
 def correlated_errors_variance(v: np.ndarray, var: np.ndarray, t: np.ndarray, tau_s: float | None) -> float:
     """sum_kl v_k . v_l Cov(e_k, e_l) for isotropic 3-vector errors e_k of variance ``var`` (N,) at the sorted
-    stamps ``t`` [s] (a pose's position error seen through the gains ``v`` (N, 3)): bounded errors stationary with correlation exp(-|dt| / ``tau_s``) (a recursion over the stamps); ``tau_s`` None: a
-    random walk, the covariance of two errors that of the earlier one."""
+    stamps ``t`` [s] (a pose's position error seen through the gains ``v`` (N, 3)): bounded errors stationary
+    with correlation exp(-|dt| / ``tau_s``) (a recursion over the stamps); ``tau_s`` None: a random walk, the
+    covariance of two errors that of the earlier one."""
     if not np.any(var > 0):
         return 0.0
     if tau_s is None:

@@ -105,9 +105,9 @@ def _offset_variance(windows_at, anchors: Mapping, tau: float, h: float, pose_ta
     """The variance of the offset estimate: what the ranges show (the sandwich of its score series, each range's
     weighted residual times the residual's derivative in the offset with the anchors refitted at tau +- h, over
     every anchor's ranges in time order, its long-run variance by the series' integrated autocorrelation time),
-    plus what the poses' declared error does to it (`core.series.correlated_errors_variance`). A pose error that differs between a leg
-    driven away from the anchors and one driven back is the offset's own signature: the fit takes it, the
-    residuals do not show it."""
+    plus what the poses' declared error does to it (`core.series.correlated_errors_variance`). A pose error that
+    differs between a leg driven away from the anchors and one driven back is the offset's own signature: the fit
+    takes it, the residuals do not show it."""
     at, hi, lo = (windows_at(float(x)) for x in (tau, tau + h, tau - h))
     stamps, scores, gains, sig2, info = [], [], [], [], 0.0
     for a, an in anchors.items():
