@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from uwbcal.pipeline.core.series import correlated_errors_variance
+from uwbcal.pipeline.core.series import correlated_errors_covariance
 from uwbcal.pipeline.uwb.clock import estimate_clock
 from uwbcal.pipeline.uwb.evidence import FitSpec, fit_anchor
 from uwbcal.pipeline.uwb.window import InitWindow
@@ -117,18 +117,19 @@ def test_a_late_far_field_drive_with_range_offsets(seed):
 
 
 @pytest.mark.parametrize("tau_s", [2.0, None])
-def testcorrelated_errors_variance_is_the_quadratic_form_of_the_declared_pose_errors(tau_s):
-    """`correlated_errors_variance` against the N x N covariance written out: Gauss-Markov exp(-|dt| / tau) sigma_k sigma_l
-    (bounded errors), or the earlier error's variance (a random walk of growing variance)."""
+def test_correlated_errors_covariance_is_the_quadratic_form_of_the_declared_pose_errors(tau_s):
+    """`correlated_errors_covariance` against the N x N covariance written out: Gauss-Markov
+    exp(-|dt| / tau) sigma_k sigma_l (bounded errors), or the earlier error's variance (a random walk of growing
+    variance), through gains of two outputs."""
     rng = np.random.default_rng(3)
     n = 60
     t = np.sort(rng.uniform(0, 20, n))
-    v = rng.normal(size=(n, 3))
+    v = rng.normal(size=(n, 2, 3))
     var = 0.01 * (1 + rng.uniform(size=n)) if tau_s else np.linspace(0.001, 0.05, n)
     if tau_s:
         K = np.exp(-np.abs(t[:, None] - t[None, :]) / tau_s) * np.sqrt(np.outer(var, var))
     else:
         K = var[np.minimum.outer(np.arange(n), np.arange(n))]
     np.testing.assert_allclose(
-        correlated_errors_variance(v, var, t, tau_s), np.sum(K * (v @ v.T)), rtol=1e-10
+        correlated_errors_covariance(v, var, t, tau_s), np.einsum("kl,kia,lja->ij", K, v, v), rtol=1e-10
     )

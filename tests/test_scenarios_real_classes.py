@@ -171,6 +171,6 @@ def test_antenna_pattern_clock_not_used(pattern):
 
 @pytest.mark.xdist_group("real-classes-pattern")
 def test_antenna_pattern_nees_within_chi2_bounds(pattern):
-    """The pattern's effect is in the covariance (`evidence.pattern_cov`, the simulator declaring the pattern's
+    """The pattern's effect is in the covariance (`evidence.declared_errors_cov`, the simulator declaring the pattern's
     size)."""
     assert _inside(_nees(pattern))

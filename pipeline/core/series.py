@@ -102,22 +102,25 @@ def autocorrelation_time(e: np.ndarray) -> float:
     return max(2.0 * float(np.sum(pairs[:m])) - 1.0, 1.0)
 
 
-def correlated_errors_variance(v: np.ndarray, var: np.ndarray, t: np.ndarray, tau_s: float | None) -> float:
-    """sum_kl v_k . v_l Cov(e_k, e_l) for isotropic 3-vector errors e_k of variance ``var`` (N,) at the sorted
-    stamps ``t`` [s] (a pose's position error seen through the gains ``v`` (N, 3)): bounded errors stationary
-    with correlation exp(-|dt| / ``tau_s``) (a recursion over the stamps); ``tau_s`` None: a random walk, the
-    covariance of two errors that of the earlier one."""
+def correlated_errors_covariance(
+    v: np.ndarray, var: np.ndarray, t: np.ndarray, tau_s: float | None
+) -> np.ndarray:
+    """sum_kl V_k Cov(e_k, e_l) V_l^T for isotropic 3-vector errors e_k of variance ``var`` (N,) at the sorted
+    stamps ``t`` [s], seen through the gains ``v`` (N, m, 3) (a pose's position error mapped to m estimated
+    quantities): bounded errors stationary with correlation exp(-|dt| / ``tau_s``) (a recursion over the stamps);
+    ``tau_s`` None: a random walk, the covariance of two errors that of the earlier one. Returns (m, m)."""
+    v = np.asarray(v, float)
     if not np.any(var > 0):
-        return 0.0
+        return np.zeros((v.shape[1], v.shape[1]))
     if tau_s is None:
         dP = np.maximum(np.diff(var, prepend=0.0), 0.0)
-        S = np.cumsum(v[::-1], axis=0)[::-1]  # S_j = sum_{k>=j} v_k
-        return float(np.sum(dP * np.sum(S**2, axis=1)))
-    a = np.sqrt(var)[:, None] * v
+        S = np.cumsum(v[::-1], axis=0)[::-1]  # S_j = sum_{k>=j} V_k
+        return np.einsum("n,nik,njk->ij", dP, S, S)
+    a = np.sqrt(var)[:, None, None] * v
     decay = np.exp(-np.diff(t, prepend=t[0]) / tau_s)
-    m, cross = np.zeros(3), 0.0
+    m, cross = np.zeros(v.shape[1:]), np.zeros((v.shape[1], v.shape[1]))
     for k in range(len(a)):  # m_k = sum_{l<k} rho_kl a_l
         m = decay[k] * m
-        cross += float(a[k] @ m)
+        cross += a[k] @ m.T
         m = m + a[k]
-    return float(np.sum(a**2)) + 2.0 * cross
+    return np.einsum("nik,njk->ij", a, a) + cross + cross.T

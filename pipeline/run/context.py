@@ -29,6 +29,7 @@ from uwbcal.pipeline.run.driver import msckf_from_recording, odometry_from_recor
 from uwbcal.pipeline.run.windows import Windows, recording_windows
 from uwbcal.pipeline.vio.estimator import Estimator
 from uwbcal.pipeline.vio.health import Failure, assess
+from uwbcal.pipeline.vio.odometry_filter import resolve_error_model
 from uwbcal.pipeline.vio.static_init import StaticInitConfig, static_init_from_recording
 from uwbcal.pipeline.vio.stats import VioStats
 from uwbcal.pipeline.viz import runlog as rl
@@ -182,6 +183,14 @@ class StageContext:
     def bounded_poses(self) -> bool:
         """The pose source is an external one of bounded error (motion capture, RTK-GNSS, a SLAM with a map)."""
         return self.pose_source() == "odometry" and self.config.odometry.error_model == "bounded"
+
+    def pose_correlation_s(self) -> float | None:
+        """The correlation time of the pose source's errors when they are bounded (None: they drift)."""
+        return (
+            resolve_error_model(self.config.odometry, self.reader.calibration)[1]
+            if self.bounded_poses()
+            else None
+        )
 
     def apply_range_clock(self) -> None:
         """Re-stamp the ranges read from now on by the clock offset the init stage used (init.json)."""

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from uwbcal.pipeline.core.series import autocorrelation_time, correlated_errors_variance
+from uwbcal.pipeline.core.series import autocorrelation_time, correlated_errors_covariance
 from uwbcal.pipeline.uwb.evidence import (
     BAYES_FACTOR,
     FitSpec,
@@ -105,7 +105,7 @@ def _offset_variance(windows_at, anchors: Mapping, tau: float, h: float, pose_ta
     """The variance of the offset estimate: what the ranges show (the sandwich of its score series, each range's
     weighted residual times the residual's derivative in the offset with the anchors refitted at tau +- h, over
     every anchor's ranges in time order, its long-run variance by the series' integrated autocorrelation time),
-    plus what the poses' declared error does to it (`core.series.correlated_errors_variance`). A pose error that
+    plus what the poses' declared error does to it (`core.series.correlated_errors_covariance`). A pose error that
     differs between a leg driven away from the anchors and one driven back is the offset's own signature: the fit
     takes it, the residuals do not show it."""
     at, hi, lo = (windows_at(float(x)) for x in (tau, tau + h, tau - h))
@@ -126,9 +126,9 @@ def _offset_variance(windows_at, anchors: Mapping, tau: float, h: float, pose_ta
     order = np.argsort(np.concatenate(stamps), kind="stable")
     s = np.concatenate(scores)[order]
     t = np.concatenate(stamps)[order] * 1e-9
-    pose = correlated_errors_variance(
-        np.concatenate(gains)[order], np.concatenate(sig2)[order], t, pose_tau_s
-    )
+    pose = correlated_errors_covariance(
+        np.concatenate(gains)[order][:, None], np.concatenate(sig2)[order], t, pose_tau_s
+    )[0, 0]
     return (autocorrelation_time(s) * float(np.sum(s**2)) + pose) / info**2
 
 

@@ -33,7 +33,7 @@ from scipy.cluster.vq import kmeans2
 from scipy.special import logsumexp
 
 from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
-from uwbcal.pipeline.core.series import autocorrelation_time, noise_inflation
+from uwbcal.pipeline.core.series import autocorrelation_time, correlated_errors_covariance, noise_inflation
 from uwbcal.pipeline.core.state import chi2_ppf
 from uwbcal.pipeline.core.state import nearest_psd as _psd
 from uwbcal.pipeline.uwb.fim import assess_observability
@@ -43,8 +43,7 @@ from uwbcal.pipeline.uwb.window import InitWindow, plane_frame, subsample
 
 FAMILIES = ("position", "gamma", "gamma+beta", "link", "link+beta")
 BAYES_FACTOR = 3.0  # Jeffreys' "substantial" evidence: a richer model must beat a simpler one by this factor
-JACKKNIFE_BLOCKS = 10
-WARM_ITERATIONS = 10  # a refit from a fit of nearly the same problem (profiles, jackknife, clock scan)
+WARM_ITERATIONS = 10  # a refit from a fit of nearly the same problem (profiles, clock scan)
 PIN_PRECISION = 1e8  # [1/m^2] a profile's pinned coordinate
 CAUCHY_SCALE = 2.0  # [range sigmas] of the robust fit's redescending loss
 VERTICAL_COS = 0.9  # a weak direction this close to vertical is a height the geometry leaves open
@@ -119,8 +118,13 @@ class FitSpec:
     block_s: float = 10.0  # time blocks of the deflation's batch means [s]
     robust: bool = True  # soft-L1 loss (False: least squares)
     deflate: float = 1.0  # set by `fit_anchor` from the base fit (`deflation`)
-    pattern_sigma: float = 0.05  # [m] size of an antenna pattern's direction-dependent bias (`pattern_cov`)
-    # the covariance's profile widening, jackknife and antenna pattern (False: a start or a scan's fit, its
+    pattern_sigma: float = (
+        0.05  # [m] size of an antenna pattern's direction-dependent bias (`declared_errors_cov`)
+    )
+    # [s] the poses' errors are bounded and correlated over this time (Gauss-Markov, the pose source's declared
+    # model): their effect on the anchor floors its covariance (`declared_errors_cov`); 0: none declared
+    pose_tau_s: float = 0.0
+    # the covariance's profile widening and the declared errors' floor (False: a start or a scan's fit, its
     # model-mixture covariance only)
     refine_cov: bool = True
     stated: tuple[
@@ -331,10 +335,7 @@ def deflation(
     (multipath, a pose error and an antenna pattern make neighbouring ranges err alike), at least 1. The residuals
     are taken about each link's median (``li``: a constant per link is the offset families' to explain, not
     noise)."""
-    e = m.r / np.sqrt(s2)
-    if li is not None:
-        for k in np.unique(li):
-            e[li == k] -= np.median(e[li == k])
+    e = _standardised(m, s2, li)
     spread = mad_sigma(e)
     ec = np.clip(e / max(spread, 1e-6), -3.0, 3.0)
     u = lines_of_sight(m.p, xyz)
@@ -343,6 +344,16 @@ def deflation(
         order = np.argsort(t_ns, kind="stable")
         kt = max(noise_inflation(t_ns, ec, block_s=spec.block_s), autocorrelation_time(ec[order]))
     return max(spread, 1.0) ** 2 * max(kt, _group_inflation(ec, direction_cells(u)))
+
+
+def _standardised(m: Model, s2: np.ndarray, li: np.ndarray | None) -> np.ndarray:
+    """The fit's residuals over their nominal sigmas, about each link's median (``li``: a constant per link is the
+    offset families' to explain, not noise)."""
+    e = m.r / np.sqrt(s2)
+    if li is not None:
+        for k in np.unique(li):
+            e[li == k] -= np.median(e[li == k])
+    return e
 
 
 def _linear_start(xyz: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -465,7 +476,12 @@ def fit_anchor(
     sign_open = pos_cov is not None and ext[2] <= 2.0 * np.sqrt(
         np.median(np.einsum("i,nij,j->n", n, pos_cov[sel], n))
     )
-    data = (x, dd, li, s2, t)
+    pose_var = (
+        None
+        if pos_cov is None
+        else np.trace(np.asarray(pos_cov, float)[sel][:, :3, :3], axis1=1, axis2=2) / 3
+    )
+    data = (x, dd, li, s2, t, pose_var)
     fit = _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_open, alternatives)
     if test and "evidence" in fit.costs:
         fit.costs["evidence"]["offset_prior"] = test
@@ -532,20 +548,30 @@ def likelihood_widening(m: Model, data: tuple, spec: FitSpec, cov: np.ndarray, r
     return out
 
 
-def pattern_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> np.ndarray:
-    """What an antenna pattern of the hardware's size does to the position: a bias varying smoothly with the
-    direction of arrival u, b(u) = c . u with c ~ N(0, pattern_sigma^2 I), mimics a displaced anchor, so no fit
-    and no regrouping of the ranges can see it; its effect is the estimator's map of it, G U Sigma U^T G^T with
-    G the fit's linear map from ranges to parameters (priors included)."""
-    if spec.pattern_sigma <= 0:
-        return np.zeros((3, 3))
-    xyz, _, _, s2 = data
-    u = lines_of_sight(m.p, xyz)
-    sd = np.sqrt(s2)
+def range_gain(m: Model, s2: np.ndarray, spec: FitSpec, reach: float) -> np.ndarray:
+    """(3, N) the fit's linear map from the ranges' errors [m] to its position (robust weights and priors
+    included)."""
     whitened = (m.J * (m.w / spec.deflate)[:, None]).T
-    G = np.linalg.solve(posterior_info(m, reach), whitened)[:3]  # (3, N): whitened ranges -> position
-    M = G @ (u / sd[:, None])
-    return spec.pattern_sigma**2 * M @ M.T
+    return np.linalg.solve(posterior_info(m, reach), whitened)[:3] / np.sqrt(s2)
+
+
+def declared_errors_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> np.ndarray:
+    """The position's covariance from the errors the recording declares, through the fit's gain G: the ranges
+    white at their measured spread; a bounded pose source's error, Gauss-Markov over ``spec.pose_tau_s``; an
+    antenna pattern of the hardware's size, a bias b(u) = c . u with c ~ N(0, pattern_sigma^2 I) over the
+    direction of arrival u. A floor of the covariance: a pose error shared along a stretch of the path moves the
+    anchor with it, and a pattern mimics a displaced anchor, so neither leaves a trace in the residuals that the
+    deflation or a regrouping of the ranges could measure."""
+    xyz, _, li, s2, t, pose_var = data
+    G = range_gain(m, s2, spec, reach)
+    u = lines_of_sight(m.p, xyz)
+    cov = max(mad_sigma(_standardised(m, s2, li)), 1.0) ** 2 * (G * s2) @ G.T
+    M = G @ u
+    cov += spec.pattern_sigma**2 * M @ M.T
+    if pose_var is not None and t is not None and spec.pose_tau_s > 0:
+        gains = G.T[:, :, None] * u[:, None, :]  # (N, 3, 3): each tag position error -> position
+        cov += correlated_errors_covariance(gains, pose_var, (t - t[0]) * 1e-9, spec.pose_tau_s)
+    return cov
 
 
 def _open_height(cov: np.ndarray, max_sigma: float, reach: float, mirror: bool = False) -> np.ndarray:
@@ -558,45 +584,6 @@ def _open_height(cov: np.ndarray, max_sigma: float, reach: float, mirror: bool =
         return cov
     out = cov.copy()
     out[2, 2] += max(reach**2 - out[2, 2], 0.0)
-    return out
-
-
-def jackknife_cov(m: Model, data: tuple, spec: FitSpec, blocks: int = JACKKNIFE_BLOCKS) -> np.ndarray:
-    """Grouped-jackknife covariance of the position, the wider of two groupings: contiguous stretches of time
-    (``blocks`` of them: a pose error, multipath met along one part of the path, the one pass near the anchor that
-    sets its height) and clusters of the direction of arrival (an antenna pattern): the chosen family refitted
-    without each group, (K - 1) / K times the scatter of those fits. Zero without stamps."""
-    xyz, d, li, s2, t = data
-    if t is None or len(d) < 3 * blocks:
-        return np.zeros((3, 3))
-    u = lines_of_sight(m.p, xyz)
-    groupings = (
-        np.minimum(np.argsort(np.argsort(t, kind="stable")) * blocks // len(d), blocks - 1),
-        direction_cells(u),
-    )
-    out = np.zeros((3, 3))
-    for group in groupings:
-        ids = np.unique(group)
-        if len(ids) < 3:
-            continue
-        pos = np.array(
-            [
-                fit_family(
-                    xyz[group != k],
-                    d[group != k],
-                    li[group != k],
-                    len(m.g),
-                    s2[group != k],
-                    m.name,
-                    m.p,
-                    spec,
-                    warm=m,
-                ).p
-                for k in ids
-            ]
-        )
-        dp = pos - pos.mean(axis=0)
-        out += _psd((len(ids) - 1) / len(ids) * dp.T @ dp - out)
     return out
 
 
@@ -618,8 +605,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
     wide = cov
     if spec.refine_cov:
         wide = likelihood_widening(best, data[:4], spec, cov, reach)
-        wide[:3, :3] += _psd(jackknife_cov(best, data, spec) - wide[:3, :3])
-        wide[:3, :3] += pattern_cov(best, data[:4], spec, reach)
+        wide[:3, :3] += _psd(declared_errors_cov(best, data, spec, reach) - wide[:3, :3])
     wide = _open_height(wide, spec.max_sigma, reach, mirror)
     excess = excess + (wide - cov)[:3, :3]
     cov = wide

@@ -169,12 +169,13 @@ def initialize_anchors(
     method: str | None = None,
     searches: dict[Any, AnchorFit] | None = None,
     cheap: bool = False,
+    pose_tau_s: float | None = None,
 ) -> dict[Any, InitResult]:
     """Every anchor window's initialisation (``auto``: see `auto_init_method`; the pipeline resolves it from the
     recording's source, here it means ri): the evidence fit with the method's weighting and loss
     (`evidence.init_result`; ``searches``: fits already made), or with ``uwb.search = false`` the paper's
     multi-start (`initializer.initialize_anchor`). ``cheap``: the evidence fit's model-mixture covariance only (an
-    initialiser run for comparison)."""
+    initialiser run for comparison). ``pose_tau_s``: the correlation time of a pose source of bounded error."""
     sigma = config.sigma(calibration) * config.sigma_scale
     method = method or config.init_method
     method = auto_init_method(None) if method == "auto" else method
@@ -187,8 +188,9 @@ def initialize_anchors(
             w.P_pose[:, 3:6, 3:6] += np.eye(3) * config.pose_sigma_floor_m**2
         if config.search:
             # search_window adds the floor itself
-            sr = searches.get(a) or search_window(raw, config, sigma, calibration, method, cheap)
-            out[a] = init_result(w, sr, method, str(a), evidence_spec(config, sigma, calibration, method))
+            sr = searches.get(a) or search_window(raw, config, sigma, calibration, method, cheap, pose_tau_s)
+            spec = evidence_spec(config, sigma, calibration, method, pose_tau_s)
+            out[a] = init_result(w, sr, method, str(a), spec)
             continue
         out[a] = initialize_anchor(
             w,
@@ -210,10 +212,13 @@ def initialize_anchors(
     return out
 
 
-def evidence_spec(config: UwbConfig, sigma: float, calibration: Mapping | None, method: str) -> FitSpec:
+def evidence_spec(
+    config: UwbConfig, sigma: float, calibration: Mapping | None, method: str, pose_tau_s: float | None = None
+) -> FitSpec:
     """The evidence fit's priors and thresholds: the offset prior of the calibration (else the hardware's), the
     range scale's stated prior (else a TWR clock's), the method's loss (robust for ri-robust); a parameter the
-    calibration states a prior for is in every model (the rule decides the rest)."""
+    calibration states a prior for is in every model (the rule decides the rest). ``pose_tau_s``: the correlation
+    time of a pose source of bounded error (None: its errors are not declared bounded)."""
     uwb = (calibration or {}).get("uwb") or {}
     stated = uwb.get("beta_prior") or {}
     return FitSpec(
@@ -226,6 +231,7 @@ def evidence_spec(config: UwbConfig, sigma: float, calibration: Mapping | None, 
         max_ranges=config.max_init_ranges,
         robust=method == "ri-robust",
         pattern_sigma=config.pattern_sigma(calibration),
+        pose_tau_s=pose_tau_s or 0.0,
         stated=tuple(p for p, key in (("gamma", "gamma_prior"), ("beta", "beta_prior")) if uwb.get(key)),
     )
 
@@ -237,6 +243,7 @@ def search_window(
     calibration: Mapping | None = None,
     method: str = "ri-robust",
     cheap: bool = False,
+    pose_tau_s: float | None = None,
 ) -> AnchorFit:
     """The evidence fit of an init window (`evidence.fit_anchor`): the robust position fit, the range model the
     evidence chooses, the anchor's weak directions (``cheap``: its model-mixture covariance only, for a start), or
@@ -249,7 +256,7 @@ def search_window(
         return not_determined(
             f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
         )
-    spec = replace(evidence_spec(config, sigma, calibration, method), refine_cov=not cheap)
+    spec = replace(evidence_spec(config, sigma, calibration, method, pose_tau_s), refine_cov=not cheap)
     pos_cov = None
     if method != "lsi":
         pos_cov = w.P_pose[:, 3:6, 3:6] + np.eye(3) * config.pose_sigma_floor_m**2

@@ -20,7 +20,6 @@ from uwbcal.pipeline.uwb.updater import (
     windows_from_trajectory,
 )
 from uwbcal.pipeline.uwb.window import InitWindow, subsample
-from uwbcal.pipeline.vio.odometry_filter import resolve_error_model
 from uwbcal.pipeline.viz import runlog as rl
 from uwbcal.pipeline.viz.runlog import RunLog
 
@@ -60,6 +59,7 @@ def run(ctx: StageContext) -> StageResult:
             method=m,
             searches=searches if m == cfg.init_method else None,
             cheap=m != cfg.init_method,
+            pose_tau_s=ctx.pose_correlation_s(),
         )
         for m in INIT_METHODS
     }
@@ -129,9 +129,8 @@ def _range_clock(ctx: StageContext, vio, rng: dict, start_ns: int, end_ns: int, 
 
     sigma = cfg.sigma(cal) * cfg.sigma_scale
     spec = evidence_spec(cfg, sigma, cal, cfg.init_method)
-    pose_tau = resolve_error_model(ctx.config.odometry, cal)[1] if ctx.bounded_poses() else None
     clock = estimate_clock(
-        windows_at, spec, max_s=cfg.clock_scan_s, max_ranges=CLOCK_RANGES, pose_tau_s=pose_tau
+        windows_at, spec, max_s=cfg.clock_scan_s, max_ranges=CLOCK_RANGES, pose_tau_s=ctx.pose_correlation_s()
     )
     ctx.reader.range_shift_ns = round(clock.applied_s * 1e9)
     return clock
@@ -241,7 +240,9 @@ def _schedule(
         j = join_time(
             w,
             end,
-            lambda sub: search_window(sub, cfg, sigma, ctx.reader.calibration, cfg.init_method, starts),
+            lambda sub: search_window(
+                sub, cfg, sigma, ctx.reader.calibration, cfg.init_method, starts, ctx.pose_correlation_s()
+            ),
             per_anchor=per_anchor and not whole,
             min_ranges=max(cfg.min_ranges, 30),
             join_sigma=cfg.join_sigma_m if per_anchor else None,
