@@ -601,13 +601,12 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
         nrm = Vt[2]
         other = replace(other, p=best.p - 2.0 * nrm * float(nrm @ (best.p - data[0].mean(axis=0))))
     mirror = mirror and bool(np.linalg.norm(other.p - best.p) > 1e-3)  # an anchor on the plane has no mirror
-    cov, excess = mixture_cov(models, best, reach, alternatives)
+    cov, _ = mixture_cov(models, best, reach, alternatives)
     wide = cov
     if spec.refine_cov:
         wide = likelihood_widening(best, data[:4], spec, cov, reach)
         wide[:3, :3] += _psd(declared_errors_cov(best, data, spec, reach) - wide[:3, :3])
     wide = _open_height(wide, spec.max_sigma, reach, mirror)
-    excess = excess + (wide - cov)[:3, :3]
     cov = wide
     lam, V = np.linalg.eigh(cov[:3, :3])
     sd = np.sqrt(np.maximum(lam, 0.0))
@@ -628,7 +627,6 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
             "mirror": other.cost,
             "kappa": spec.deflate,
             "evidence": evidence,
-            "excess_cov": excess,
         },
         beta=best.beta,
         residuals=best.r.copy(),
@@ -719,8 +717,6 @@ def init_result(window: InitWindow, sr: AnchorFit, method: str, anchor: str, spe
         T = np.eye(L) - 1.0 / L
         res.link_offsets = {int(k): float(g - x[4]) for k, g in zip(sr.links, sr.gamma, strict=True)}
         res.link_cov = T @ sr.cov[3:, 3:] @ T
-    res.excess_cov = np.zeros((5, 5))
-    res.excess_cov[:3, :3] = sr.costs["excess_cov"]
     gamma = (spec.gamma_mean, spec.gamma_sigma if offsets else FIXED_OFFSET_SIGMA)
     res.model_priors = (gamma, (1.0, spec.beta_sigma if has_scale(model) else FIXED_BETA_SIGMA))
     if msg := _offset_warning(anchor, ev):

@@ -63,9 +63,6 @@ class InitResult:
     # (gamma prior, beta prior) of the range model the evidence chose (`evidence.fit_anchor`); the refinement
     # keeps them (a parameter left out stays at its mean). None: the recording's priors
     model_priors: tuple | None = None
-    excess_cov: np.ndarray | None = (
-        None  # (5,5) what the chosen range model leaves out (evidence.mixture_cov)
-    )
 
     @property
     def reason(self) -> str:

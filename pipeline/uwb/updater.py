@@ -487,8 +487,12 @@ def add_anchor_to_state(
         Q = Q.copy()
         Q[2, :] = Q[:, 2] = 0.0
         Q[2, 2] = float(result.cov[2, 2])
-    if result.excess_cov is not None:  # what the chosen range model leaves out (evidence.mixture_cov)
-        Q = Q + result.excess_cov
+    if result.model_priors is not None:
+        # the evidence fit's covariance (its model average, its widening, the declared errors' floor) where it is
+        # wider than the error map's: an anchor reads at least as uncertain as it did at init, and the pose errors
+        # both count are counted once
+        mapped = sum(Mj @ state.cov(v) @ Mj.T for v, Mj in J.items()) + Q
+        Q = Q + nearest_psd(result.cov - mapped)
     state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
 
 

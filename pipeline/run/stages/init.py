@@ -81,13 +81,11 @@ def run(ctx: StageContext) -> StageResult:
 
 
 def _add_clock_cov(r, C: np.ndarray) -> None:
-    """The clock offset's error in the anchor's covariance, as what its model leaves out (``excess_cov``)."""
+    """The clock offset's error in the anchor's covariance."""
     if not r.ok or not np.any(C):
         return
     r.cov = r.cov.copy()
     r.cov[:3, :3] += C
-    r.excess_cov = np.zeros((5, 5)) if r.excess_cov is None else r.excess_cov.copy()
-    r.excess_cov[:3, :3] += C
 
 
 def _link_corrected(windows: dict, searches: dict) -> dict:
