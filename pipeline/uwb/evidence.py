@@ -118,9 +118,8 @@ class FitSpec:
     block_s: float = 10.0  # time blocks of the deflation's batch means [s]
     robust: bool = True  # soft-L1 loss (False: least squares)
     deflate: float = 1.0  # set by `fit_anchor` from the base fit (`deflation`)
-    pattern_sigma: float = (
-        0.05  # [m] size of an antenna pattern's direction-dependent bias (`declared_errors_cov`)
-    )
+    # [m] size of an antenna pattern's direction-dependent bias (`declared_errors_cov`)
+    pattern_sigma: float = 0.05
     # [s] the poses' errors are bounded and correlated over this time (Gauss-Markov, the pose source's declared
     # model): their effect on the anchor floors its covariance (`declared_errors_cov`); 0: none declared
     pose_tau_s: float = 0.0
