@@ -4,7 +4,16 @@ import numpy as np
 import pytest
 
 from uwbcal.pipeline.core.geometry import exp_so3, log_so3
-from uwbcal.pipeline.core.state import ImuState, Kind, Pose, State, Vec, _lower_solve, ekf_update
+from uwbcal.pipeline.core.state import (
+    ImuState,
+    Kind,
+    Pose,
+    State,
+    Vec,
+    _lower_solve,
+    covariance_upper_bound,
+    ekf_update,
+)
 
 
 def _random_spd(rng, n):
@@ -315,3 +324,32 @@ def test_lower_solve_is_scipys_solve_triangular():
         for b in (rng.normal(size=n), rng.normal(size=(k, n)).T):
             ref = solve_triangular(L, b, lower=True, check_finite=False)
             np.testing.assert_allclose(_lower_solve(L, b), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+
+def test_covariance_upper_bound_is_the_larger_along_common_axes():
+    """Against its definition on random pairs: it bounds both, lies below their sum, is one of them when that one
+    is the larger, and a change of units (T) commutes with it. (The positive part of their difference added to
+    one of them exceeds their sum on every one of these pairs.)"""
+    rng = np.random.default_rng(3)
+
+    def spd():  # correlated, in units four decades apart (an anchor's metres against its scale)
+        S = np.diag(10.0 ** rng.uniform(-2, 2, 5))
+        M = rng.normal(size=(5, 5))
+        return S @ (M @ M.T + 0.1 * np.eye(5)) @ S
+
+    for _ in range(50):
+        A, B = spd(), spd()
+        C = covariance_upper_bound(A, B)
+        for lower in (A, B):
+            assert np.linalg.eigvalsh(C - lower).min() > -1e-9 * np.trace(C)
+        assert np.linalg.eigvalsh(A + B - C).min() > -1e-9 * np.trace(C)
+        tol = {"rtol": 1e-6, "atol": 1e-9 * np.abs(A + B).max()}
+        np.testing.assert_allclose(covariance_upper_bound(B, A + B), A + B, **tol)
+        np.testing.assert_allclose(covariance_upper_bound(A + B, B), A + B, **tol)
+        T = np.diag(10.0 ** rng.uniform(-2, 2, 5)) @ _random_spd(rng, 5)
+        np.testing.assert_allclose(
+            covariance_upper_bound(T @ A @ T.T, T @ B @ T.T),
+            T @ C @ T.T,
+            rtol=1e-7,
+            atol=1e-9 * np.abs(T @ C @ T.T).max(),
+        )

@@ -396,21 +396,16 @@ def test_log_and_summaries_write_an_rrd(tmp_path):
     assert s.rows["uwb/3/residual"] == len(upd.records[3].t_ns) == 5 and "uwb/5/residual" not in s.rows
 
 
-def test_link_offset_map_matches_refit():
-    """Per-link bias: the anchor's initial covariance carries the offsets' error through J[links/<id>], the
-    first-order map of a change of one link's offset into the fitted anchor. Independent reference: refit the
-    window with that link's ranges shifted by eps (the solver, not the formula) and difference."""
-    from uwbcal.pipeline.uwb.initializer import solve_from
-    from uwbcal.pipeline.uwb.updater import anchor_init_covariance, link_var
-    from uwbcal.pipeline.uwb.window import InitWindow
-
-    rng = np.random.default_rng(5)
+def _two_link_result(seed: int = 5, spread: float = 0.2):
+    """Anchor 7 ranged over two links whose offsets differ by +-``spread`` about 0.5 m, 40 s at 20 Hz: the
+    evidence fit's result (it takes per-link offsets where they differ) and the last pose."""
+    rng = np.random.default_rng(seed)
     t = np.arange(0.0, 40.0, 0.05)
     R, p = smooth_trajectory(rng, t, extent=(5.0, 5.0, 3.0), z0=2.0, freq=(0.03, 0.12))
     a = ANCHORS[7]
     ant = np.arange(len(t)) % 2
     pT = np.stack([ARMS[(1, int(k))] for k in ant])
-    offsets = np.where(ant == 0, 0.2, -0.2)
+    offsets = np.where(ant == 0, spread, -spread)
     d = np.linalg.norm(p + np.einsum("nij,nj->ni", R, pT) - a, axis=1) + 0.5 + offsets
     d += rng.normal(0, 0.1, len(t))
     t_ns = (t * 1e9).astype(np.int64)
@@ -427,13 +422,22 @@ def test_link_offset_map_matches_refit():
         "anchor": np.full(len(t), 7),
         "distance": d,
     }
-    cfg = UwbConfig(
-        init_method="ri", estimate_beta=False
-    )  # the links' offsets differ: the evidence takes them
-    res = initialize_anchors(windows_from_trajectory(traj, rg, CALIB), cfg, CALIB)[7]
+    cfg = UwbConfig(init_method="ri", estimate_beta=False)
+    return initialize_anchors(windows_from_trajectory(traj, rg, CALIB), cfg, CALIB)[7], R[-1], p[-1]
+
+
+def test_link_offset_map_matches_refit():
+    """Per-link bias: the anchor's initial covariance carries the offsets' error through J[links/<id>], the
+    first-order map of a change of one link's offset into the fitted anchor. Independent reference: refit the
+    window with that link's ranges shifted by eps (the solver, not the formula) and difference."""
+    from uwbcal.pipeline.uwb.initializer import solve_from
+    from uwbcal.pipeline.uwb.updater import anchor_init_covariance, link_var
+    from uwbcal.pipeline.uwb.window import InitWindow
+
+    res, R_end, p_end = _two_link_result()
     assert res.ok and len(res.link_offsets) == 2 and res.link_cov is not None
     state = State()
-    state.add("imu", Pose(R[-1], p[-1]), np.eye(6) * 1e-4, kind=Kind.NAV)
+    state.add("imu", Pose(R_end, p_end), np.eye(6) * 1e-4, kind=Kind.NAV)
     state.add(
         link_var(7),
         Vec(np.array(list(res.link_offsets.values()))),
@@ -454,6 +458,32 @@ def test_link_offset_map_matches_refit():
         shifted = InitWindow(d - eps * (w.links() == lk), w.p_T, w.R, w.p, w.P_pose, w.t_ns, w.link)
         dx = (solve_from(shifted, th0, **kw).theta - base) / eps
         np.testing.assert_allclose(dx, J[link_var(7)][list(res.params), col], rtol=0.03, atol=1e-3)
+
+
+def test_evidence_anchor_joins_at_least_as_uncertain_as_both_covariances():
+    """An evidence anchor joins the filter with, along each axis, the larger of its init covariance and the error
+    map's (`covariance_upper_bound`): both bound the joined covariance from below, and the joined one is no wider
+    than the two together (their sum)."""
+    from uwbcal.pipeline.uwb.updater import anchor_init_covariance
+
+    res, R_end, p_end = _two_link_result(seed=6, spread=0.0)
+    assert res.ok and res.model_priors is not None and not res.link_offsets
+    gamma, beta = res.model_priors
+    for pose_var in (1e-4, 4e-2):  # an error map below and above the init covariance
+        state = State()
+        state.add("imu", Pose(R_end, p_end), np.eye(6) * pose_var, kind=Kind.NAV)
+        mapped_state = State()
+        mapped_state.add("imu", Pose(R_end, p_end), np.eye(6) * pose_var, kind=Kind.NAV)
+        add_anchor_to_state(state, 7, res, sigma_range=0.1, gamma_prior=None)
+        P = state.cov(anchor_var(7))
+        J, Q = anchor_init_covariance(
+            res, mapped_state, sigma_range=0.1, gamma_prior=gamma, beta_prior=beta, links=None
+        )
+        mapped = sum(M @ mapped_state.cov(v) @ M.T for v, M in J.items()) + Q
+        scale = np.sqrt(np.outer(np.diag(P), np.diag(P)))
+        for lower in (res.cov, mapped):
+            assert np.linalg.eigvalsh((P - lower) / scale).min() > -1e-9
+        assert np.linalg.eigvalsh((res.cov + mapped - P) / scale).min() > -1e-9
 
 
 def test_gate_rates_and_warning_name_the_faulty_anchor():

@@ -591,6 +591,18 @@ def nearest_psd(A: np.ndarray) -> np.ndarray:
     return (V * np.maximum(w, 0.0)[..., None, :]) @ np.swapaxes(V, -1, -2)
 
 
+def covariance_upper_bound(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """The larger of two covariances: along each of their common axes (the generalised eigenvectors, where both are
+    diagonal) the larger variance. It bounds both from above (C - A, C - B PSD), equals ``B`` where ``A`` <= ``B``,
+    and does not depend on the coordinates' units (C(T A T', T B T') = T C(A, B) T'). ``B`` positive definite."""
+    A, B = 0.5 * (A + A.T), 0.5 * (B + B.T)
+    L = np.linalg.cholesky(B)
+    Li = np.linalg.solve(L, np.eye(len(B)))
+    s, U = np.linalg.eigh(Li @ A @ Li.T)
+    M = L @ U
+    return (M * np.maximum(s, 1.0)) @ M.T
+
+
 def _stacked_jacobian(
     state: State, H: Mapping[str, np.ndarray], m: int
 ) -> tuple[slice | np.ndarray, np.ndarray]:

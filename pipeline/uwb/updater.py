@@ -25,6 +25,7 @@ from uwbcal.pipeline.core.state import (
     UpdateResult,
     Vec,
     chi2_ppf,
+    covariance_upper_bound,
     ekf_update,
     nearest_psd,
     remove_probes,
@@ -488,11 +489,11 @@ def add_anchor_to_state(
         Q[2, :] = Q[:, 2] = 0.0
         Q[2, 2] = float(result.cov[2, 2])
     if result.model_priors is not None:
-        # the evidence fit's covariance (its model average, its widening, the declared errors' floor) where it is
-        # wider than the error map's: an anchor reads at least as uncertain as it did at init, and the pose errors
-        # both count are counted once
+        # along each axis the larger of the evidence fit's covariance (its model average, its widening, the
+        # declared errors' floor) and the error map's: an anchor reads at least as uncertain as it did at init, and
+        # the pose errors both count are counted once
         mapped = sum(Mj @ state.cov(v) @ Mj.T for v, Mj in J.items()) + Q
-        Q = Q + nearest_psd(result.cov - mapped)
+        Q = Q + (covariance_upper_bound(result.cov, mapped) - mapped)
     state.augment(anchor_var(anchor), Vec(result.x), J, Q=Q, kind=Kind.ANCHOR, key=anchor)
 
 
