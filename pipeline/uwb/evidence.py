@@ -34,7 +34,7 @@ from scipy.special import logsumexp
 
 from uwbcal.pipeline.core.robust import mad_sigma, robust_loss
 from uwbcal.pipeline.core.series import autocorrelation_time, correlated_errors_covariance, noise_inflation
-from uwbcal.pipeline.core.state import chi2_ppf
+from uwbcal.pipeline.core.state import chi2_ppf, covariance_upper_bound
 from uwbcal.pipeline.core.state import nearest_psd as _psd
 from uwbcal.pipeline.uwb.fim import assess_observability
 from uwbcal.pipeline.uwb.initializer import InitResult
@@ -604,7 +604,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
     wide = cov
     if spec.refine_cov:
         wide = likelihood_widening(best, data[:4], spec, cov, reach)
-        wide[:3, :3] += _psd(declared_errors_cov(best, data, spec, reach) - wide[:3, :3])
+        wide[:3, :3] = covariance_upper_bound(declared_errors_cov(best, data, spec, reach), wide[:3, :3])
     wide = _open_height(wide, spec.max_sigma, reach, mirror)
     cov = wide
     lam, V = np.linalg.eigh(cov[:3, :3])
