@@ -298,6 +298,24 @@ def choose(models: list[Model]) -> Model:
     return min(near, key=lambda m: (FAMILIES.index(m.name), -m.log_evidence))
 
 
+def basin_deflation(a: Model, b: Model, data: tuple, spec: FitSpec) -> float:
+    """How much less the evidence between two basins tells than the ranges' noise says, >= 1: the variance of
+    their log Bayes factor under the declared pose error (Gauss-Markov over ``spec.pose_tau_s``) added to its
+    variance under the (deflated) ranges' noise, over the latter. A pose error shared along the path moves every
+    range alike and leaves no trace in either fit's residuals, yet it can mimic the carrier's small excursions
+    off its plane that tell the two sides apart."""
+    xyz, _, _, s2, t, pose_var = data
+    if pose_var is None or t is None or spec.pose_tau_s <= 0 or a is b:
+        return 1.0
+    white = spec.deflate * float(np.sum((b.r - a.r) ** 2 / s2))  # d log BF / d range error: (r_b - r_a) / s2
+    # d log BF / d tag position: each basin's residual moves along its own line of sight (a shift shared by every
+    # pose moves both anchors with it and cancels)
+    gains = (b.r[:, None] * lines_of_sight(b.p, xyz) - a.r[:, None] * lines_of_sight(a.p, xyz)) / s2[:, None]
+    gains = gains[:, None, :]
+    pose = float(correlated_errors_covariance(gains, pose_var, (t - t[0]) * 1e-9, spec.pose_tau_s)[0, 0])
+    return 1.0 + pose / max(white, 1e-12)
+
+
 def _group_inflation(e: np.ndarray, groups: np.ndarray, quantile: float = 0.99) -> float:
     """Variance factor of a mean of ``e`` over what the groups share (one-way ANOVA: the between-group mean
     square over the variance), >= 1; used only beyond the ``quantile`` of its chi2 distribution under
@@ -594,7 +612,8 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
     twin = [m for m in models if m.name == best.name and m.basin != best.basin]
     other = twin[0] if twin else best
     two = np.linalg.norm(other.p - best.p) > 1e-3
-    close = basin_evidence(models, other.basin) >= basin_evidence(models, best.basin) - np.log(BAYES_FACTOR)
+    lead = basin_evidence(models, best.basin) - basin_evidence(models, other.basin)
+    close = lead / basin_deflation(best, other, data, spec) <= np.log(BAYES_FACTOR)
     mirror = bool(sign_open or (two and close))
     if mirror and not two:  # one basin found: the other side is the estimate's mirror across the motion plane
         nrm = Vt[2]
