@@ -397,12 +397,13 @@ def not_determined(reason: str, n: int, links: np.ndarray, **kw) -> AnchorFit:
 
 def mixture_cov(
     models: list[Model], chosen: Model, reach: float, alternatives: list[Model] = ()
-) -> tuple[np.ndarray, np.ndarray]:
-    """Covariance of (p, offsets per link) of the chosen model, its position block widened to the evidence-weighted
-    mixture of every family and basin fitted and of ``alternatives`` (fits under another prior: a stated offset
-    the ranges do not confirm): their covariances plus the spread of their positions about the chosen one. What
+) -> np.ndarray:
+    """Covariance of (p, offsets per link) of the chosen model, its position block the larger
+    (`covariance_upper_bound`) of its own and the evidence-weighted mixture of every family and basin fitted and of
+    ``alternatives`` (fits under another prior: a stated offset the ranges do not confirm): their covariances plus
+    the spread of their positions about the chosen one. What
     the chosen model leaves out (the other basin, an offset it holds at its prior mean) stays in the sigma as much
-    as the ranges allow it. Returns the covariance and that widening alone (3x3, PSD)."""
+    as the ranges allow it."""
 
     def pos_cov(m: Model) -> np.ndarray:
         return np.linalg.inv(posterior_info(m, reach))
@@ -415,17 +416,16 @@ def mixture_cov(
         w * (pos_cov(m)[:3, :3] + np.outer(m.p - chosen.p, m.p - chosen.p))
         for m, w in zip(every, wts, strict=True)
     )
-    excess = _psd(mix - C[:3, :3])
     L = len(chosen.g)
     out = np.zeros((3 + L, 3 + L))
-    out[:3, :3] = C[:3, :3] + excess
+    out[:3, :3] = covariance_upper_bound(mix, C[:3, :3])
     k = 3 + has_scale(chosen.name)  # the offsets' rows in C
     if per_link(chosen.name):
         out[:3, 3:], out[3:, 3:] = C[:3, k:], C[k:, k:]
     elif chosen.name != "position":  # one offset shared by every link
         out[:3, 3:] = C[:3, k : k + 1]
         out[3:, 3:] = C[k, k]
-    return 0.5 * (out + out.T), excess
+    return 0.5 * (out + out.T)
 
 
 def fit_anchor(
@@ -619,7 +619,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
         nrm = Vt[2]
         other = replace(other, p=best.p - 2.0 * nrm * float(nrm @ (best.p - data[0].mean(axis=0))))
     mirror = mirror and bool(np.linalg.norm(other.p - best.p) > 1e-3)  # an anchor on the plane has no mirror
-    cov, _ = mixture_cov(models, best, reach, alternatives)
+    cov = mixture_cov(models, best, reach, alternatives)
     wide = cov
     if spec.refine_cov:
         wide = likelihood_widening(best, data[:4], spec, cov, reach)
