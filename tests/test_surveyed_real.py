@@ -99,17 +99,29 @@ def test_surveyed_setups_at_least_as_good_as_the_naive_fit(data_dir, tmp_path, n
 
 @pytest.mark.data
 @pytest.mark.parametrize("half", [0, 1])
-@pytest.mark.parametrize("name", ["starloc_loop-2d_s5", "rcv_seq4", "hanyang_nlos_a_case2"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "starloc_loop-2d_s5",
+        "inrol_filtering_state_estimation2",
+        "rcv_seq4",
+        "hanyang_nlos_a_case2",
+        "cuhksz_mid",
+        "mcd_ntu_night_13_tag0",
+        "mcd_ntu_night_13_tag1",
+    ],
+)
 def test_each_half_of_a_surveyed_recording(data_dir, tmp_path, name, half):
     """Generality on recordings not developed on: each half in time of a folder is another recording of its
-    setup (less motion, other anchors' geometry), held to the same criteria."""
+    setup (less motion, other anchors' geometry), held to the same criteria. A half of the campus drive passes few
+    of its far anchors: those it does not pin down are not determined, with their reasons (`_check`)."""
     src = data_dir / "surveyed" / name
     if not src.is_dir():
         pytest.skip(f"{src} missing")
     part = surveyed_half(src, half, tmp_path / "half")
     _, truth, counts, rows, states, metrics = _run(data_dir, tmp_path, name, part)
     eh, anchors = _check(truth, counts, rows, states, metrics)
-    assert len(eh) >= 2
+    assert len(eh) >= (1 if name.startswith("mcd") else 2)
     _at_most_naive(part, f"{name} half {half}", eh, anchors)
 
 
