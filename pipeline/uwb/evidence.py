@@ -66,11 +66,9 @@ class AnchorFit:
     p: np.ndarray  # (3,) world anchor position (at the plane when the mirror is ambiguous)
     gamma: np.ndarray  # (L,) per-link offsets, in the order of ``links``
     links: np.ndarray  # (L,) link ids
-    inliers: np.ndarray  # (N,) bool over the input ranges (those used and consistent with the fit)
     scale: float  # robust residual sigma of the inliers [m]
     cov: np.ndarray  # (3+L, 3+L) covariance of (p world, gamma_l), residual-scaled
     planar: bool = False  # the trajectory is planar (smallest extent < 0.1 x largest)
-    normal_spread: float = float("nan")  # std of the carrier's positions along the plane normal [m]
     height_observable: bool = True
     mirror: bool = False  # the mirror across the motion plane fits as well
     mirror_p: np.ndarray | None = None  # the other basin (world) when ``mirror``
@@ -379,7 +377,7 @@ def _linear_start(xyz: np.ndarray, d: np.ndarray) -> np.ndarray:
     return sol[:3]
 
 
-def not_determined(reason: str, n: int, links: np.ndarray, **kw) -> AnchorFit:
+def not_determined(reason: str, links: np.ndarray, **kw) -> AnchorFit:
     L = len(links)
     nan = np.full((3 + L, 3 + L), np.nan)
     return AnchorFit(
@@ -388,7 +386,6 @@ def not_determined(reason: str, n: int, links: np.ndarray, **kw) -> AnchorFit:
         np.full(3, np.nan),
         np.zeros(L),
         links,
-        np.zeros(n, bool),
         float("nan"),
         nan,
         **kw,
@@ -443,12 +440,11 @@ def fit_anchor(
     spec = spec or FitSpec()
     xyz = np.asarray(xyz, float).reshape(-1, 3)
     d = np.asarray(d, float).reshape(-1)
-    n_all = len(d)
-    link = np.zeros(n_all, np.int64) if link is None else np.asarray(link, np.int64).reshape(-1)
+    link = np.zeros(len(d), np.int64) if link is None else np.asarray(link, np.int64).reshape(-1)
     fin = np.isfinite(d) & np.all(np.isfinite(xyz), axis=1) & (d > 0)
     links = np.unique(link[fin])
     if fin.sum() < spec.min_ranges:
-        return not_determined(f"only {int(fin.sum())} usable ranges (< {spec.min_ranges})", n_all, links)
+        return not_determined(f"only {int(fin.sum())} usable ranges (< {spec.min_ranges})", links)
     sel = np.flatnonzero(fin)
     if t_ns is not None:
         sel = sel[np.argsort(np.asarray(t_ns)[sel], kind="stable")]
@@ -458,7 +454,7 @@ def fit_anchor(
     c, Vt, ext = plane_frame(x)
     if ext[0] < spec.static_extent_m:
         reason = f"static: the tag moved {ext[0]:.2f} m (std) while ranging it (< {spec.static_extent_m} m)"
-        return not_determined(reason, n_all, links)
+        return not_determined(reason, links)
     li = np.searchsorted(links, link[sel])
     L = len(links)
     s2 = np.full(len(dd), spec.sigma_range**2)
@@ -499,7 +495,7 @@ def fit_anchor(
         else np.trace(np.asarray(pos_cov, float)[sel][:, :3, :3], axis1=1, axis2=2) / 3
     )
     data = (x, dd, li, s2, t, pose_var)
-    fit = _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_open, alternatives)
+    fit = _verdict(best, models, data, links, Vt, ext, spec, reach, sign_open, alternatives)
     if test and "evidence" in fit.costs:
         fit.costs["evidence"]["offset_prior"] = test
     return fit
@@ -604,7 +600,7 @@ def _open_height(cov: np.ndarray, max_sigma: float, reach: float, mirror: bool =
     return out
 
 
-def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_open=False, alternatives=()):
+def _verdict(best, models, data, links, Vt, ext, spec, reach, sign_open=False, alternatives=()):
     """The AnchorFit of the chosen model: weak directions from the eigen-decomposition of its covariance
     (widened to the likelihood's intervals), the other basin when the evidence (or, with ``sign_open``, the
     motion) cannot tell them apart: then the height is open."""
@@ -629,8 +625,6 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
     lam, V = np.linalg.eigh(cov[:3, :3])
     sd = np.sqrt(np.maximum(lam, 0.0))
     sig = mad_sigma(best.r)
-    inl = np.zeros(n_all, bool)
-    inl[sel] = np.abs(best.r) < 4.0 * max(sig, 1e-3)
     evidence = {
         "model": best.name,
         "log_evidence": {f"{m.name}/{m.basin}": round(m.log_evidence - best.log_evidence, 2) for m in models},
@@ -657,7 +651,7 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
             f"weak horizontal direction ({v[0]:.2f}, {v[1]:.2f}): sigma {np.sqrt(lam_h[-1]):.2f} m > "
             f"{spec.max_sigma:g} m (the motion does not pin the anchor down along it)"
         )
-        return not_determined(reason, n_all, links, **kw)
+        return not_determined(reason, links, **kw)
     i = int(np.argmax(sd))
     vertical = abs(V[2, i]) >= VERTICAL_COS and sd[i] > spec.max_sigma
     normal = V[:, i] if vertical else Vt[2]
@@ -669,10 +663,8 @@ def _verdict(best, models, data, sel, n_all, links, Vt, ext, spec, reach, sign_o
         best.p.copy(),
         best.g.copy(),
         links,
-        inl,
         sig,
         cov,
-        normal_spread=float(ext[2]),
         height_observable=not (vertical or mirror),
         mirror=mirror,
         mirror_p=other.p.copy() if mirror else None,

@@ -251,11 +251,11 @@ def search_window(
     "not determined" with the reason (also when the anchor was ranged for less than ``min_duration_s``); RI and
     RI-robust weigh each range by the pose's uncertainty along its line of sight, LSI does not."""
     if len(w) == 0:
-        return not_determined("no ranges", 0, np.zeros(0, np.int64))
+        return not_determined("no ranges", np.zeros(0, np.int64))
     if w.t_ns is not None and (w.t_ns.max() - w.t_ns.min()) * 1e-9 < config.min_duration_s:
         span = (w.t_ns.max() - w.t_ns.min()) * 1e-9
         return not_determined(
-            f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", len(w), np.unique(w.links())
+            f"ranged for only {span:.1f} s (< {config.min_duration_s:g} s)", np.unique(w.links())
         )
     spec = replace(evidence_spec(config, sigma, calibration, method, pose_tau_s), refine_cov=not cheap)
     pos_cov = None
