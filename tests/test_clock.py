@@ -133,3 +133,26 @@ def test_correlated_errors_covariance_is_the_quadratic_form_of_the_declared_pose
     np.testing.assert_allclose(
         correlated_errors_covariance(v, var, t, tau_s), np.einsum("kl,kia,lja->ij", K, v, v), rtol=1e-10
     )
+
+
+@pytest.mark.parametrize("tau_s", [2.0, None])
+def test_correlated_errors_covariance_of_full_pose_covariances(tau_s):
+    """The same with a full covariance per stamp (6x6, as the refinement's error map of a window's poses has):
+    Gauss-Markov S_k S_l exp(-|dt| / tau) with S_k the symmetric square root, or the random walk's earlier
+    covariance (growing by PSD increments)."""
+    rng = np.random.default_rng(4)
+    n, d = 40, 6
+    t = np.sort(rng.uniform(0, 20, n))
+    v = rng.normal(size=(n, 5, d))
+    steps = np.array([0.01 * M @ M.T for M in rng.normal(size=(n, d, d))])
+    P = np.cumsum(steps, axis=0)
+    w, U = np.linalg.eigh(P)
+    S = (U * np.sqrt(w)[:, None, :]) @ np.swapaxes(U, 1, 2)
+    idx = np.arange(n)
+    if tau_s:
+        rho = np.exp(-np.abs(t[:, None] - t[None, :]) / tau_s)
+        K = rho[:, :, None, None] * np.einsum("kab,lcb->klac", S, S)
+    else:
+        K = P[np.minimum.outer(idx, idx)]
+    want = np.einsum("kia,klab,ljb->ij", v, K, v)
+    np.testing.assert_allclose(correlated_errors_covariance(v, P, t, tau_s), want, rtol=1e-9)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from uwbcal.pipeline.core.geometry import quat_slerp
-from uwbcal.pipeline.core.state import chi2_ppf
+from uwbcal.pipeline.core.state import chi2_ppf, nearest_psd
 
 
 def sliding_mean(x: np.ndarray, k: int) -> np.ndarray:
@@ -105,22 +105,30 @@ def autocorrelation_time(e: np.ndarray) -> float:
 def correlated_errors_covariance(
     v: np.ndarray, var: np.ndarray, t: np.ndarray, tau_s: float | None
 ) -> np.ndarray:
-    """sum_kl V_k Cov(e_k, e_l) V_l^T for isotropic 3-vector errors e_k of variance ``var`` (N,) at the sorted
-    stamps ``t`` [s], seen through the gains ``v`` (N, m, 3) (a pose's position error mapped to m estimated
-    quantities): bounded errors stationary with correlation exp(-|dt| / ``tau_s``) (a recursion over the stamps);
-    ``tau_s`` None: a random walk, the covariance of two errors that of the earlier one. Returns (m, m)."""
-    v = np.asarray(v, float)
-    if not np.any(var > 0):
-        return np.zeros((v.shape[1], v.shape[1]))
+    """sum_kl V_k Cov(e_k, e_l) V_l^T for d-vector errors e_k at the sorted stamps ``t`` [s], seen through the
+    gains ``v`` (N, m, d) (a pose's error mapped to m estimated quantities); ``var``: the errors' covariances
+    (N, d, d), or (N,) the variances of isotropic ones. Bounded errors e_k = S_k z_k (S_k the covariance's square
+    root, z stationary with correlation exp(-|dt| / ``tau_s``): a recursion over the stamps); ``tau_s`` None: a
+    random walk, the covariance of two errors that of the earlier one (its increments clipped to PSD). Returns
+    (m, m)."""
+    v, var = np.asarray(v, float), np.asarray(var, float)
+    m, d = v.shape[1:]
+    if not np.any(var):
+        return np.zeros((m, m))
+    P = var[:, None, None] * np.eye(d) if var.ndim == 1 else var
     if tau_s is None:
-        dP = np.maximum(np.diff(var, prepend=0.0), 0.0)
+        dP = nearest_psd(np.diff(P, axis=0, prepend=np.zeros((1, d, d))))
         S = np.cumsum(v[::-1], axis=0)[::-1]  # S_j = sum_{k>=j} V_k
-        return np.einsum("n,nik,njk->ij", dP, S, S)
-    a = np.sqrt(var)[:, None, None] * v
+        return np.einsum("nik,nkl,njl->ij", S, dP, S)
+    if var.ndim == 1:
+        a = np.sqrt(np.maximum(var, 0.0))[:, None, None] * v
+    else:
+        w, U = np.linalg.eigh(0.5 * (P + np.swapaxes(P, 1, 2)))
+        a = v @ ((U * np.sqrt(np.maximum(w, 0.0))[:, None, :]) @ np.swapaxes(U, 1, 2))
     decay = np.exp(-np.diff(t, prepend=t[0]) / tau_s)
-    m, cross = np.zeros(v.shape[1:]), np.zeros((v.shape[1], v.shape[1]))
-    for k in range(len(a)):  # m_k = sum_{l<k} rho_kl a_l
-        m = decay[k] * m
-        cross += a[k] @ m.T
-        m = m + a[k]
+    acc, cross = np.zeros((m, d)), np.zeros((m, m))
+    for k in range(len(a)):  # acc_k = sum_{l<k} rho_kl a_l
+        acc = decay[k] * acc
+        cross += a[k] @ acc.T
+        acc = acc + a[k]
     return np.einsum("nik,njk->ij", a, a) + cross + cross.T

@@ -18,7 +18,7 @@ import numpy as np
 
 from uwbcal.pipeline.core.errors import InputError
 from uwbcal.pipeline.core.geometry import quat_slerp, quat_to_rot
-from uwbcal.pipeline.core.series import bracket, sliding_mean
+from uwbcal.pipeline.core.series import bracket, correlated_errors_covariance, sliding_mean
 from uwbcal.pipeline.core.state import (
     Kind,
     State,
@@ -393,41 +393,20 @@ def _probe_map(
 def _pose_error_map(
     state: State, B: np.ndarray, w: InitWindow, t_ns: np.ndarray, pose_var: str, tau_s: float | None
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """No probes: the window's world-frame pose errors modelled from their marginal covariances, the part
-    correlated with the current pose in J[pose_var], the rest in Q. ``tau_s`` None: the random walk of
-    `anchor_init_covariance`; else bounded errors (the pose source's model), stationary with correlation
-    exp(-|dt| / tau): the ranges pooled in bins of tau / 10 (B summed, the covariance averaged),
-    Cov(e_i, e_j) = rho_ij (P_i + P_j) / 2, Cov(e_i, e_now) = rho_i,now P_i with "now" the window's last stamp,
-    Q clipped to PSD."""
+    """No probes: the window's world-frame pose errors modelled from their marginal covariances P_k
+    (`core.series.correlated_errors_covariance`), the part correlated with the current pose in J[pose_var], the
+    rest in Q. ``tau_s`` None: the random walk of `anchor_init_covariance`, Cov(e_k, e_now) = P_k; else bounded
+    errors (the pose source's model), stationary with correlation exp(-|dt| / tau), Cov(e_k, e_now) =
+    rho_k,now P_k with "now" the window's last stamp; Q clipped to PSD."""
     T = np.zeros((len(B), 6, 6))
     T[:, 0:3, 0:3] = w.R
     T[:, 3:6, 3:6] = np.eye(3)
-    PW = T @ w.P_pose @ np.swapaxes(T, 1, 2)
-    if tau_s is None:
-        order = np.argsort(t_ns, kind="stable")
-        Bo = B[order]
-        dP = nearest_psd(np.diff(PW[order], axis=0, prepend=np.zeros((1, 6, 6))))
-        S = np.cumsum(Bo[::-1], axis=0)[::-1]  # S_i = sum_{k>=i} B_k
-        cov_pose = np.einsum("nij,njk,nlk->il", S, dP, S)
-        C = np.einsum("nij,njk->ik", Bo, np.cumsum(dP, axis=0))  # with the P_k the random walk implies
-    else:
-        t = (t_ns - t_ns.min()) * 1e-9
-        h = max(tau_s / 10.0, 1e-3)
-        b = np.floor(t / h).astype(np.int64)
-        ub, inv = np.unique(b, return_inverse=True)
-        nb = len(ub)
-        Bb = np.zeros((nb, 5, 6))
-        np.add.at(Bb, inv, B)
-        cnt = np.bincount(inv, minlength=nb).astype(float)
-        Pb = np.zeros((nb, 6, 6))
-        np.add.at(Pb, inv, PW)
-        Pb /= cnt[:, None, None]
-        tb = np.bincount(inv, weights=t, minlength=nb) / cnt
-        rho = np.exp(-np.abs(tb[:, None] - tb[None, :]) / tau_s)
-        BP = np.einsum("bij,bjk->bik", Bb, Pb)  # B_b P_b
-        # sum_ij rho_ij B_i (P_i + P_j)/2 B_j^T
-        cov_pose = 0.5 * (np.einsum("ab,aij,bkj->ik", rho, BP, Bb) + np.einsum("ab,aij,bkj->ik", rho, Bb, BP))
-        C = np.einsum("b,bij->ij", np.exp(-(t.max() - tb) / tau_s), BP)
+    order = np.argsort(t_ns, kind="stable")
+    B, PW = B[order], (T @ w.P_pose @ np.swapaxes(T, 1, 2))[order]
+    t = (t_ns[order] - t_ns.min()) * 1e-9
+    cov_pose = correlated_errors_covariance(B, PW, t, tau_s)
+    rho = np.ones(len(t)) if tau_s is None else np.exp(-(t.max() - t) / tau_s)
+    C = np.einsum("n,nij,njk->ik", rho, B, PW)
     Tn = np.eye(6)
     Tn[0:3, 0:3] = state.value(pose_var).R
     C = C @ Tn  # Cov(x~_U, e_now (body))
@@ -437,7 +416,7 @@ def _pose_error_map(
     Jfull = np.zeros((5, state.dim(pose_var)))
     Jfull[:, 0:6] = Jn
     Q = cov_pose - Jn @ P_now @ Jn.T
-    return {pose_var: Jfull}, Q if tau_s is None else nearest_psd(Q)
+    return {pose_var: Jfull}, nearest_psd(Q)
 
 
 def add_anchor_to_state(
