@@ -353,3 +353,13 @@ def test_covariance_upper_bound_is_the_larger_along_common_axes():
             rtol=1e-7,
             atol=1e-9 * np.abs(T @ C @ T.T).max(),
         )
+
+
+def test_covariance_upper_bound_of_a_singular_covariance():
+    """A rank-deficient B (a variable nothing constrains in one of the two) still gives a bound of both."""
+    rng = np.random.default_rng(5)
+    M = rng.normal(size=(5, 3))
+    A, B = _random_spd(rng, 5), M @ M.T
+    C = covariance_upper_bound(A, B)
+    for lower in (A, B):
+        assert np.linalg.eigvalsh(C - lower).min() > -1e-9 * np.trace(C)
