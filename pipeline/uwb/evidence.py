@@ -398,9 +398,8 @@ def mixture_cov(
     """Covariance of (p, offsets per link) of the chosen model, its position block the larger
     (`covariance_upper_bound`) of its own and the evidence-weighted mixture of every family and basin fitted and of
     ``alternatives`` (fits under another prior: a stated offset the ranges do not confirm): their covariances plus
-    the spread of their positions about the chosen one. What
-    the chosen model leaves out (the other basin, an offset it holds at its prior mean) stays in the sigma as much
-    as the ranges allow it."""
+    the spread of their positions about the chosen one. What the chosen model leaves out (the other basin, an
+    offset it holds at its prior mean) stays in the sigma as much as the ranges allow it."""
 
     def pos_cov(m: Model) -> np.ndarray:
         return np.linalg.inv(posterior_info(m, reach))
@@ -602,8 +601,8 @@ def _open_height(cov: np.ndarray, max_sigma: float, reach: float, mirror: bool =
 
 def _verdict(best, models, data, links, Vt, ext, spec, reach, sign_open=False, alternatives=()):
     """The AnchorFit of the chosen model: weak directions from the eigen-decomposition of its covariance
-    (widened to the likelihood's intervals), the other basin when the evidence (or, with ``sign_open``, the
-    motion) cannot tell them apart: then the height is open."""
+    (widened to the likelihood's intervals), the other basin when the evidence (deflated for the declared pose
+    error, `basin_deflation`) or, with ``sign_open``, the motion cannot tell them apart: then the height is open."""
     dd = data[1]
     twin = [m for m in models if m.name == best.name and m.basin != best.basin]
     other = twin[0] if twin else best
