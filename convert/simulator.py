@@ -523,6 +523,21 @@ def simulate_odometry(
     return OdometrySim(t_ns=t_ns, p=p_hat, q_xyzw=rot_to_quat(R_hat))
 
 
+def gauss_markov_errors(
+    dt_s: np.ndarray, sigmas: np.ndarray, tau_s: float, rng: np.random.Generator
+) -> np.ndarray:
+    """(N, d) stationary Gauss-Markov errors with the stationary sigmas ``sigmas`` (d,), at stamps ``dt_s`` [s]
+    after each one before (the first's ignored): e_k = phi e_(k-1) + sqrt(1 - phi^2) z_k, phi = exp(-dt /
+    ``tau_s``), e_0 = z_0."""
+    phi = np.exp(-np.asarray(dt_s, float) / tau_s)
+    z = rng.standard_normal((len(phi), len(sigmas))) * sigmas
+    e = np.empty_like(z)
+    e[0] = z[0]
+    for k in range(1, len(z)):
+        e[k] = phi[k] * e[k - 1] + np.sqrt(1.0 - phi[k] ** 2) * z[k]
+    return e
+
+
 def simulate_bounded_odometry(
     traj: SplineTrajectory,
     t_ns: np.ndarray,
@@ -536,15 +551,8 @@ def simulate_bounded_odometry(
     first pose), R_hat = Exp(-e_theta) R, p_hat = p - e_p (so the filter's [dtheta_body, dp] = [R^T e_theta, e_p])."""
 
     s = traj.evaluate(rel_seconds(traj, t_ns))
-    n = len(t_ns)
     sig = np.r_[np.full(3, sigma_theta), np.full(3, sigma_p)]
-    dt = np.diff(np.asarray(t_ns, np.int64), prepend=t_ns[0]) * 1e-9
-    phi = np.exp(-dt / tau_s)
-    z = rng.standard_normal((n, 6)) * sig
-    e = np.empty((n, 6))
-    e[0] = z[0]
-    for k in range(1, n):
-        e[k] = phi[k] * e[k - 1] + np.sqrt(1.0 - phi[k] ** 2) * z[k]
+    e = gauss_markov_errors(np.diff(np.asarray(t_ns, np.int64), prepend=t_ns[0]) * 1e-9, sig, tau_s, rng)
     R_hat = exp_so3(-e[:, 0:3]) @ s.R
     return OdometrySim(t_ns=t_ns, p=s.p - e[:, 3:6], q_xyzw=rot_to_quat(R_hat))
 

@@ -5,6 +5,7 @@ the evidence-weighted mixture of the models; weak directions from its eigen-deco
 import numpy as np
 import pytest
 
+from uwbcal.convert.simulator import gauss_markov_errors
 from uwbcal.pipeline.uwb.evidence import BAYES_FACTOR, FitSpec, Model, choose, deflation, fit_anchor
 
 CHI2_3_999 = 16.27
@@ -172,14 +173,9 @@ def test_declared_errors_cov_matches_the_fits_under_the_declared_errors():
     rho = np.linalg.norm(xyz - p, axis=1)
     spec = FitSpec(sigma_range=0.05, robust=False, pattern_sigma=0.03, pose_tau_s=10.0)
     li, s2 = np.zeros(len(t), np.int64), np.full(len(t), 0.05**2)
-    phi = np.exp(-np.diff(t, prepend=t[0]) / spec.pose_tau_s)
 
     def pose_error():
-        e = np.zeros((len(t), 3))
-        e[0] = rng.normal(0, 0.05, 3)
-        for k in range(1, len(t)):
-            e[k] = phi[k] * e[k - 1] + rng.normal(0, 0.05 * np.sqrt(1 - phi[k] ** 2), 3)
-        return e
+        return gauss_markov_errors(np.diff(t, prepend=t[0]), np.full(3, 0.05), spec.pose_tau_s, rng)
 
     def draw():
         d = rho + u @ rng.normal(0, 0.03, 3) + rng.normal(0, 0.05, len(t))
@@ -227,14 +223,9 @@ def test_basin_deflation_matches_the_spread_of_the_basins_bayes_factor():
     rho = np.linalg.norm(xyz - p, axis=1)
     spec = FitSpec(sigma_range=0.05, robust=False, pose_tau_s=10.0)
     li, s2 = np.zeros(len(t), np.int64), np.full(len(t), 0.05**2)
-    phi = np.exp(-np.diff(t, prepend=t[0]) / spec.pose_tau_s)
 
     def pose_error():
-        e = np.zeros((len(t), 3))
-        e[0] = rng.normal(0, 0.03, 3)
-        for k in range(1, len(t)):
-            e[k] = phi[k] * e[k - 1] + rng.normal(0, 0.03 * np.sqrt(1 - phi[k] ** 2), 3)
-        return e
+        return gauss_markov_errors(np.diff(t, prepend=t[0]), np.full(3, 0.03), spec.pose_tau_s, rng)
 
     def fits(x, d):
         return [fit_family(x, d, li, 1, s2, "position", s, spec) for s in (p, mirror)]
