@@ -608,7 +608,8 @@ def _verdict(best, models, data, links, Vt, ext, spec, reach, sign_open=False, a
     other = twin[0] if twin else best
     two = np.linalg.norm(other.p - best.p) > 1e-3
     lead = basin_evidence(models, best.basin) - basin_evidence(models, other.basin)
-    close = lead / basin_deflation(best, other, data, spec) <= np.log(BAYES_FACTOR)
+    side_deflation = basin_deflation(best, other, data, spec)
+    close = lead / side_deflation <= np.log(BAYES_FACTOR)
     mirror = bool(sign_open or (two and close))
     if mirror and not two:  # one basin found: the other side is the estimate's mirror across the motion plane
         nrm = Vt[2]
@@ -628,6 +629,7 @@ def _verdict(best, models, data, links, Vt, ext, spec, reach, sign_open=False, a
         "model": best.name,
         "log_evidence": {f"{m.name}/{m.basin}": round(m.log_evidence - best.log_evidence, 2) for m in models},
         "deflation": round(spec.deflate, 2),
+        "side_deflation": round(side_deflation, 2),
         "axes": [{"direction": np.round(V[:, i], 3).tolist(), "sigma_m": float(sd[i])} for i in range(3)],
     }
     kw = dict(
