@@ -595,14 +595,14 @@ def covariance_upper_bound(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """The larger of two covariances: along each of their common axes (the generalised eigenvectors, where both are
     diagonal) the larger variance. It bounds both from above (C - A, C - B PSD), equals ``B`` where ``A`` <= ``B``,
     and does not depend on the coordinates' units (C(T A T', T B T') = T C(A, B) T'). A singular ``B`` is taken
-    with 1e-12 of each variance added (of A's largest where B's is 0)."""
+    with 1e-12 of each of its variances added to it (1e-24 of A's largest where a variance is 0)."""
     A, B = 0.5 * (A + A.T), 0.5 * (B + B.T)
     try:
         L = np.linalg.cholesky(B)
     except np.linalg.LinAlgError:
-        L = np.linalg.cholesky(B + np.diag(1e-12 * np.maximum(np.diag(B), np.diag(A).max() * 1e-12)))
-    Li = np.linalg.solve(L, np.eye(len(B)))
-    s, U = np.linalg.eigh(Li @ A @ Li.T)
+        L = np.linalg.cholesky(B + np.diag(1e-12 * np.maximum(np.diag(B), 1e-12 * np.diag(A).max())))
+    W = _lower_solve(L, _lower_solve(L, A).T)  # L^-1 A L^-T (A symmetric)
+    s, U = np.linalg.eigh(0.5 * (W + W.T))
     M = L @ U
     return (M * np.maximum(s, 1.0)) @ M.T
 

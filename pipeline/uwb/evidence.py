@@ -302,16 +302,23 @@ def basin_deflation(a: Model, b: Model, data: tuple, spec: FitSpec) -> float:
     variance under the (deflated) ranges' noise, over the latter. A pose error shared along the path moves every
     range alike and leaves no trace in either fit's residuals, yet it can mimic the carrier's small excursions
     off its plane that tell the two sides apart."""
-    xyz, _, _, s2, t, pose_var = data
-    if pose_var is None or t is None or spec.pose_tau_s <= 0 or a is b:
+    xyz, s2 = data[0], data[3]
+    if a is b:
         return 1.0
     white = spec.deflate * float(np.sum((b.r - a.r) ** 2 / s2))  # d log BF / d range error: (r_b - r_a) / s2
     # d log BF / d tag position: each basin's residual moves along its own line of sight (a shift shared by every
     # pose moves both anchors with it and cancels)
     gains = (b.r[:, None] * lines_of_sight(b.p, xyz) - a.r[:, None] * lines_of_sight(a.p, xyz)) / s2[:, None]
-    gains = gains[:, None, :]
-    pose = float(correlated_errors_covariance(gains, pose_var, (t - t[0]) * 1e-9, spec.pose_tau_s)[0, 0])
-    return 1.0 + pose / max(white, 1e-12)
+    return 1.0 + float(declared_pose_cov(gains[:, None, :], data, spec)[0, 0]) / max(white, 1e-12)
+
+
+def declared_pose_cov(gains: np.ndarray, data: tuple, spec: FitSpec) -> np.ndarray:
+    """(m, m): a bounded pose source's declared error (Gauss-Markov over ``spec.pose_tau_s``) through ``gains``
+    (N, m, 3), each tag position error's effect on m quantities; zero without one (a drifting source)."""
+    t, pose_var = data[4], data[5]
+    if pose_var is None or t is None or spec.pose_tau_s <= 0:
+        return np.zeros((gains.shape[1], gains.shape[1]))
+    return correlated_errors_covariance(gains, pose_var, (t - t[0]) * 1e-9, spec.pose_tau_s)
 
 
 def _group_inflation(e: np.ndarray, groups: np.ndarray, quantile: float = 0.99) -> float:
@@ -574,16 +581,15 @@ def declared_errors_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> n
     direction of arrival u. A floor of the covariance: a pose error shared along a stretch of the path moves the
     anchor with it, and a pattern mimics a displaced anchor, so neither leaves a trace in the residuals that the
     deflation or a regrouping of the ranges could measure."""
-    xyz, _, li, s2, t, pose_var = data
+    xyz, _, li, s2 = data[:4]
     G = range_gain(m, s2, spec, reach)
     u = lines_of_sight(m.p, xyz)
     cov = max(mad_sigma(_standardised(m, s2, li)), 1.0) ** 2 * (G * s2) @ G.T
     M = G @ u
     cov += spec.pattern_sigma**2 * M @ M.T
-    if pose_var is not None and t is not None and spec.pose_tau_s > 0:
-        gains = G.T[:, :, None] * u[:, None, :]  # (N, 3, 3): each tag position error -> position
-        cov += correlated_errors_covariance(gains, pose_var, (t - t[0]) * 1e-9, spec.pose_tau_s)
-    return cov
+    return cov + declared_pose_cov(
+        G.T[:, :, None] * u[:, None, :], data, spec
+    )  # each tag position error -> p
 
 
 def _open_height(cov: np.ndarray, max_sigma: float, reach: float, mirror: bool = False) -> np.ndarray:
