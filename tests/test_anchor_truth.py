@@ -285,6 +285,42 @@ def test_undetermined_reason_stated_once(tmp_path):
     assert read_run_anchors(d, "ri").undetermined["3"]["reason"] == why
 
 
+def test_an_anchor_refinement_leaves_weak_is_not_determined_with_its_reason(tmp_path):
+    """The init's gate on the covariance the run reports: an anchor whose horizontal sigma after refinement is
+    above max_sigma_horizontal_m gets an empty refine row with the reason, which metrics.json states."""
+    from uwbcal.pipeline.run import rundir as rd
+    from uwbcal.pipeline.run.stages.refine import _weak_after_refine
+
+    d = _run_dir(tmp_path / "run")
+    states = json.loads((d / "anchor_states.json").read_text())
+    P = np.diag([0.01, 1.0, 0.25, 1e-4, 1e-2])
+    P[0, 1] = P[1, 0] = 0.09  # the weak direction leans towards x
+    states["1"]["P"] = P.tolist()
+    warns: list[str] = []
+    weak = _weak_after_refine(states, 0.9, warns)
+    lam, V = np.linalg.eigh(P[:2, :2])
+    assert (
+        set(weak) == {"1"}
+        and set(states) == {"0"}
+        and warns == [f"refine: anchor 1 not determined: {weak['1']}"]
+    )
+    assert (
+        f"sigma {np.sqrt(lam[-1]):.2f} m > 0.9 m" in weak["1"]
+        and f"({V[0, -1]:.2f}, {V[1, -1]:.2f})" in weak["1"]
+    )
+    (d / "anchor_states.json").write_text(json.dumps(states))
+    rows = [rd.anchor_row("0", "ri+skf", "refine", states["0"]["x"])]
+    rd.write_anchors(rd.RunDir(d), rows + [rd.undetermined_row("1", "ri+skf", "refine", weak["1"])], "refine")
+    assert (d / "anchors.csv").read_text().splitlines()[0].endswith(",gamma,reason")
+    run = read_run_anchors(d, "ri")
+    assert set(run.estimates) == {"0"} and run.undetermined["1"]["reason"] == weak["1"]
+    (tmp_path / "plain").mkdir()
+    rd.write_anchors(
+        rd.RunDir(tmp_path / "plain"), rows + [rd.undetermined_row("1", "ri+skf", "refine")], "refine"
+    )
+    assert (tmp_path / "plain" / "anchors.csv").read_text().startswith(",".join(rd.ANCHOR_COLUMNS) + "\n")
+
+
 def _own_frame_run(tmp_path: Path, static: bool) -> tuple[Path, np.ndarray, np.ndarray]:
     """A run whose trajectory and anchors are the truth seen from a frame turned by 0.7 rad of yaw and shifted
     (a static initialiser's own frame) when ``static``, else the truth's frame; anchors 0.1 m off in x."""

@@ -265,13 +265,15 @@ def init_summary(r) -> dict:
     return out
 
 
-def undetermined_row(anchor, method: str, stage: str) -> dict:
-    """anchors.csv row of an anchor that was not determined: empty coordinates."""
+def undetermined_row(anchor, method: str, stage: str, reason: str = "") -> dict:
+    """anchors.csv row of an anchor that was not determined: empty coordinates (a stage's own reason in the
+    optional ``reason`` column; the initialiser's are in init.json)."""
     return {
         "anchor": str(anchor),
         "method": method,
         "stage": stage,
         **dict.fromkeys(("x", "y", "z", "beta", "gamma"), ""),
+        **({"reason": reason} if reason else {}),
     }
 
 
@@ -284,7 +286,8 @@ def write_anchors(run_dir: RunDir, rows: list[dict], replace_stage: str) -> None
         else []
     )
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=ANCHOR_COLUMNS, lineterminator="\n", extrasaction="ignore")
+    reason = ("reason",) if any(r.get("reason") for r in old + rows) else ()
+    w = csv.DictWriter(buf, fieldnames=ANCHOR_COLUMNS + reason, lineterminator="\n", extrasaction="ignore")
     w.writeheader()
     for r in old + rows:
         w.writerow(r)

@@ -138,7 +138,8 @@ class UwbConfig(BaseModel):
     max_sigma_horizontal_m: float = Field(
         1.0,
         gt=0,
-        description="an anchor whose horizontal sigma after the search exceeds this is not (yet) determined",
+        description="an anchor whose horizontal sigma after the search (or after refinement: the sigma the run "
+        "reports) exceeds this is not (yet) determined",
     )
     join_sigma_m: float = Field(
         0.3,

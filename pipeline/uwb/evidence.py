@@ -605,6 +605,19 @@ def _open_height(cov: np.ndarray, max_sigma: float, reach: float, mirror: bool =
     return out
 
 
+def weak_horizontal(cov: np.ndarray, max_sigma: float) -> str:
+    """Why an anchor of position covariance ``cov`` is not determined: its horizontal sigma over ``max_sigma``
+    along some direction ("" when it is not)."""
+    lam, V = np.linalg.eigh(_psd(np.asarray(cov, float)[:2, :2]))
+    if np.sqrt(lam[-1]) <= max_sigma:
+        return ""
+    v = V[:, -1] * np.sign(V[np.argmax(np.abs(V[:, -1])), -1])
+    return (
+        f"weak horizontal direction ({v[0]:.2f}, {v[1]:.2f}): sigma {np.sqrt(lam[-1]):.2f} m > {max_sigma:g} m "
+        "(the motion does not pin the anchor down along it)"
+    )
+
+
 def _verdict(best, models, data, links, Vt, ext, spec, reach, sign_open=False, alternatives=()):
     """The AnchorFit of the chosen model: weak directions from the eigen-decomposition of its covariance
     (widened to the likelihood's intervals), the other basin when the evidence (deflated for the declared pose
@@ -650,14 +663,8 @@ def _verdict(best, models, data, links, Vt, ext, spec, reach, sign_open=False, a
         beta=best.beta,
         residuals=best.r.copy(),
     )
-    H = _psd(cov[:2, :2])
-    lam_h, V_h = np.linalg.eigh(H)
-    if np.sqrt(lam_h[-1]) > spec.max_sigma:
-        v = V_h[:, -1] * np.sign(V_h[np.argmax(np.abs(V_h[:, -1])), -1])
-        reason = (
-            f"weak horizontal direction ({v[0]:.2f}, {v[1]:.2f}): sigma {np.sqrt(lam_h[-1]):.2f} m > "
-            f"{spec.max_sigma:g} m (the motion does not pin the anchor down along it)"
-        )
+    reason = weak_horizontal(cov, spec.max_sigma)
+    if reason:
         return not_determined(reason, links, **kw)
     i = int(np.argmax(sd))
     vertical = abs(V[2, i]) >= VERTICAL_COS and sd[i] > spec.max_sigma

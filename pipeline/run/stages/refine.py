@@ -9,6 +9,7 @@ import numpy as np
 from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.context import StageContext, StageResult, filter_warnings
 from uwbcal.pipeline.run.driver import run_estimator
+from uwbcal.pipeline.uwb.evidence import weak_horizontal
 from uwbcal.pipeline.uwb.updater import UwbUpdater, add_initialised_anchors
 from uwbcal.pipeline.vio.estimator import Estimator
 from uwbcal.pipeline.viz import observers
@@ -53,12 +54,14 @@ def run(ctx: StageContext) -> StageResult:
     rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
     ctx.dir.save_npz(RANGE_UPDATES, **_range_updates(updater.arrays()))
     states = _anchor_states(est, updater, results, inflation, warns)
+    weak = _weak_after_refine(states, cfg.max_sigma_horizontal_m, warns)
     ctx.dir.save_json("anchor_states.json", states)
     label = f"{cfg.init_method}+{cfg.refine_method}"
     rd.write_anchors(
         ctx.dir,
         [rd.anchor_row(a, label, "refine", s["x"]) for a, s in states.items()]
-        + [rd.undetermined_row(a, label, "refine") for a, r in results.items() if not r.ok],
+        + [rd.undetermined_row(a, label, "refine") for a, r in results.items() if not r.ok]
+        + [rd.undetermined_row(a, label, "refine", why) for a, why in weak.items()],
         replace_stage="refine",
     )
     ctx.assemble_trajectory()
@@ -139,6 +142,17 @@ def _anchor_states(
         if r is not None and not r.verdict.get("height_observable", True):
             s["P"] = _keep_height_sigma(s["P"], r.cov)
     return states
+
+
+def _weak_after_refine(states: dict, max_sigma: float, warns: list[str]) -> dict[str, str]:
+    """The init's not-determined gate on the covariance the run reports: the anchors whose horizontal sigma after
+    refinement (the join keeps what the init window's errors leave open) exceeds ``max_sigma``, taken out of
+    ``states``; id -> reason, each also a warning."""
+    weak = {a: why for a, s in states.items() if (why := weak_horizontal(s["P"], max_sigma))}
+    for a, why in weak.items():
+        del states[a]
+        warns.append(f"refine: anchor {a} not determined: {why}")
+    return weak
 
 
 def _keep_height_sigma(P, P_init) -> np.ndarray:
