@@ -10,7 +10,7 @@ from uwbcal.pipeline.run import rundir as rd
 from uwbcal.pipeline.run.context import StageContext, StageResult, filter_warnings
 from uwbcal.pipeline.run.driver import run_estimator
 from uwbcal.pipeline.uwb.evidence import weak_horizontal
-from uwbcal.pipeline.uwb.updater import UwbUpdater, add_initialised_anchors
+from uwbcal.pipeline.uwb.updater import UwbUpdater, add_initialised_anchors, anchor_var, link_var
 from uwbcal.pipeline.vio.estimator import Estimator
 from uwbcal.pipeline.viz import observers
 from uwbcal.pipeline.viz import runlog as rl
@@ -47,14 +47,17 @@ def run(ctx: StageContext) -> StageResult:
         observers.log_uwb_updates(log, updater)
         consistency = filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns, log)
         _log_anchors(log, est, updater, win.refine_end_ns)
+    states = _anchor_states(est, updater, results, inflation, warns)
+    weak = _weak_after_refine(states, cfg.max_sigma_horizontal_m, warns)
+    for name in (v(a) for a in weak for v in (anchor_var, link_var)):
+        if name in est.state:  # not determined: the localisation does not range to it
+            est.state.remove(name)
     ctx.dir.save_pickle("checkpoint_refine.pkl", est)
     hist = est.history().arrays()
     seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
     ctx.dir.save_npz("refine.npz", **{k: v[seg] for k, v in hist.items()})
     rd.write_odometry(ctx.dir, "refine.mcap", {k: v[seg] for k, v in hist.items()})
     ctx.dir.save_npz(RANGE_UPDATES, **_range_updates(updater.arrays()))
-    states = _anchor_states(est, updater, results, inflation, warns)
-    weak = _weak_after_refine(states, cfg.max_sigma_horizontal_m, warns)
     ctx.dir.save_json("anchor_states.json", states)
     label = f"{cfg.init_method}+{cfg.refine_method}"
     rd.write_anchors(
