@@ -64,6 +64,7 @@ def test_planar_nees_within_chi2_bounds(tmp_path):
         pipe.run(progress=lambda *_: None)
         m = json.loads(pipe.dir.file("metrics.json").read_text())
         states = json.loads(pipe.dir.file("anchor_states.json").read_text())
+        init = json.loads(pipe.dir.file("init.json").read_text())
         truth = pipe.ctx.reader.truth["anchors"]
         _right_or_not_determined([m], 1.0)
         for a, v in m["anchors"].items():
@@ -72,6 +73,8 @@ def test_planar_nees_within_chi2_bounds(tmp_path):
             assert v["verdict"]["height_observable"] is False, a
             assert v["z_error_sigmas"] <= 1.0, (a, v["z_error_sigmas"])
             x, P = np.asarray(states[a]["x"], float), np.asarray(states[a]["P"], float)
+            # the range updates leave an unobservable height alone: as uncertain after refinement as at init
+            assert P[2, 2] == pytest.approx(init["methods"][init["chosen"]][a]["cov"][2][2], rel=1e-9), a
             e = x[:2] - np.asarray(truth[a]["position"], float)[:2]
             nees_h.append(float(e @ np.linalg.solve(P[:2, :2], e)))
     assert len(nees_h) >= 9 and _inside(np.array(nees_h), dof=2)

@@ -47,7 +47,7 @@ def run(ctx: StageContext) -> StageResult:
         observers.log_uwb_updates(log, updater)
         consistency = filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns, log)
         _log_anchors(log, est, updater, win.refine_end_ns)
-    states = _anchor_states(est, updater, results, inflation, warns)
+    states = _anchor_states(est, updater, inflation, warns)
     weak = _weak_after_refine(states, cfg.max_sigma_horizontal_m, warns)
     for name in (v(a) for a in weak for v in (anchor_var, link_var)):
         if name in est.state:  # not determined: the localisation does not range to it
@@ -112,11 +112,10 @@ def _log_anchors(log: RunLog, est: Estimator, updater: UwbUpdater, t_end_ns: int
         log.ellipsoids(rl.anchor_world(a, "cov"), x[:3], est.state.cov(n)[None, :3, :3], t_ns=t_end_ns)
 
 
-def _anchor_states(
-    est: Estimator, updater: UwbUpdater, results: dict, inflation: dict, warns: list[str]
-) -> dict[str, dict]:
-    """Per anchor (the refined ones and those fitted from all their ranges): state, covariance (its height
-    variance kept where unobservable), noise inflation, link offsets; the warnings appended to ``warns``."""
+def _anchor_states(est: Estimator, updater: UwbUpdater, inflation: dict, warns: list[str]) -> dict[str, dict]:
+    """Per anchor (the refined ones and those fitted from all their ranges): state, covariance (an unobservable
+    height's variance is the init's: `UwbUpdater.fixed_height`), noise inflation, link offsets; the warnings
+    appended to ``warns``."""
     offsets, offset_cov = updater.offsets(est.state), updater.offset_covariances(est.state)
     states = {
         str(a): {
@@ -140,10 +139,6 @@ def _anchor_states(
             f"refine: anchors {sorted(updater.pending)} were determined only by all their ranges; reported at "
             "their initial estimate"
         )
-    for a, s in states.items():  # a height the data cannot see stays as uncertain as at init
-        r = results.get(rd.anchor_key(a))
-        if r is not None and not r.verdict.get("height_observable", True):
-            s["P"] = _keep_height_sigma(s["P"], r.cov)
     return states
 
 
@@ -156,14 +151,3 @@ def _weak_after_refine(states: dict, max_sigma: float, warns: list[str]) -> dict
         del states[a]
         warns.append(f"refine: anchor {a} not determined: {why}")
     return weak
-
-
-def _keep_height_sigma(P, P_init) -> np.ndarray:
-    """The anchor covariance with its z variance at least that of ``P_init`` (its correlations scaled)."""
-    P = np.asarray(P, float).copy()
-    vz, v0 = P[2, 2], float(np.asarray(P_init)[2, 2])
-    if np.isfinite(v0) and v0 > vz > 0:
-        f = np.sqrt(v0 / vz)
-        P[2, :] *= f
-        P[:, 2] *= f
-    return P
