@@ -20,6 +20,8 @@ from uwbcal.evaluate.anchor_report import AnchorReference, anchor_metrics, read_
 from uwbcal.evaluate.evaluation import render_metrics
 from uwbcal.evaluate.metrics import anchor_errors, inter_anchor_distance_errors
 from uwbcal.pipeline.core.errors import InputError
+from uwbcal.pipeline.run import rundir as rd
+from uwbcal.pipeline.run.stages.refine import _weak_after_refine
 
 from support import T0
 
@@ -288,9 +290,6 @@ def test_undetermined_reason_stated_once(tmp_path):
 def test_an_anchor_refinement_leaves_weak_is_not_determined_with_its_reason(tmp_path):
     """The init's gate on the covariance the run reports: an anchor whose horizontal sigma after refinement is
     above max_sigma_horizontal_m gets an empty refine row with the reason, which metrics.json states."""
-    from uwbcal.pipeline.run import rundir as rd
-    from uwbcal.pipeline.run.stages.refine import _weak_after_refine
-
     d = _run_dir(tmp_path / "run")
     states = json.loads((d / "anchor_states.json").read_text())
     P = np.diag([0.01, 1.0, 0.25, 1e-4, 1e-2])

@@ -49,9 +49,10 @@ def run(ctx: StageContext) -> StageResult:
         _log_anchors(log, est, updater, win.refine_end_ns)
     states = _anchor_states(est, updater, inflation, warns)
     weak = _weak_after_refine(states, cfg.max_sigma_horizontal_m, warns)
-    for name in (v(a) for a in weak for v in (anchor_var, link_var)):
-        if name in est.state:  # not determined: the localisation does not range to it
-            est.state.remove(name)
+    for a in weak:  # not determined: the localisation does not range to it
+        for name in (anchor_var(a), link_var(a)):
+            if name in est.state:
+                est.state.remove(name)
     ctx.dir.save_pickle("checkpoint_refine.pkl", est)
     hist = est.history().arrays()
     seg = (hist["t_ns"] >= win.init_end_ns) & (hist["t_ns"] < win.refine_end_ns)
