@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -296,13 +297,16 @@ def test_an_anchor_refinement_leaves_weak_is_not_determined_with_its_reason(tmp_
     P[0, 1] = P[1, 0] = 0.09  # the weak direction leans towards x
     states["1"]["P"] = P.tolist()
     warns: list[str] = []
-    weak = _weak_after_refine(states, 0.9, warns)
+    logged = []
+    log = SimpleNamespace(text=lambda msg, level="INFO", t_ns=None: logged.append((msg, level, t_ns)))
+    weak = _weak_after_refine(states, 0.9, warns, log, 7_000)
     lam, V = np.linalg.eigh(P[:2, :2])
     assert (
         set(weak) == {"1"}
         and set(states) == {"0"}
         and warns == [f"refine: anchor 1 not determined: {weak['1']}"]
     )
+    assert logged == [(warns[0], "WARN", 7_000)]  # the viewer's log says it beside the anchor's last state
     assert (
         f"sigma {np.sqrt(lam[-1]):.2f} m > 0.9 m" in weak["1"]
         and f"({V[0, -1]:.2f}, {V[1, -1]:.2f})" in weak["1"]

@@ -47,8 +47,8 @@ def run(ctx: StageContext) -> StageResult:
         observers.log_uwb_updates(log, updater)
         consistency = filter_warnings(ctx, "refine", est, updater, win.init_end_ns, win.refine_end_ns, log)
         _log_anchors(log, est, updater, win.refine_end_ns)
-    states = _anchor_states(est, updater, inflation, warns)
-    weak = _weak_after_refine(states, cfg.max_sigma_horizontal_m, warns)
+        states = _anchor_states(est, updater, inflation, warns)
+        weak = _weak_after_refine(states, cfg.max_sigma_horizontal_m, warns, log, win.refine_end_ns)
     for a in weak:  # not determined: the localisation does not range to it
         for name in (anchor_var(a), link_var(a)):
             if name in est.state:
@@ -143,12 +143,17 @@ def _anchor_states(est: Estimator, updater: UwbUpdater, inflation: dict, warns: 
     return states
 
 
-def _weak_after_refine(states: dict, max_sigma: float, warns: list[str]) -> dict[str, str]:
+def _weak_after_refine(
+    states: dict, max_sigma: float, warns: list[str], log: RunLog | None = None, t_ns: int | None = None
+) -> dict[str, str]:
     """The init's not-determined gate on the covariance the run reports: the anchors whose horizontal sigma after
     refinement (the join keeps what the init window's errors leave open) exceeds ``max_sigma``, taken out of
-    ``states``; id -> reason, each also a warning."""
+    ``states``; id -> reason, each also a warning, logged as a WARN text at ``t_ns`` beside the anchor's last
+    state."""
     weak = {a: why for a, s in states.items() if (why := weak_horizontal(s["P"], max_sigma))}
     for a, why in weak.items():
         del states[a]
         warns.append(f"refine: anchor {a} not determined: {why}")
+        if log is not None:
+            log.text(warns[-1], "WARN", t_ns)
     return weak
