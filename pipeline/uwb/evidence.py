@@ -587,9 +587,8 @@ def declared_errors_cov(m: Model, data: tuple, spec: FitSpec, reach: float) -> n
     cov = max(mad_sigma(_standardised(m, s2, li)), 1.0) ** 2 * (G * s2) @ G.T
     M = G @ u
     cov += spec.pattern_sigma**2 * M @ M.T
-    return cov + declared_pose_cov(
-        G.T[:, :, None] * u[:, None, :], data, spec
-    )  # each tag position error -> p
+    gains = G.T[:, :, None] * u[:, None, :]  # (N, 3, 3): each tag position error -> p
+    return cov + declared_pose_cov(gains, data, spec)
 
 
 def _open_height(cov: np.ndarray, max_sigma: float, reach: float, mirror: bool = False) -> np.ndarray:
